@@ -1,0 +1,354 @@
+"""The ``slamreplay`` command line.
+
+Exit codes: 0 success; 1 a check failed (``diff`` found a regression, ``inspect`` found a
+damaged file); 2 bad input (one line on stderr saying what is wrong and what to do).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import traceback
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from recorder.errors import RecorderError
+from replay.errors import ReplayError
+
+EXIT_OK, EXIT_CHECK_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+
+
+class CliError(Exception):
+    """Bad command-line input."""
+
+
+def _eprint(*args: Any) -> None:
+    print(*args, file=sys.stderr)
+
+
+@contextmanager
+def progress_bar(description: str, quiet: bool) -> Iterator[Callable[[int, int], None]]:
+    """A rich progress bar on stderr, yielding ``update(done, total)``; silent with ``--quiet``."""
+    if quiet or not sys.stderr.isatty():
+        yield lambda done, total: None
+        return
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+               TextColumn("eta"), TimeRemainingColumn())
+    with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
+        task = bar.add_task(description, total=None)
+
+        def update(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=max(total, done))
+
+        yield update
+
+
+def _parse_pairs(items: Sequence[str], what: str) -> dict[str, str]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key or not value:
+            raise CliError(f"{what} expects A=B, got {item!r}")
+        out[key] = value
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# record
+
+
+def _sim_options(parser: argparse.ArgumentParser, config_cls: type) -> None:
+    """One ``--field-name`` option per field of a simulator config dataclass."""
+    import dataclasses
+    import typing
+
+    hints = typing.get_type_hints(config_cls)
+    for f in dataclasses.fields(config_cls):
+        tp = hints[f.name]
+        args = typing.get_args(tp)
+        base = next((a for a in args if a is not type(None)), tp) if args else tp
+        default = f.default if f.default is not dataclasses.MISSING else None
+        kind = base if base in (int, float, str) else str
+        parser.add_argument(f"--{f.name.replace('_', '-')}", dest=f"cfg_{f.name}", type=kind, default=None,
+                            metavar=kind.__name__.upper(), help=f"{f.metadata.get('help', '')} (default: {default})")
+
+
+def _collect_sim_config(args: argparse.Namespace, config_cls: type) -> Any:
+    values = {k[4:]: v for k, v in vars(args).items() if k.startswith("cfg_") and v is not None}
+    try:
+        return config_cls(**values)
+    except (TypeError, ValueError) as err:
+        raise CliError(f"invalid simulator option: {err}") from err
+
+
+def cmd_record_sim_landmarks(args: argparse.Namespace) -> int:
+    from recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
+
+    config = _collect_sim_config(args, LandmarkSimConfig)
+    with progress_bar("simulating", args.quiet) as update:
+        summary = simulate_landmarks(Path(args.out), config, seed=args.seed, progress=update)
+    if not args.quiet:
+        _eprint(f"wrote {args.out}: {summary}")
+    return EXIT_OK
+
+
+def cmd_record_mrclam(args: argparse.Namespace) -> int:
+    from recorder.importers.mrclam import import_mrclam
+
+    with progress_bar(f"importing MRCLAM robot {args.robot}", args.quiet) as update:
+        summary = import_mrclam(Path(args.dir), args.robot, Path(args.out), progress=update)
+    if not args.quiet:
+        _eprint(f"wrote {args.out}: {summary}")
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------------------
+# inspect, recover, pipelines
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    from replay.inspect import inspect_recording
+
+    report = inspect_recording(args.file, _parse_pairs(args.topic_map, "--topic-map"))
+    if args.json:
+        print(json.dumps(report, indent=2, sort_keys=True))
+    else:
+        print(f"{report['path']}  ({report['size_bytes']:,} bytes)")
+        print(f"health: {report['health']}")
+        for p in report["problems"]:
+            print(f"  problem: {p}")
+        if "message_count" in report:
+            print(f"messages: {report['message_count']:,} in {report['chunk_count']} chunks, "
+                  f"{report['duration_s']:.3f} s ({report['start_ns']} .. {report['end_ns']} ns)")
+            print(f"{'topic':<28} {'read as':<26} {'schema':<32} {'messages':>9} {'rate Hz':>9}")
+            for t in report["topics"]:
+                rate = "" if t["rate_hz"] is None else f"{t['rate_hz']:.2f}"
+                print(f"{t['topic']:<28} {t['read_as'] or '-':<26} {t['schema']:<32} {t['messages']:>9} {rate:>9}")
+            for name, meta in report["metadata"].items():
+                print(f"metadata {name}: " + ", ".join(f"{k}={v}" for k, v in sorted(meta.items())))
+    return EXIT_OK if report["health"] == "ok" else EXIT_CHECK_FAILED
+
+
+def cmd_recover(args: argparse.Namespace) -> int:
+    from recorder.recover import recover
+
+    report = recover(args.file, args.out)
+    stop = f"; reading stopped at {report.stopped_at}" if report.stopped_at else "; no damage found"
+    print(f"recovered {report.messages} messages on {report.channels} channels into {args.out}{stop}")
+    return EXIT_OK
+
+
+def cmd_pipelines(args: argparse.Namespace) -> int:
+    from replay.pipeline import all_pipelines, config_schema
+
+    rows = [{"name": name, "summary": cls.summary, "required_topics": list(cls.required_topics),
+             "optional_topics": list(cls.optional_topics), "config": config_schema(cls.Config),
+             "metrics": {k: {"better": m.better, "unit": m.unit, "description": m.description}
+                         for k, m in cls.metrics.items()}}
+            for name, cls in all_pipelines().items()]
+    if args.json:
+        print(json.dumps(rows, indent=2, default=str))
+        return EXIT_OK
+    for r in rows:
+        print(f"{r['name']}: {r['summary']}")
+        print(f"  needs:    {', '.join(r['required_topics'])}")
+        if r["optional_topics"]:
+            print(f"  uses:     {', '.join(r['optional_topics'])}")
+        for c in r["config"]:
+            print(f"  --set {c['key']}=<{c['type']}>  (default {c['default']}) {c['help']}")
+        if not r["config"]:
+            print("  config:   (no keys)")
+        print("  metrics:  " + ", ".join(f"{k} ({m['better']} is better)" if m["better"] != "none" else k
+                                         for k, m in r["metrics"].items()))
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------------------
+# run, diff
+
+
+def _load_config_file(path: str | None) -> dict[str, Any]:
+    if path is None:
+        return {}
+    try:
+        doc = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise CliError(f"--config {path}: no such file") from None
+    except json.JSONDecodeError as err:
+        raise CliError(f"--config {path} is not valid JSON: {err}") from err
+    if not isinstance(doc, dict):
+        raise CliError(f"--config {path} must hold a JSON object of key: value")
+    return doc
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from replay.pipeline import parse_assignments
+    from replay.run import run_recording
+
+    config = {**_load_config_file(args.config), **parse_assignments(args.set)}
+    with progress_bar(f"replaying {args.pipeline}", args.quiet) as update:
+        result = run_recording(args.file, args.pipeline, args.out, seed=args.seed, config=config,
+                               topic_map=_parse_pairs(args.topic_map, "--topic-map"),
+                               start_ns=args.start_ns, end_ns=args.end_ns, log_timings=args.log_timings,
+                               progress=update)
+    if not args.quiet:
+        for name, value in sorted(result.metrics.items()):
+            print(f"  {name:<28} {value:.6g}")
+        wall = result.manifest["timings"]["wall_s"]
+        print(f"run {result.run_id} succeeded in {wall:.2f} s; open it with: rerun {Path(args.out) / 'run.rrd'}")
+    return EXIT_OK
+
+
+def cmd_diff(args: argparse.Namespace) -> int:
+    from replay.diff import diff_runs, format_table, parse_tolerances, write_comparison_rrd
+
+    diff = diff_runs(args.run_a, args.run_b, parse_tolerances(args.tolerance))
+    if args.rrd:
+        write_comparison_rrd(args.run_a, args.run_b, args.rrd)
+    if args.json:
+        print(json.dumps(diff.to_json(), indent=2))
+    else:
+        print(format_table(diff))
+        if args.rrd:
+            print(f"comparison recording: rerun {args.rrd}")
+    return EXIT_CHECK_FAILED if diff.worse else EXIT_OK
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from api.demo import run_demo
+
+    return run_demo(Path(args.out), Path(args.data) if args.data else None, quiet=args.quiet)
+
+
+# ---------------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="slamreplay",
+        description="Record sensor streams to MCAP, replay them deterministically through SLAM pipelines, "
+                    "and inspect every step in Rerun.",
+        epilog="Start with `make demo`, then `slamreplay pipelines`. Each command has its own --help.",
+    )
+    p.add_argument("--debug", action="store_true", help="show a traceback on errors")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    quiet = argparse.ArgumentParser(add_help=False)
+    quiet.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
+
+    rec = sub.add_parser("record", help="make a recording from a simulator or a public dataset")
+    rsub = rec.add_subparsers(dest="source", required=True, metavar="SOURCE")
+    sim = rsub.add_parser("sim-landmarks", parents=[quiet],
+                          help="D-SLAM paper scenario: point landmarks, range-bearing sensor, odometry",
+                          description="Simulate a robot among point landmarks (default: the D-SLAM paper's "
+                                      "section 4.2 scenario) and record odometry, scans and ground truth.")
+    sim.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
+    sim.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    try:
+        from recorder.sim.landmarks import LandmarkSimConfig
+
+        _sim_options(sim, LandmarkSimConfig)
+    except ImportError:  # pragma: no cover -- during development only
+        pass
+    sim.set_defaults(func=cmd_record_sim_landmarks)
+    mr = rsub.add_parser("mrclam", parents=[quiet], help="import one robot of the UTIAS MRCLAM dataset",
+                         description="Import one robot of an MRCLAM dataset folder: odometry integrated into "
+                                     "poses, landmark sightings as scans, Vicon ground truth, the landmark map.")
+    mr.add_argument("dir", help="the dataset folder (with Robot1_Odometry.dat ...)")
+    mr.add_argument("--robot", type=int, required=True, help="robot number, 1-5")
+    mr.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
+    mr.set_defaults(func=cmd_record_mrclam)
+
+    ins = sub.add_parser("inspect", help="topics, schemas, counts, time span and health of a recording")
+    ins.add_argument("file", help="an .mcap recording or a ROS 2 bag directory")
+    ins.add_argument("--json", action="store_true", help="machine-readable output")
+    ins.add_argument("--topic-map", action="append", default=[], metavar="FILE_TOPIC=TOPIC",
+                     help="read FILE_TOPIC as a slamreplay topic (repeatable)")
+    ins.set_defaults(func=cmd_inspect)
+
+    rcv = sub.add_parser("recover", help="salvage a truncated or damaged recording into a valid one")
+    rcv.add_argument("file", help="the damaged .mcap (or .mcap.partial)")
+    rcv.add_argument("--out", required=True, help="the new .mcap to write (must not exist)")
+    rcv.set_defaults(func=cmd_recover)
+
+    pl = sub.add_parser("pipelines", help="list pipelines, the topics they need and their config keys")
+    pl.add_argument("--json", action="store_true", help="machine-readable output")
+    pl.set_defaults(func=cmd_pipelines)
+
+    run = sub.add_parser("run", parents=[quiet], help="replay a recording through a pipeline into a run directory",
+                         description="Replay FILE through a pipeline. Writes RUN_DIR/run.rrd (open with `rerun`), "
+                                     "metrics.json, manifest.json and log.txt.")
+    run.add_argument("file", help="an .mcap recording or a ROS 2 bag directory")
+    run.add_argument("--pipeline", required=True, help="pipeline name (see `slamreplay pipelines`)")
+    run.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory to create (must not exist)")
+    run.add_argument("--seed", type=int, default=0, help="seed of every random generator (default: 0)")
+    run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config value (repeatable)")
+    run.add_argument("--config", metavar="FILE.json", help="config values from a JSON object (--set wins)")
+    run.add_argument("--topic-map", action="append", default=[], metavar="FILE_TOPIC=TOPIC",
+                     help="read FILE_TOPIC as a slamreplay topic, e.g. /robot/odom=/odom (repeatable)")
+    run.add_argument("--start-ns", type=int, default=None, help="replay from this log time (inclusive)")
+    run.add_argument("--end-ns", type=int, default=None, help="replay up to this log time (exclusive)")
+    run.add_argument("--log-timings", action="store_true",
+                     help="also log per-step wall-clock durations to run.rrd (timings/step_ms)")
+    run.set_defaults(func=cmd_run)
+
+    df = sub.add_parser("diff", help="compare two runs: what changed, and which metrics got worse",
+                        description="Compare RUN_B against RUN_A. Exit 0 when no metric got worse beyond its "
+                                    "tolerance, 1 when one did, 2 on bad input.")
+    df.add_argument("run_a", help="baseline run directory")
+    df.add_argument("run_b", help="run directory to judge")
+    df.add_argument("--tolerance", action="append", default=[], metavar="NAME=VALUE",
+                    help="allowed worsening of a metric: absolute, or N%% of A's value; NAME * means every metric")
+    df.add_argument("--rrd", metavar="OUT.rrd", help="write one recording with both runs under runs/A and runs/B")
+    df.add_argument("--json", action="store_true", help="machine-readable output")
+    df.set_defaults(func=cmd_diff)
+
+    demo = sub.add_parser("demo", parents=[quiet], help="record the built-in simulations, replay them, print metrics")
+    demo.add_argument("--out", default="runs/demo", help="where recordings and runs go (default: runs/demo)")
+    demo.add_argument("--data", default=None, help="public datasets folder; MRCLAM is replayed too when present")
+    demo.set_defaults(func=cmd_demo)
+
+    try:
+        from api.graph_cli import add_graph_parser
+    except ImportError:  # the pose-graph back end is optional during development
+        pass
+    else:
+        add_graph_parser(sub)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except (CliError, ReplayError, RecorderError) as err:
+        if args.debug:
+            traceback.print_exc()
+        _eprint(f"slamreplay: error: {err}")
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        _eprint("slamreplay: interrupted")
+        return 130
+    except Exception as err:
+        if args.debug:
+            traceback.print_exc()
+        _eprint(f"slamreplay: internal error: {type(err).__name__}: {err} (rerun with --debug for a traceback, "
+                f"and please report it)")
+        return 3
+
+
+if __name__ == "__main__":
+    sys.exit(main())

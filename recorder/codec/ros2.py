@@ -1,0 +1,52 @@
+"""ROS 2 messages (``ros2msg`` schemas, CDR encoding) -> slamreplay messages, read-only.
+
+Supported: ``nav_msgs/msg/Odometry`` and ``geometry_msgs/msg/PoseStamped`` (as odometry or
+ground-truth poses), ``sensor_msgs/msg/Image`` (mono8, rgb8, bgr8) and
+``sensor_msgs/msg/CompressedImage`` (png, jpeg). Decoding of CDR bytes into objects is done
+by ``mcap_ros2``; this module maps those objects onto the message model. Schema names may
+use the ROS 1 style ``nav_msgs/Odometry`` too.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from recorder.codec.protobuf import decode_image_bytes, raw_pixels, yaw_from_quaternion
+from recorder.errors import CodecError
+from recorder.messages import CameraImage, Message, PlanarPose
+
+ROS2_SCHEMAS = (
+    "nav_msgs/msg/Odometry",
+    "geometry_msgs/msg/PoseStamped",
+    "sensor_msgs/msg/Image",
+    "sensor_msgs/msg/CompressedImage",
+)
+
+
+def canonical_ros_type(schema_name: str) -> str:
+    """``nav_msgs/Odometry`` -> ``nav_msgs/msg/Odometry``; other names unchanged."""
+    parts = schema_name.split("/")
+    return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else schema_name
+
+
+def _stamp(header: Any, log_time_ns: int) -> int:
+    ns = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+    return ns if ns > 0 else log_time_ns
+
+
+def from_ros2(kind: type, schema_name: str, obj: Any, log_time_ns: int) -> Message:
+    """Build a message of type ``kind`` from a decoded ROS 2 message object."""
+    name = canonical_ros_type(schema_name)
+    if issubclass(kind, PlanarPose) and name in ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped"):
+        pose = obj.pose.pose if name == "nav_msgs/msg/Odometry" else obj.pose
+        p, o = pose.position, pose.orientation
+        return kind(_stamp(obj.header, log_time_ns), p.x, p.y, yaw_from_quaternion(o.w, o.x, o.y, o.z))
+    if kind is CameraImage and name == "sensor_msgs/msg/Image":
+        px = raw_pixels(bytes(obj.data), obj.width, obj.height, obj.step, obj.encoding)
+        return CameraImage(_stamp(obj.header, log_time_ns), px, obj.header.frame_id or "camera", "raw")
+    if kind is CameraImage and name == "sensor_msgs/msg/CompressedImage":
+        fmt = obj.format.lower()
+        px = decode_image_bytes(bytes(obj.data), fmt)
+        return CameraImage(_stamp(obj.header, log_time_ns), px, obj.header.frame_id or "camera",
+                           "jpeg" if "jp" in fmt else "png")
+    raise CodecError(f"ROS 2 type {schema_name} cannot be read as {kind.__name__}")

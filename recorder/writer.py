@@ -1,0 +1,147 @@
+"""`Recorder`: writes messages to an MCAP recording, safely.
+
+- Refuses to overwrite: neither ``FILE`` nor ``FILE.partial`` may exist.
+- Writes to ``FILE.partial`` and renames it to ``FILE`` only on a clean close, so a file
+  named ``FILE`` is always complete. When the ``with`` block raises, the data written so far
+  is finished as a valid MCAP but kept as ``FILE.partial``: nothing looks whole that is not.
+- zstd chunks, chunk CRCs on, explicit ``log_time`` and ``publish_time`` on every message
+  (never the wall clock), and an MCAP metadata record ``slamreplay.recording``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from types import TracebackType
+from typing import IO, Any
+
+from mcap.writer import CompressionType, Writer
+
+from recorder import codec
+from recorder.errors import RecorderError
+from recorder.messages import TOPIC_TYPES, Message
+from recorder.version import version
+
+METADATA_NAME = "slamreplay.recording"
+CHUNK_SIZE = 1 << 20
+
+
+def partial_path(path: Path) -> Path:
+    """Where a recording is written until it is closed cleanly."""
+    return path.with_name(path.name + ".partial")
+
+
+class Recorder:
+    """Write slamreplay messages to an MCAP file.
+
+    Parameters
+    ----------
+    path : where the recording goes; must not exist yet (nor ``path.partial``).
+    source : what produced the data, e.g. ``{"simulator": "sim-landmarks"}`` or
+        ``{"importer": "mrclam", "dataset": "MRCLAM Dataset6", "robot": 1}``.
+    seed : the seed of a simulator, if any.
+    parameters : the generating parameters (JSON-serializable).
+    robot : a description of the robot and its sensors (JSON-serializable).
+
+    Examples
+    --------
+    >>> with Recorder(Path("run.mcap"), source={"simulator": "mine"}) as rec:  # doctest: +SKIP
+    ...     rec.write("/odom", OdometryPose(0, 0.0, 0.0, 0.0))
+    """
+
+    def __init__(self, path: str | Path, *, source: Mapping[str, Any], seed: int | None = None,
+                 parameters: Mapping[str, Any] | None = None, robot: Mapping[str, Any] | None = None) -> None:
+        self.path = Path(path)
+        self.partial = partial_path(self.path)
+        for p in (self.path, self.partial):
+            if p.exists():
+                msg = f"{p} already exists; slamreplay never overwrites a recording: choose another --out or delete it"
+                raise RecorderError(msg)
+        if not self.path.parent.is_dir():
+            raise RecorderError(f"directory {self.path.parent} does not exist: create it first")
+        try:
+            self._metadata = {
+                "source": json.dumps(dict(source), sort_keys=True),
+                "seed": "" if seed is None else str(int(seed)),
+                "parameters": json.dumps(dict(parameters or {}), sort_keys=True),
+                "robot": json.dumps(dict(robot or {}), sort_keys=True),
+                "slamreplay_version": version(),
+            }
+        except TypeError as err:
+            raise RecorderError(f"source, parameters and robot must be JSON-serializable: {err}") from err
+        self._file: IO[bytes] | None = None
+        self._writer: Writer | None = None
+        self._channels: dict[str, tuple[int, str]] = {}
+        self._schemas: dict[str, int] = {}
+        self._sequence: dict[str, int] = {}
+        self.message_count = 0
+
+    def __enter__(self) -> Recorder:
+        self.open()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close(keep_partial=exc_type is not None)
+
+    def open(self) -> None:
+        """Start writing to ``path.partial`` (done by ``with``)."""
+        if self._writer is not None:
+            raise RecorderError("recorder is already open")
+        try:
+            self._file = open(self.partial, "xb")  # noqa: SIM115 -- closed in close()
+        except FileExistsError as err:
+            raise RecorderError(f"{self.partial} already exists; delete it or choose another --out") from err
+        self._writer = Writer(self._file, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD,
+                              enable_crcs=True, enable_data_crcs=False)
+        self._writer.start(profile="", library=f"slamreplay/{version()}")
+        self._writer.add_metadata(METADATA_NAME, self._metadata)
+
+    def write(self, topic: str, msg: Message, *, log_time_ns: int | None = None,
+              publish_time_ns: int | None = None) -> None:
+        """Append one message.
+
+        ``log_time_ns`` (the replay clock) defaults to the message's ``stamp_ns``;
+        ``publish_time_ns`` defaults to ``log_time_ns``. Both are always written explicitly.
+        A topic keeps the schema of its first message.
+        """
+        if self._writer is None:
+            raise RecorderError("recorder is not open: use it as `with Recorder(...) as rec:`")
+        expected = TOPIC_TYPES.get(topic)
+        if expected is not None and not isinstance(msg, expected):
+            raise RecorderError(f"topic {topic} carries {expected.__name__}, got {type(msg).__name__}")
+        log_time = msg.stamp_ns if log_time_ns is None else int(log_time_ns)
+        publish_time = log_time if publish_time_ns is None else int(publish_time_ns)
+        if log_time < 0 or publish_time < 0:
+            raise RecorderError(f"{topic}: log_time and publish_time must be >= 0 ns")
+        name = codec.schema_name(msg)
+        channel = self._channels.get(topic)
+        if channel is None:
+            schema_id = self._schemas.get(name)
+            if schema_id is None:
+                schema_id = self._writer.register_schema(name, "protobuf", codec.schema_data(msg))
+                self._schemas[name] = schema_id
+            channel = (self._writer.register_channel(topic, "protobuf", schema_id), name)
+            self._channels[topic] = channel
+        elif channel[1] != name:
+            raise RecorderError(f"topic {topic} has schema {channel[1]}; cannot write a {name} to it")
+        seq = self._sequence.get(topic, 0)
+        self._sequence[topic] = seq + 1
+        self._writer.add_message(channel[0], log_time, codec.encode(msg), publish_time, seq)
+        self.message_count += 1
+
+    def close(self, *, keep_partial: bool = False) -> None:
+        """Finish the file; rename ``FILE.partial`` to ``FILE`` unless ``keep_partial``."""
+        if self._writer is None or self._file is None:
+            return
+        try:
+            self._writer.finish()
+            self._file.flush()
+            os.fsync(self._file.fileno())
+        finally:
+            self._file.close()
+            self._writer, self._file = None, None
+        if not keep_partial:
+            os.replace(self.partial, self.path)

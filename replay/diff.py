@@ -1,0 +1,242 @@
+"""Diff two runs: what changed between them, and whether results got better or worse.
+
+- Manifests: pipeline, recording, configuration (key by key), seed, code version and
+  commit, library versions.
+- Metrics: a delta per metric, judged by its direction (lower or higher is better) and a
+  tolerance (absolute, or ``N%`` of run A's value); ``worse`` lists those that regressed.
+- Content: whether the two ``run.rrd`` files hold the same data (``rerun rrd compare``).
+- Optionally one comparison ``.rrd`` with both runs under ``runs/A/...`` and ``runs/B/...``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import subprocess
+import sys
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import rerun as rr
+import rerun.blueprint as rrb
+from rerun.chunk import RrdReader
+
+from replay.errors import ReplayError
+from replay.observer import APPLICATION_ID, DETERMINISTIC_BATCHING
+
+MANIFEST_FIELDS = ("pipeline", "recording.sha256", "seed", "config_hash", "slamreplay.version",
+                   "slamreplay.git_commit", "window_ns", "status")
+
+
+@dataclass(frozen=True, slots=True)
+class MetricDelta:
+    name: str
+    a: float | None
+    b: float | None
+    delta: float | None
+    better: str
+    tolerance: float
+    verdict: str  # better | worse | same | changed | added | removed
+
+
+@dataclass
+class RunDiff:
+    a: str
+    b: str
+    changes: list[dict[str, Any]] = field(default_factory=list)
+    metrics: list[MetricDelta] = field(default_factory=list)
+    rrd_equal: bool | None = None
+    rrd_detail: str = ""
+
+    @property
+    def worse(self) -> list[str]:
+        return [m.name for m in self.metrics if m.verdict == "worse"]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"a": self.a, "b": self.b, "changes": self.changes, "metrics": [asdict(m) for m in self.metrics],
+                "worse": self.worse, "rrd_equal": self.rrd_equal, "rrd_detail": self.rrd_detail}
+
+
+def load_run(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(manifest, metrics document) of a finished run; ReplayError saying what is missing."""
+    if not run_dir.is_dir():
+        raise ReplayError(f"{run_dir} is not a run directory (it does not exist)")
+    try:
+        manifest = json.loads((run_dir / "manifest.json").read_text())
+    except FileNotFoundError:
+        raise ReplayError(f"{run_dir} has no manifest.json: it is not a finished run") from None
+    except json.JSONDecodeError as err:
+        raise ReplayError(f"{run_dir}/manifest.json is not valid JSON: {err}") from err
+    if manifest.get("status") != "succeeded":
+        raise ReplayError(f"{run_dir} did not succeed (status {manifest.get('status')!r}: {manifest.get('error')}); "
+                          f"only successful runs can be compared")
+    try:
+        metrics = json.loads((run_dir / "metrics.json").read_text())
+    except (FileNotFoundError, json.JSONDecodeError) as err:
+        raise ReplayError(f"{run_dir}/metrics.json is missing or unreadable: {err}") from err
+    return manifest, metrics
+
+
+def parse_tolerances(items: list[str]) -> dict[str, str]:
+    """``["ate=0.01", "*=1%"]`` -> mapping; ReplayError for a malformed item."""
+    out = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name or not value:
+            raise ReplayError(f"--tolerance expects NAME=VALUE or NAME=N%, got {item!r}")
+        try:
+            float(value.rstrip("%"))
+        except ValueError:
+            raise ReplayError(f"--tolerance {item!r}: {value!r} is not a number or percentage") from None
+        out[name] = value
+    return out
+
+
+def _tolerance(spec: str | None, default: float, a: float | None) -> float:
+    if spec is None:
+        return default
+    if spec.endswith("%"):
+        return abs(a or 0.0) * float(spec[:-1]) / 100.0
+    return float(spec)
+
+
+def _verdict(a: float | None, b: float | None, better: str, tol: float) -> tuple[float | None, str]:
+    if a is None and b is None:
+        return None, "same"
+    if a is None:
+        return None, "added"
+    if b is None:
+        return None, "worse" if better != "none" else "changed"
+    delta = b - a
+    if abs(delta) <= tol:
+        return delta, "same"
+    if better == "none":
+        return delta, "changed"
+    improved = delta < 0 if better == "lower" else delta > 0
+    return delta, "better" if improved else "worse"
+
+
+def _get(doc: Mapping[str, Any], dotted: str) -> Any:
+    for part in dotted.split("."):
+        doc = doc.get(part, {}) if isinstance(doc, Mapping) else {}
+    return None if doc == {} else doc
+
+
+def diff_runs(a_dir: str | Path, b_dir: str | Path, tolerances: Mapping[str, str] | None = None,
+              compare_rrd: bool = True) -> RunDiff:
+    """Compare run B against run A (the baseline)."""
+    a_dir, b_dir = Path(a_dir), Path(b_dir)
+    (ma, xa), (mb, xb) = load_run(a_dir), load_run(b_dir)
+    tolerances = dict(tolerances or {})
+    known = set(xa.get("metrics", {})) | set(xb.get("metrics", {}))
+    unknown = set(tolerances) - known - {"*"}
+    if unknown:
+        raise ReplayError(f"--tolerance names unknown metrics: {', '.join(sorted(unknown))}; "
+                          f"the runs have: {', '.join(sorted(known))}")
+    out = RunDiff(str(a_dir), str(b_dir))
+    for key in MANIFEST_FIELDS:
+        va, vb = _get(ma, key), _get(mb, key)
+        if va != vb:
+            out.changes.append({"field": key, "a": va, "b": vb})
+    for section in ("config", "libraries"):
+        ca, cb = ma.get(section, {}), mb.get(section, {})
+        for key in sorted(set(ca) | set(cb)):
+            if ca.get(key) != cb.get(key):
+                out.changes.append({"field": f"{section}.{key}", "a": ca.get(key), "b": cb.get(key)})
+    for name in sorted(known):
+        ea, eb = xa["metrics"].get(name), xb["metrics"].get(name)
+        spec = eb or ea
+        if ea is None:
+            out.metrics.append(MetricDelta(name, None, eb["value"], None, spec["better"], 0.0, "added"))
+            continue
+        if eb is None:
+            out.metrics.append(MetricDelta(name, ea["value"], None, None, spec["better"], 0.0, "removed"))
+            continue
+        tol = _tolerance(tolerances.get(name, tolerances.get("*")), float(spec.get("tolerance", 0.0)), ea["value"])
+        delta, verdict = _verdict(ea["value"], eb["value"], spec["better"], tol)
+        out.metrics.append(MetricDelta(name, ea["value"], eb["value"], delta, spec["better"], tol, verdict))
+    if compare_rrd:
+        out.rrd_equal, out.rrd_detail = rrd_content_equal(a_dir / "run.rrd", b_dir / "run.rrd")
+    return out
+
+
+def rerun_cli() -> str | None:
+    """The ``rerun`` executable that ships with rerun-sdk (beside this Python, or on PATH)."""
+    beside = Path(sys.executable).parent / "rerun"
+    return str(beside) if beside.exists() else shutil.which("rerun")
+
+
+def rrd_content_equal(a: Path, b: Path) -> tuple[bool | None, str]:
+    """``rerun rrd compare``: (True, "") when equal, (False, first lines of the diff), (None, why) if unknown."""
+    exe = rerun_cli()
+    if exe is None:
+        return None, "the rerun CLI was not found; content equality not checked"
+    try:
+        proc = subprocess.run([exe, "rrd", "compare", str(a), str(b)], capture_output=True, text=True, timeout=600)
+    except (OSError, subprocess.TimeoutExpired) as err:
+        return None, f"rerun rrd compare could not run: {err}"
+    if proc.returncode == 0:
+        return True, ""
+    text = (proc.stderr or proc.stdout).strip()
+    last = text.splitlines()[-1] if text else f"exit code {proc.returncode}"
+    return False, last[:500]
+
+
+def write_comparison_rrd(a_dir: str | Path, b_dir: str | Path, out: str | Path) -> None:
+    """One ``.rrd`` with run A under ``runs/A/...`` and run B under ``runs/B/...``, side by side."""
+    a_dir, b_dir, out = Path(a_dir), Path(b_dir), Path(out)
+    if out.exists():
+        raise ReplayError(f"{out} already exists; choose another --rrd")
+    for d in (a_dir, b_dir):
+        if not (d / "run.rrd").is_file():
+            raise ReplayError(f"{d} has no run.rrd")
+    tmp = out.with_name(f".{out.name}.partial")
+    rec = rr.RecordingStream(APPLICATION_ID, recording_id=f"diff-{a_dir.name}-{b_dir.name}", send_properties=False,
+                             batcher_config=rr.ChunkBatcherConfig(**DETERMINISTIC_BATCHING))
+    rec.set_log_time_enabled(False)
+    blueprint = rrb.Blueprint(
+        rrb.Vertical(
+            rrb.Horizontal(rrb.Spatial2DView(name=f"A: {a_dir.name}", origin="/runs/A/world"),
+                           rrb.Spatial2DView(name=f"B: {b_dir.name}", origin="/runs/B/world")),
+            rrb.Horizontal(rrb.TimeSeriesView(name="A metrics", origin="/runs/A/metrics"),
+                           rrb.TimeSeriesView(name="B metrics", origin="/runs/B/metrics")),
+            row_shares=[3, 2],
+        ),
+        collapse_panels=True,
+    )
+    rec.save(tmp, default_blueprint=blueprint)
+    try:
+        for run_dir, label in ((a_dir, "A"), (b_dir, "B")):
+            stream = RrdReader(run_dir / "run.rrd").stream()
+            rec.send_chunks(stream.map(lambda ch, lb=label: ch.with_entity_path(f"/runs/{lb}{ch.entity_path}")))
+    finally:
+        rec.disconnect()
+    tmp.replace(out)
+
+
+def format_table(diff: RunDiff) -> str:
+    """Human-readable diff."""
+    lines = [f"A: {diff.a}", f"B: {diff.b}", ""]
+    if diff.changes:
+        lines.append("What changed:")
+        for c in diff.changes:
+            lines.append(f"  {c['field']}: {json.dumps(c['a'])} -> {json.dumps(c['b'])}")
+    else:
+        lines.append("What changed: nothing (same recording, pipeline, config, seed and code)")
+    lines.append("")
+    width = max([len(m.name) for m in diff.metrics] + [6])
+    lines.append(f"  {'metric':<{width}}  {'A':>14}  {'B':>14}  {'B - A':>12}  better  verdict")
+    for m in diff.metrics:
+        fa = "null" if m.a is None else f"{m.a:.6g}"
+        fb = "null" if m.b is None else f"{m.b:.6g}"
+        fd = "" if m.delta is None or not math.isfinite(m.delta) else f"{m.delta:+.4g}"
+        mark = {"worse": "WORSE", "better": "better"}.get(m.verdict, m.verdict)
+        lines.append(f"  {m.name:<{width}}  {fa:>14}  {fb:>14}  {fd:>12}  {m.better:<6}  {mark}")
+    lines.append("")
+    rrd = {True: "identical content", False: f"content differs ({diff.rrd_detail})", None: diff.rrd_detail}
+    lines.append(f"run.rrd: {rrd[diff.rrd_equal]}")
+    lines.append(f"Result: {len(diff.worse)} metric(s) worse" + (f": {', '.join(diff.worse)}" if diff.worse else ""))
+    return "\n".join(lines)

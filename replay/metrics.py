@@ -1,0 +1,70 @@
+"""Trajectory metrics, in float64 numpy, and the metrics.json format.
+
+Estimates of a SLAM run with a known initial pose are compared without alignment:
+the estimate starts in the ground-truth frame (ReplayContext.T_world_start), so every
+error it accumulates is counted. Ground truth is interpolated at the estimate's times.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from algorithms.common import se2
+from replay.pipeline import MetricSpec
+
+F64 = NDArray[np.float64]
+METRICS_FORMAT = 1
+
+
+def associate(t_est_ns: NDArray[np.int64], t_gt_ns: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """Mask of estimate times inside the ground truth's time span (where interpolation is valid)."""
+    if len(t_gt_ns) == 0:
+        return np.zeros(len(t_est_ns), bool)
+    return (t_est_ns >= t_gt_ns[0]) & (t_est_ns <= t_gt_ns[-1])
+
+
+def position_errors(t_est_ns: NDArray[np.int64], est: F64, t_gt_ns: NDArray[np.int64], gt: F64) -> tuple[F64, F64]:
+    """Per-estimate position error (m) and heading error (rad) against interpolated ground truth.
+
+    Returns errors only for estimates inside the ground truth's time span, and the mask of
+    which estimates those are is ``associate(t_est_ns, t_gt_ns)``.
+    """
+    mask = associate(t_est_ns, t_gt_ns)
+    if not mask.any():
+        return np.zeros(0), np.zeros(0)
+    # Times relative to the first ground truth keep float64 interpolation exact to the ns.
+    t0 = t_gt_ns[0]
+    ref = se2.interpolate((t_est_ns[mask] - t0).astype(np.float64), (t_gt_ns - t0).astype(np.float64), gt)
+    d = est[mask] - ref
+    return np.hypot(d[:, 0], d[:, 1]), np.abs(se2.wrap_angle(d[:, 2]))
+
+
+def rmse(x: F64) -> float:
+    return float(np.sqrt(np.mean(np.square(x)))) if len(x) else math.nan
+
+
+def format_metrics(pipeline: str, values: Mapping[str, float], specs: Mapping[str, MetricSpec]) -> dict[str, Any]:
+    """The metrics.json document: values with their direction, unit and tolerance. NaN -> null."""
+    missing = set(specs) ^ set(values)
+    if missing:
+        raise ValueError(f"metrics and their specs differ in: {', '.join(sorted(missing))}")
+    return {
+        "format": METRICS_FORMAT,
+        "pipeline": pipeline,
+        "metrics": {
+            name: {"value": None if not math.isfinite(v) else float(v), "better": specs[name].better,
+                   "unit": specs[name].unit, "tolerance": specs[name].tolerance}
+            for name, v in sorted(values.items())
+        },
+    }
+
+
+def dumps(doc: Mapping[str, Any]) -> str:
+    """Deterministic JSON text: sorted keys, full float precision, trailing newline."""
+    return json.dumps(doc, sort_keys=True, indent=2, allow_nan=False) + "\n"

@@ -1,0 +1,216 @@
+"""The pipeline interface, configuration handling, and the registry of pipelines.
+
+A pipeline adapts recorded messages to one algorithm: it names the topics it needs, has a
+frozen-dataclass ``Config`` with defaults and validation, processes one message per
+``step`` and returns its metrics from ``finish``. It draws through the observer handed in
+and never reads the wall clock: its results depend on the recording, config and seed only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import typing
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal, Protocol
+
+import numpy as np
+import rerun.blueprint as rrb
+
+from algorithms.observe import Observation
+from replay.errors import ReplayError
+from replay.reader import Envelope, RecordingInfo
+
+
+class ReplayObserver(Protocol):
+    """What a pipeline may draw with: an algorithm Observer plus time and bulk series."""
+
+    step: int
+    sensor_time_ns: int
+
+    def set_time(self, step: int, sensor_time_ns: int) -> None: ...
+    def log(self, path: str, item: Observation) -> None: ...
+    def log_static(self, path: str, item: Observation) -> None: ...
+    def send_series(self, path: str, steps: np.ndarray, times_ns: np.ndarray, values: np.ndarray) -> None: ...
+
+
+@dataclass(frozen=True, slots=True)
+class MetricSpec:
+    """How to read a metric: which direction is better, its unit, and the default diff tolerance."""
+
+    better: Literal["lower", "higher", "none"]
+    unit: str
+    description: str
+    tolerance: float = 0.0  # absolute; a change within it is "same"
+
+
+@dataclass
+class ReplayContext:
+    """What a pipeline gets besides its config.
+
+    ``T_world_start`` is the ground-truth pose at the first message of the pipeline's
+    ``start_topic`` (None without ground truth): the frame in which the estimate starts,
+    used to draw and score estimates in the world frame, as with a known initial pose.
+    """
+
+    info: RecordingInfo
+    seed: int
+    rng: np.random.Generator
+    observer: ReplayObserver
+    T_world_start: np.ndarray | None
+    start_ns: int
+    log: Callable[[str], None]
+
+
+class Pipeline(ABC):
+    """Base class of every pipeline; subclasses register themselves by ``name``."""
+
+    name: ClassVar[str]
+    summary: ClassVar[str]
+    required_topics: ClassVar[tuple[str, ...]]
+    optional_topics: ClassVar[tuple[str, ...]] = ()
+    start_topic: ClassVar[str]
+    Config: ClassVar[type]
+    metrics: ClassVar[dict[str, MetricSpec]]
+
+    def __init__(self, config: Any, ctx: ReplayContext) -> None:
+        self.config = config
+        self.ctx = ctx
+
+    @abstractmethod
+    def step(self, env: Envelope) -> None:
+        """Process one message (the observer's time is already set to it)."""
+
+    @abstractmethod
+    def finish(self) -> dict[str, float]:
+        """End of the recording: final logging, and the metrics (keys of ``metrics``)."""
+
+    @classmethod
+    def blueprint(cls) -> rrb.Blueprint:
+        """The Rerun layout a run of this pipeline opens into."""
+        return rrb.Blueprint(
+            rrb.Horizontal(
+                rrb.Spatial2DView(name="Map", origin="/world"),
+                rrb.Vertical(rrb.TimeSeriesView(name="Metrics", origin="/metrics"),
+                             rrb.TextLogView(name="Log", origin="/log")),
+                column_shares=[3, 2],
+            ),
+            collapse_panels=True,
+        )
+
+
+PIPELINES: dict[str, type[Pipeline]] = {}
+
+
+def register(cls: type[Pipeline]) -> type[Pipeline]:
+    """Class decorator adding a pipeline to the registry."""
+    PIPELINES[cls.name] = cls
+    return cls
+
+
+def get_pipeline(name: str) -> type[Pipeline]:
+    """The pipeline class called ``name``; ReplayError naming the known ones otherwise."""
+    import replay.pipelines  # noqa: F401 -- registers the built-in pipelines
+
+    try:
+        return PIPELINES[name]
+    except KeyError:
+        raise ReplayError(f"unknown pipeline {name!r}; known pipelines: {', '.join(sorted(PIPELINES))} "
+                          f"(see `slamreplay pipelines`)") from None
+
+
+def all_pipelines() -> dict[str, type[Pipeline]]:
+    import replay.pipelines  # noqa: F401
+
+    return dict(sorted(PIPELINES.items()))
+
+
+# ---------------------------------------------------------------------------------------
+# Configuration
+
+
+def config_schema(config_cls: type) -> list[dict[str, Any]]:
+    """Keys, types, defaults and help of a config dataclass (for `slamreplay pipelines`)."""
+    hints = typing.get_type_hints(config_cls)
+    rows = []
+    for f in dataclasses.fields(config_cls):
+        default = f.default if f.default is not dataclasses.MISSING else None
+        rows.append({"key": f.name, "type": _type_name(hints[f.name]), "default": default,
+                     "help": f.metadata.get("help", "")})
+    return rows
+
+
+def _type_name(tp: Any) -> str:
+    if typing.get_origin(tp) is Literal:
+        return "|".join(str(a) for a in typing.get_args(tp))
+    return getattr(tp, "__name__", str(tp))
+
+
+def _parse(key: str, tp: Any, value: Any) -> Any:
+    """Convert a CLI string or JSON value to the field's type."""
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        allowed = typing.get_args(tp)
+        if value not in allowed:
+            raise ReplayError(f"config key {key!r} must be one of {', '.join(map(str, allowed))}, got {value!r}")
+        return value
+    try:
+        if tp is bool:
+            if isinstance(value, bool):
+                return value
+            if str(value).lower() in ("1", "true", "yes", "on"):
+                return True
+            if str(value).lower() in ("0", "false", "no", "off"):
+                return False
+            raise ValueError(value)
+        if tp is int:
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError(value)
+            return int(value)
+        if tp is float:
+            return float(value)
+        if tp is str:
+            return str(value)
+    except (TypeError, ValueError):
+        raise ReplayError(f"config key {key!r} must be a {_type_name(tp)}, got {value!r}") from None
+    raise ReplayError(f"config key {key!r} has an unsupported type {tp!r}")
+
+
+def parse_assignments(items: list[str]) -> dict[str, str]:
+    """``["a=1", "b=x"]`` -> ``{"a": "1", "b": "x"}``; ReplayError for an item without ``=``."""
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ReplayError(f"--set expects key=value, got {item!r}")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def resolve_config(pipeline: type[Pipeline], values: Mapping[str, Any] | None = None) -> Any:
+    """Build the pipeline's config from defaults and ``values``; ReplayError naming a bad key."""
+    config_cls = pipeline.Config
+    hints = typing.get_type_hints(config_cls)
+    known = {f.name for f in dataclasses.fields(config_cls)}
+    kwargs = {}
+    for key, value in (values or {}).items():
+        if key not in known:
+            raise ReplayError(f"unknown config key {key!r} for pipeline {pipeline.name}; "
+                              f"its keys are: {', '.join(sorted(known)) or '(none)'}")
+        kwargs[key] = _parse(key, hints[key], value)
+    try:
+        return config_cls(**kwargs)
+    except ValueError as err:
+        raise ReplayError(f"invalid config for pipeline {pipeline.name}: {err}") from err
+
+
+def config_dict(config: Any) -> dict[str, Any]:
+    return dataclasses.asdict(config)
+
+
+def config_hash(config: Any) -> str:
+    """sha256 of the canonical JSON of a resolved config."""
+    return hashlib.sha256(json.dumps(config_dict(config), sort_keys=True).encode()).hexdigest()

@@ -1,0 +1,93 @@
+"""Pipeline ``odometry``: dead reckoning scored against ground truth.
+
+The estimate starts at the ground-truth pose at the first ``/odom`` message (identity
+without ground truth) and then composes odometry only. It proves the whole path from
+recording to ``.rrd`` and is the baseline every SLAM pipeline must beat.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from algorithms.deadreckoning import DeadReckoning
+from algorithms.observe import Pose
+from recorder.messages import TOPIC_GROUND_TRUTH_POSE, TOPIC_ODOM, GroundTruthPose, OdometryPose
+from replay.metrics import position_errors, rmse
+from replay.pipeline import MetricSpec, Pipeline, ReplayContext, register
+from replay.reader import Envelope
+from replay.trajectory import TrajectoryLog
+
+
+@dataclass(frozen=True, slots=True)
+class OdometryConfig:
+    """Dead reckoning has no parameters."""
+
+
+@register
+class OdometryPipeline(Pipeline):
+    name = "odometry"
+    summary = "dead reckoning from /odom, scored against /ground_truth/pose"
+    required_topics = (TOPIC_ODOM,)
+    optional_topics = (TOPIC_GROUND_TRUTH_POSE,)
+    start_topic = TOPIC_ODOM
+    Config = OdometryConfig
+    metrics = {
+        "robot_ate_rmse_m": MetricSpec("lower", "m", "RMS position error against ground truth (no alignment)", 1e-9),
+        "robot_final_error_m": MetricSpec("lower", "m", "position error at the last scored pose", 1e-9),
+        "robot_max_error_m": MetricSpec("lower", "m", "largest position error", 1e-9),
+        "robot_heading_rmse_deg": MetricSpec("lower", "deg", "RMS heading error", 1e-9),
+        "path_length_m": MetricSpec("none", "m", "length of the estimated path", 1e-9),
+        "poses_scored": MetricSpec("none", "", "estimates inside the ground truth's time span"),
+    }
+
+    def __init__(self, config: OdometryConfig, ctx: ReplayContext) -> None:
+        super().__init__(config, ctx)
+        start = ctx.T_world_start if ctx.T_world_start is not None else np.zeros(3)
+        self.dead_reckoning = DeadReckoning(start)
+        counts = {t.logical_topic: t.message_count for t in ctx.info.topics}
+        self.estimate = TrajectoryLog(ctx.observer, "world/trajectory/estimate", counts.get(TOPIC_ODOM, 0))
+        self.truth = TrajectoryLog(ctx.observer, "world/trajectory/truth", counts.get(TOPIC_GROUND_TRUTH_POSE, 0))
+        self.t_est: list[int] = []
+        self.steps: list[int] = []
+        self.est: list[np.ndarray] = []
+        self.t_gt: list[int] = []
+        self.gt: list[np.ndarray] = []
+
+    def step(self, env: Envelope) -> None:
+        msg = env.msg
+        if isinstance(msg, OdometryPose):
+            pose = self.dead_reckoning.step(msg.xy_yaw)
+            self.t_est.append(env.log_time_ns)
+            self.steps.append(env.index)
+            self.est.append(pose)
+            self.ctx.observer.log("world/robot", Pose(pose))
+            self.estimate.append(float(pose[0]), float(pose[1]))
+        elif isinstance(msg, GroundTruthPose):
+            self.t_gt.append(env.log_time_ns)
+            self.gt.append(msg.xy_yaw)
+            self.ctx.observer.log("world/robot_truth", Pose(msg.xy_yaw))
+            self.truth.append(msg.x_m, msg.y_m)
+
+    def finish(self) -> dict[str, float]:
+        t_est = np.asarray(self.t_est, np.int64)
+        est = np.asarray(self.est, np.float64).reshape(-1, 3)
+        t_gt = np.asarray(self.t_gt, np.int64)
+        gt = np.asarray(self.gt, np.float64).reshape(-1, 3)
+        pos_err, yaw_err = position_errors(t_est, est, t_gt, gt)
+        if len(pos_err):
+            inside = (t_est >= t_gt[0]) & (t_est <= t_gt[-1])
+            self.ctx.observer.send_series("metrics/robot_position_error_m", np.asarray(self.steps)[inside],
+                                          t_est[inside], pos_err)
+        else:
+            self.ctx.log("no ground truth overlaps the odometry: accuracy metrics are null")
+        path = float(np.sum(np.hypot(*np.diff(est[:, :2], axis=0).T))) if len(est) > 1 else 0.0
+        return {
+            "robot_ate_rmse_m": rmse(pos_err),
+            "robot_final_error_m": float(pos_err[-1]) if len(pos_err) else float("nan"),
+            "robot_max_error_m": float(pos_err.max()) if len(pos_err) else float("nan"),
+            "robot_heading_rmse_deg": float(np.degrees(rmse(yaw_err))),
+            "path_length_m": path,
+            "poses_scored": float(len(pos_err)),
+        }

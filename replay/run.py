@@ -1,0 +1,168 @@
+"""A run: one recording through one pipeline into a run directory.
+
+``RUN_DIR/`` holds ``run.rrd`` (with the pipeline's blueprint), ``metrics.json`` (only
+deterministic values: two runs give byte-identical files), ``manifest.json`` (what ran,
+on what, with which code, how it ended, timings) and ``log.txt``. Every file is written
+under a temporary name and renamed when complete; the manifest is written last. A failed
+run leaves a manifest with ``status: failed`` and the reason, never a metrics.json.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import resource
+import time
+import traceback
+import uuid
+from collections.abc import Mapping
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from recorder.errors import RecorderError
+from recorder.version import git_commit, version
+from replay import metrics as metrics_mod
+from replay.engine import Progress, replay, text_logger
+from replay.errors import ReplayError
+from replay.observer import RerunObserver
+from replay.pipeline import config_dict, config_hash, get_pipeline, resolve_config
+from replay.reader import RecordingReader
+
+MANIFEST_FORMAT = 1
+LIBRARIES = ("rerun-sdk", "numpy", "scipy", "opencv-contrib-python-headless", "mcap", "protobuf")
+
+
+@dataclass(frozen=True, slots=True)
+class RunResult:
+    run_dir: Path
+    run_id: str
+    status: str
+    metrics: dict[str, float]
+    manifest: dict[str, Any]
+
+
+def atomic_write(path: Path, data: str | bytes) -> None:
+    """Write ``path`` so that it appears complete or not at all."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as f:
+        f.write(data.encode() if isinstance(data, str) else data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def library_versions() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for name in LIBRARIES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = "not installed"
+    return out
+
+
+def prepare_run_dir(out_dir: Path) -> None:
+    """Create ``out_dir``; ReplayError when it exists and is not empty (runs are never overwritten)."""
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
+        raise ReplayError(f"{out_dir} already exists; a run never overwrites another: choose a new --out")
+    if not out_dir.parent.is_dir():
+        raise ReplayError(f"{out_dir.parent} does not exist: create it first")
+    out_dir.mkdir(exist_ok=True)
+
+
+def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, seed: int = 0,
+                  config: Mapping[str, Any] | None = None, topic_map: Mapping[str, str] | None = None,
+                  start_ns: int | None = None, end_ns: int | None = None, log_timings: bool = False,
+                  progress: Progress | None = None, run_id: str | None = None) -> RunResult:
+    """Replay ``recording`` through ``pipeline`` into ``out_dir``.
+
+    Raises
+    ------
+    ReplayError
+        For bad input. When the pipeline name, config or output directory is wrong nothing
+        is written; once the run directory exists, a failed run still writes its manifest
+        (``status: failed``, ``error``) and log before the error is raised.
+    """
+    recording, out_dir = Path(recording), Path(out_dir)
+    pipeline_cls = get_pipeline(pipeline)
+    cfg = resolve_config(pipeline_cls, config)
+    prepare_run_dir(out_dir)
+    run_id = run_id or uuid.uuid4().hex
+    started = datetime.now(UTC)
+    t_wall, t_cpu = time.perf_counter(), time.process_time()
+    timings: dict[str, float] = {}
+    manifest: dict[str, Any] = {
+        "format": MANIFEST_FORMAT, "run_id": run_id, "status": "running", "error": None,
+        "recording": {"path": str(recording.resolve()), "sha256": None, "topic_map": dict(topic_map or {})},
+        "pipeline": pipeline, "config": config_dict(cfg), "config_hash": config_hash(cfg), "seed": seed,
+        "window_ns": {"start": start_ns, "end": end_ns},
+        "slamreplay": {"version": version(), "git_commit": git_commit()}, "libraries": library_versions(),
+        "host": {"platform": platform.platform(), "cpus": os.cpu_count()},
+    }
+    lines: list[str] = [f"slamreplay {version()} ({git_commit()}): {pipeline} on {recording}, seed {seed}"]
+    rrd_tmp, rrd = out_dir / ".run.rrd.partial", out_dir / "run.rrd"
+    observer: RerunObserver | None = None
+    values: dict[str, float] = {}
+    try:
+        tic = time.perf_counter()
+        reader = RecordingReader(recording, topic_map)
+        manifest["recording"]["sha256"] = sha256_file(reader.path)
+        manifest["recording"]["messages"] = reader.info.message_count
+        manifest["recording"]["metadata"] = reader.info.metadata
+        timings["open_s"] = time.perf_counter() - tic
+        observer = RerunObserver(rrd_tmp, run_id, pipeline_cls.blueprint(), f"{pipeline} on {reader.path.name}")
+        observer.send_property("replay", {"pipeline": pipeline, "seed": seed, "config_hash": manifest["config_hash"],
+                                          "recording_sha256": manifest["recording"]["sha256"]})
+        tic = time.perf_counter()
+        stats = replay(reader, pipeline_cls, cfg, observer, seed=seed, start_ns=start_ns, end_ns=end_ns,
+                       log=text_logger(observer, lines), progress=progress, log_timings=log_timings)
+        timings["replay_s"] = time.perf_counter() - tic
+        values = stats.metrics
+        if stats.step_durations_s is not None and len(stats.step_durations_s):
+            n = len(stats.step_durations_s)
+            observer.send_series("timings/step_ms", np.arange(n), np.zeros(n, np.int64), stats.step_durations_s * 1e3)
+        manifest["messages_replayed"] = stats.messages
+        tic = time.perf_counter()
+        observer.close()
+        observer = None
+        os.replace(rrd_tmp, rrd)
+        doc = metrics_mod.format_metrics(pipeline, values, pipeline_cls.metrics)
+        atomic_write(out_dir / "metrics.json", metrics_mod.dumps(doc))
+        timings["write_s"] = time.perf_counter() - tic
+        manifest["status"] = "succeeded"
+    except (ReplayError, RecorderError) as err:
+        manifest.update(status="failed", error=str(err))
+        lines.append(f"FAILED: {err}")
+        raise ReplayError(str(err)) from err
+    except BaseException as err:
+        manifest.update(status="failed", error=f"internal error: {type(err).__name__}: {err}")
+        lines.append(f"FAILED: internal error\n{traceback.format_exc()}")
+        raise
+    finally:
+        if observer is not None:
+            observer.close()
+        if manifest["status"] != "succeeded":
+            rrd_tmp.unlink(missing_ok=True)
+        usage = resource.getrusage(resource.RUSAGE_SELF)
+        timings.update(wall_s=time.perf_counter() - t_wall, cpu_s=time.process_time() - t_cpu,
+                       max_rss_mib=usage.ru_maxrss / 1024.0)
+        manifest["timings"] = {"started_at": started.isoformat(), "finished_at": datetime.now(UTC).isoformat(),
+                               **{k: round(v, 6) for k, v in timings.items()}}
+        atomic_write(out_dir / "log.txt", "\n".join(lines) + "\n")
+        atomic_write(out_dir / "manifest.json", json.dumps(manifest, indent=2, sort_keys=True, default=str) + "\n")
+    return RunResult(out_dir, run_id, "succeeded", values, manifest)

@@ -1,0 +1,67 @@
+"""Shared fixtures: where the public datasets are, and golden-file updates."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--update-golden", action="store_true", help="rewrite tests/golden/ from this run")
+
+
+def shared_data_root() -> Path:
+    """The public datasets: $SLAMREPLAY_DATA, else ../shared/data beside the checkout."""
+    return Path(os.environ.get("SLAMREPLAY_DATA", REPO.parent / "shared" / "data"))
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    """Root of ../shared/data; skips the test with a reason when it is absent (a user's clone)."""
+    root = shared_data_root()
+    if not root.is_dir():
+        pytest.skip(f"public datasets not found at {root} (set SLAMREPLAY_DATA); CI has them, a clone does not")
+    return root
+
+
+@pytest.fixture
+def update_golden(request: pytest.FixtureRequest) -> bool:
+    return bool(request.config.getoption("--update-golden"))
+
+
+def write_tiny_recording(path: Path, n: int = 100, *, drift: float = 0.05, seed: int = 0) -> Path:
+    """A small synthetic recording: a robot on an arc, odometry with a scale/heading drift,
+    ground truth at the same times, a landmark map and range-bearing scans with true ids."""
+    import numpy as np
+
+    from recorder import GroundTruthPose, LandmarkMap, OdometryPose, RangeBearingScan, Recorder
+
+    rng = np.random.default_rng(seed)
+    landmarks = np.array([[2.0, 1.0], [3.0, -1.0], [5.0, 2.0], [1.0, 3.0]])
+    with Recorder(path, source={"test": "tiny"}, seed=seed) as rec:
+        rec.write("/ground_truth/landmarks", LandmarkMap(1_000_000_000, np.arange(4), landmarks))
+        x = np.zeros(3)
+        o = np.zeros(3)
+        for k in range(n):
+            t = 1_000_000_000 + k * 100_000_000
+            rec.write("/ground_truth/pose", GroundTruthPose(t, *x))
+            rec.write("/odom", OdometryPose(t, *o))
+            if k % 5 == 0:
+                d = landmarks - x[:2]
+                r = np.hypot(d[:, 0], d[:, 1]) + rng.normal(0, 0.01, 4)
+                b = np.arctan2(d[:, 1], d[:, 0]) - x[2]
+                rec.write("/landmarks/range_bearing", RangeBearingScan(t, r, b, np.arange(4), 0.01, 0.01))
+            v, w = 0.1, 0.02
+            x = x + [v * np.cos(x[2]), v * np.sin(x[2]), w]
+            o = o + [(1 + drift) * v * np.cos(o[2]), (1 + drift) * v * np.sin(o[2]), w * (1 + drift)]
+    return path
+
+
+@pytest.fixture
+def tiny_recording(tmp_path: Path) -> Path:
+    """A 100-step synthetic recording with odometry, ground truth, scans and a landmark map."""
+    return write_tiny_recording(tmp_path / "tiny.mcap")

@@ -1,0 +1,79 @@
+"""Recorder: never overwrites, complete-or-partial files, metadata, explicit times."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+
+from recorder import GroundTruthPose, OdometryPose, Recorder, RecorderError
+from recorder.writer import METADATA_NAME
+
+
+def test_clean_close_renames_partial(tmp_path: Path) -> None:
+    """Inside the block only FILE.partial exists; after a clean close only FILE."""
+    path = tmp_path / "r.mcap"
+    with Recorder(path, source={"test": 1}, seed=7, parameters={"a": 1}) as rec:
+        rec.write("/odom", OdometryPose(5, 1, 2, 0.5), log_time_ns=10, publish_time_ns=11)
+        assert (tmp_path / "r.mcap.partial").exists() and not path.exists()
+    assert path.exists() and not (tmp_path / "r.mcap.partial").exists()
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        (_, channel, message), = list(reader.iter_messages())
+    assert meta[METADATA_NAME]["seed"] == "7" and '"a": 1' in meta[METADATA_NAME]["parameters"]
+    assert (message.log_time, message.publish_time, channel.topic) == (10, 11, "/odom")
+    assert reader.get_summary().chunk_indexes[0].compression == "zstd"
+
+
+def test_times_default_to_stamp_never_wall_clock(tmp_path: Path) -> None:
+    """Without explicit times, log and publish time are the message stamp."""
+    path = tmp_path / "r.mcap"
+    with Recorder(path, source={}) as rec:
+        rec.write("/odom", OdometryPose(123, 0, 0, 0))
+    with open(path, "rb") as f:
+        (_, _, m), = list(make_reader(f).iter_messages())
+    assert (m.log_time, m.publish_time) == (123, 123)
+
+
+def test_refuses_to_overwrite(tmp_path: Path) -> None:
+    """An existing FILE or FILE.partial is never overwritten."""
+    path = tmp_path / "r.mcap"
+    path.write_bytes(b"precious")
+    with pytest.raises(RecorderError, match="already exists"):
+        Recorder(path, source={})
+    assert path.read_bytes() == b"precious"
+    other = tmp_path / "s.mcap"
+    (tmp_path / "s.mcap.partial").write_bytes(b"x")
+    with pytest.raises(RecorderError, match="already exists"):
+        Recorder(other, source={})
+
+
+def test_exception_keeps_partial(tmp_path: Path) -> None:
+    """When the block raises, the data is kept as FILE.partial and FILE never appears."""
+    path = tmp_path / "r.mcap"
+    with pytest.raises(RuntimeError), Recorder(path, source={}) as rec:
+        rec.write("/odom", OdometryPose(1, 0, 0, 0))
+        raise RuntimeError("sensor died")
+    assert not path.exists()
+    with open(tmp_path / "r.mcap.partial", "rb") as f:
+        assert len(list(make_reader(f).iter_messages())) == 1
+
+
+def test_write_errors(tmp_path: Path) -> None:
+    """Wrong type for a topic, schema change on a topic, writing when closed, bad metadata, missing folder."""
+    with Recorder(tmp_path / "r.mcap", source={}) as rec:
+        with pytest.raises(RecorderError, match="carries OdometryPose"):
+            rec.write("/odom", GroundTruthPose(1, 0, 0, 0))
+        rec.write("/custom", OdometryPose(1, 0, 0, 0))
+        from recorder import RangeBearingScan
+
+        with pytest.raises(RecorderError, match="has schema foxglove.PoseInFrame"):
+            rec.write("/custom", RangeBearingScan(1, [], [], []))
+    with pytest.raises(RecorderError, match="not open"):
+        rec.write("/odom", OdometryPose(1, 0, 0, 0))
+    with pytest.raises(RecorderError, match="JSON-serializable"):
+        Recorder(tmp_path / "q.mcap", source={"x": object()})
+    with pytest.raises(RecorderError, match="does not exist"):
+        Recorder(tmp_path / "nope" / "q.mcap", source={})

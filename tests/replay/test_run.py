@@ -1,0 +1,117 @@
+"""Runs: the odometry pipeline end to end, determinism, and what a failed run leaves behind."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import write_tiny_recording
+
+from recorder import GroundTruthPose, OdometryPose, Recorder
+from replay.diff import rerun_cli
+from replay.engine import replay, start_pose
+from replay.errors import ReplayError
+from replay.observer import MemoryObserver
+from replay.pipeline import get_pipeline, resolve_config
+from replay.reader import RecordingReader
+from replay.run import run_recording
+
+
+def test_dead_reckoning_known_answer(tmp_path: Path) -> None:
+    """Odometry 5 % long on a straight line: the error grows linearly to 5 % of the distance."""
+    path = tmp_path / "line.mcap"
+    with Recorder(path, source={}) as rec:
+        for k in range(101):
+            t = 10**9 + k * 10**8
+            rec.write("/ground_truth/pose", GroundTruthPose(t, 3.0 + 0.1 * k, -2.0, 0.0))
+            rec.write("/odom", OdometryPose(t, 100.0, 50.0 + 0.105 * k, np.pi / 2))  # other frame, 5 % long
+    result = run_recording(path, "odometry", tmp_path / "run")
+    m = result.metrics
+    assert m["robot_final_error_m"] == pytest.approx(0.5, abs=1e-9)
+    errors = 0.005 * np.arange(101)
+    assert m["robot_ate_rmse_m"] == pytest.approx(np.sqrt(np.mean(errors**2)), abs=1e-9)
+    assert m["robot_heading_rmse_deg"] == pytest.approx(0.0, abs=1e-9)
+    assert m["path_length_m"] == pytest.approx(10.5, abs=1e-9) and m["poses_scored"] == 101
+
+
+def test_start_pose_interpolates_ground_truth(tmp_path: Path) -> None:
+    """The estimate starts at the ground truth interpolated at the first odometry time."""
+    path = tmp_path / "r.mcap"
+    with Recorder(path, source={}) as rec:
+        rec.write("/ground_truth/pose", GroundTruthPose(100, 0.0, 0.0, 0.0))
+        rec.write("/ground_truth/pose", GroundTruthPose(200, 2.0, 4.0, 0.2))
+        rec.write("/odom", OdometryPose(150, 9.0, 9.0, 1.0))
+    t0, pose = start_pose(RecordingReader(path), "/odom", None, None)
+    assert t0 == 150 and np.allclose(pose, [1.0, 2.0, 0.1])
+
+
+def test_memory_observer_sees_every_step(tiny_recording: Path) -> None:
+    """Replay sets step and sensor time before each message; the pipeline logs robot and trajectories."""
+    reader = RecordingReader(tiny_recording)
+    cls = get_pipeline("odometry")
+    obs = MemoryObserver()
+    stats = replay(reader, cls, resolve_config(cls), obs, seed=0, log=lambda s: None)
+    robots = [(s, t) for s, t, p, _ in obs.events if p == "world/robot"]
+    assert len(robots) == 100 and robots[0][1] == 1_000_000_000
+    assert stats.messages == 200
+    assert {"world/trajectory/estimate", "world/trajectory/truth", "metrics/robot_position_error_m"} <= obs.paths()
+
+
+def test_two_runs_are_identical(tiny_recording: Path, tmp_path: Path) -> None:
+    """Same recording, config and seed: byte-identical metrics.json and equal .rrd content."""
+    a = run_recording(tiny_recording, "odometry", tmp_path / "a", seed=3)
+    b = run_recording(tiny_recording, "odometry", tmp_path / "b", seed=3)
+    assert (a.run_dir / "metrics.json").read_bytes() == (b.run_dir / "metrics.json").read_bytes()
+    proc = subprocess.run([rerun_cli(), "rrd", "compare", str(a.run_dir / "run.rrd"), str(b.run_dir / "run.rrd")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+def test_run_directory_contents(tiny_recording: Path, tmp_path: Path) -> None:
+    """A run has run.rrd, metrics.json, manifest.json and log.txt; no temporary files remain."""
+    res = run_recording(tiny_recording, "odometry", tmp_path / "run", seed=5, config={})
+    names = sorted(p.name for p in res.run_dir.iterdir())
+    assert names == ["log.txt", "manifest.json", "metrics.json", "run.rrd"]
+    man = json.loads((res.run_dir / "manifest.json").read_text())
+    assert man["status"] == "succeeded" and man["seed"] == 5 and man["pipeline"] == "odometry"
+    assert len(man["recording"]["sha256"]) == 64 and len(man["config_hash"]) == 64
+    assert {"rerun-sdk", "numpy", "scipy", "opencv-contrib-python-headless"} <= set(man["libraries"])
+    assert {"wall_s", "cpu_s", "replay_s", "started_at"} <= set(man["timings"])
+    metrics = json.loads((res.run_dir / "metrics.json").read_text())
+    assert metrics["metrics"]["robot_ate_rmse_m"]["better"] == "lower"
+
+
+def test_bad_input_writes_nothing_or_a_failed_manifest(tiny_recording: Path, tmp_path: Path) -> None:
+    """Unknown pipeline or key: nothing written. Missing topic: a failed manifest, no metrics, no rrd."""
+    with pytest.raises(ReplayError, match="unknown pipeline 'nope'"):
+        run_recording(tiny_recording, "nope", tmp_path / "r1")
+    with pytest.raises(ReplayError, match="unknown config key 'speed'"):
+        run_recording(tiny_recording, "odometry", tmp_path / "r2", config={"speed": "1"})
+    assert not (tmp_path / "r1").exists() and not (tmp_path / "r2").exists()
+    gt_only = tmp_path / "gt.mcap"
+    with Recorder(gt_only, source={}) as rec:
+        rec.write("/ground_truth/pose", GroundTruthPose(1, 0, 0, 0))
+    with pytest.raises(ReplayError, match="has no /odom topic"):
+        run_recording(gt_only, "odometry", tmp_path / "r3")
+    assert sorted(p.name for p in (tmp_path / "r3").iterdir()) == ["log.txt", "manifest.json"]
+    man = json.loads((tmp_path / "r3" / "manifest.json").read_text())
+    assert man["status"] == "failed" and "has no /odom topic" in man["error"]
+    with pytest.raises(ReplayError, match="already exists"):
+        run_recording(tiny_recording, "odometry", tmp_path / "r3")
+
+
+def test_window_and_no_ground_truth(tmp_path: Path) -> None:
+    """A time window limits the replay; without ground truth the accuracy metrics are null."""
+    path = write_tiny_recording(tmp_path / "t.mcap")
+    res = run_recording(path, "odometry", tmp_path / "w", start_ns=1_500_000_000, end_ns=2_000_000_000)
+    assert res.metrics["poses_scored"] == 5
+    no_gt = tmp_path / "nogt.mcap"
+    with Recorder(no_gt, source={}) as rec:
+        for k in range(3):
+            rec.write("/odom", OdometryPose(k + 1, k, 0, 0))
+    res = run_recording(no_gt, "odometry", tmp_path / "n")
+    doc = json.loads((res.run_dir / "metrics.json").read_text())
+    assert doc["metrics"]["robot_ate_rmse_m"]["value"] is None and res.metrics["path_length_m"] == 2.0
