@@ -63,16 +63,21 @@ class RerunObserver:
     """Logs observations to one explicit ``rr.RecordingStream`` saved to a ``.rrd`` file.
 
     The wall-clock ``log_time`` timeline is off; timelines are ``step`` (message index in
-    replay order) and ``sensor_time`` (the message's log_time).
+    replay order) and ``sensor_time`` (the message's log_time). Geometry and scalars are
+    buffered per entity and sent as columns every ``flush_rows`` rows (a Python ``rr.log``
+    call costs ~0.3 ms, a column row ~0.02 ms); text and images are logged at once. The
+    content is the same as logging row by row, and flushing depends on row counts only.
     """
 
     def __init__(self, path: Path, recording_id: str, blueprint: rrb.Blueprint | None,
-                 recording_name: str | None = None) -> None:
+                 recording_name: str | None = None, flush_rows: int = 1024) -> None:
         self.stream = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id, send_properties=False,
                                          batcher_config=rr.ChunkBatcherConfig(**DETERMINISTIC_BATCHING))
         self.stream.set_log_time_enabled(False)
         self.stream.save(path, default_blueprint=blueprint)
         self.step, self.sensor_time_ns = 0, 0
+        self.flush_rows = flush_rows
+        self._buffers: dict[tuple[str, type], list[tuple[int, int, Observation]]] = {}
         if recording_name:
             self.stream.send_recording_name(recording_name)
 
@@ -82,26 +87,85 @@ class RerunObserver:
         self.stream.set_time("sensor_time", timestamp=np.datetime64(sensor_time_ns, "ns"))
 
     def log(self, path: str, item: Observation) -> None:
-        self.stream.log(path, *to_archetypes(path, item))
+        if isinstance(item, (Text, Image)):
+            self.stream.log(path, *to_archetypes(path, item))
+            return
+        rows = self._buffers.setdefault((path, type(item)), [])
+        rows.append((self.step, self.sensor_time_ns, item))
+        if len(rows) >= self.flush_rows:
+            self._flush(path, type(item))
 
     def log_static(self, path: str, item: Observation) -> None:
         self.stream.log(path, *to_archetypes(path, item), static=True)
 
     def send_series(self, path: str, steps: np.ndarray, times_ns: np.ndarray, values: np.ndarray) -> None:
         """A whole scalar time series in one call (computed after the replay)."""
-        self.stream.send_columns(
-            path,
-            indexes=[rr.TimeColumn("step", sequence=np.asarray(steps, np.int64)),
-                     rr.TimeColumn("sensor_time", timestamp=np.asarray(times_ns, np.int64).astype("datetime64[ns]"))],
-            columns=rr.Scalars.columns(scalars=np.asarray(values, np.float64)),
-        )
+        self._send(path, np.asarray(steps), np.asarray(times_ns), [rr.Scalars.columns(scalars=np.asarray(values, float))])
 
     def send_property(self, name: str, values: dict[str, Any]) -> None:
         self.stream.send_property(name, rr.AnyValues(**values))
 
     def close(self) -> None:
         """Flush and write the footer; the file is complete after this."""
+        for path, kind in list(self._buffers):
+            self._flush(path, kind)
         self.stream.disconnect()
+
+    def _send(self, path: str, steps: np.ndarray, times_ns: np.ndarray, columns: list[Any]) -> None:
+        indexes = [rr.TimeColumn("step", sequence=steps.astype(np.int64)),
+                   rr.TimeColumn("sensor_time", timestamp=times_ns.astype(np.int64).astype("datetime64[ns]"))]
+        for cols in columns:
+            self.stream.send_columns(path, indexes=indexes, columns=cols)
+
+    def _flush(self, path: str, kind: type) -> None:
+        rows = self._buffers.pop((path, kind), [])
+        if rows:
+            steps = np.array([r[0] for r in rows])
+            times = np.array([r[1] for r in rows])
+            self._send(path, steps, times, to_columns(path, [r[2] for r in rows]))
+
+
+def to_columns(path: str, items: list[Any]) -> list[Any]:
+    """Column batches (one row per item) drawing a list of same-typed observations."""
+    color = role_color(path) or (200, 200, 200)
+    first = items[0]
+    if isinstance(first, Scalar):
+        return [rr.Scalars.columns(scalars=np.array([i.value for i in items], float))]
+    if isinstance(first, Pose):
+        p = np.array([i.pose for i in items], float).reshape(-1, 3)
+        n = len(p)
+        labels = [i.label or "" for i in items] if any(i.label for i in items) else None
+        heading = 0.5 * np.column_stack([np.cos(p[:, 2]), np.sin(p[:, 2])])
+        return [rr.Points2D.columns(positions=p[:, :2], radii=np.full(n, 0.12), colors=np.tile(color, (n, 1)),
+                                    labels=labels),
+                rr.Arrows2D.columns(origins=p[:, :2], vectors=heading, colors=np.tile(color, (n, 1)))]
+    if isinstance(first, Points):
+        lengths = np.array([len(i.positions) for i in items])
+        pos = np.concatenate([np.asarray(i.positions, float).reshape(-1, 2) for i in items])
+        radii = np.concatenate([np.full(len(i.positions), 0.08 if i.radius is None else i.radius) for i in items])
+        labels = None
+        if any(i.labels for i in items):
+            labels = [lb for i in items for lb in (i.labels or [""] * len(i.positions))]
+        cols = rr.Points2D.columns(positions=pos, radii=radii, colors=np.tile(color, (len(pos), 1)), labels=labels)
+        return [cols.partition(lengths)]
+    strips_per_row = [_strips(i) for i in items]
+    lengths = np.array([len(s) for s in strips_per_row])
+    strips = [s for row in strips_per_row for s in row]
+    radius = 0.03 if isinstance(first, LineStrips) else 0.015
+    cols = rr.LineStrips2D.columns(strips=strips, colors=np.tile(color, (len(strips), 1)),
+                                   radii=np.full(len(strips), radius))
+    return [cols.partition(lengths)]
+
+
+def _strips(item: Any) -> list[np.ndarray]:
+    if isinstance(item, LineStrips):
+        return [np.asarray(s, float) for s in item.strips]
+    if isinstance(item, Segments):
+        return [np.stack([a, b]) for a, b in zip(np.asarray(item.starts, float), np.asarray(item.ends, float),
+                                                 strict=True)]
+    if isinstance(item, CovarianceEllipses):
+        return [ellipse_points(m, c, item.n_sigma) for m, c in zip(item.means, item.covariances, strict=True)]
+    raise TypeError(f"unknown observation type {type(item).__name__}")
 
 
 def to_archetypes(path: str, item: Observation) -> list[Any]:
