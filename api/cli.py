@@ -101,7 +101,9 @@ def cmd_record_sim_landmarks(args: argparse.Namespace) -> int:
     with progress_bar("simulating", args.quiet) as update:
         summary = simulate_landmarks(Path(args.out), config, seed=args.seed, progress=update)
     if not args.quiet:
-        _eprint(f"wrote {args.out}: {summary}")
+        _eprint(f"wrote {args.out}: {summary.messages:,} messages, {summary.poses:,} poses, {summary.scans:,} scans "
+                f"({summary.observations:,} observations), {summary.landmarks_observed}/{summary.landmarks} landmarks "
+                f"seen, {summary.path_length_m:.1f} m driven in a {summary.area_m:g} m square")
     return EXIT_OK
 
 
@@ -111,7 +113,10 @@ def cmd_record_mrclam(args: argparse.Namespace) -> int:
     with progress_bar(f"importing MRCLAM robot {args.robot}", args.quiet) as update:
         summary = import_mrclam(Path(args.dir), args.robot, Path(args.out), progress=update)
     if not args.quiet:
-        _eprint(f"wrote {args.out}: {summary}")
+        _eprint(f"wrote {args.out}: {summary.messages:,} messages ({summary.odometry_poses:,} odometry, "
+                f"{summary.ground_truth_poses:,} ground truth, {summary.scans:,} scans with "
+                f"{summary.measurements_kept:,} landmark sightings; {summary.robot_sightings_dropped} robot sightings "
+                f"and {summary.unknown_barcodes_dropped} unknown barcodes dropped)")
     return EXIT_OK
 
 

@@ -73,7 +73,8 @@ def run_demo(out: Path, data: Path | None, quiet: bool = False) -> int:
     print(f"{'recording':<22} {'pipeline':<12} {'metric':<28} {'value':>12}")
     for rec_name, pipe, result in results:
         for metric, value in sorted(result.metrics.items()):
-            print(f"{rec_name:<22} {pipe:<12} {metric:<28} {value:>12.4g}")
+            shown = f"{value:,.0f}" if float(value).is_integer() else f"{value:.4f}"
+            print(f"{rec_name:<22} {pipe:<12} {metric:<28} {shown:>12}")
     print()
     print("Open a run in the Rerun viewer:")
     for _, _, result in results:

@@ -47,8 +47,8 @@ class OdometryPipeline(Pipeline):
         start = ctx.T_world_start if ctx.T_world_start is not None else np.zeros(3)
         self.dead_reckoning = DeadReckoning(start)
         counts = {t.logical_topic: t.message_count for t in ctx.info.topics}
-        self.estimate = TrajectoryLog(ctx.observer, "world/trajectory/estimate", counts.get(TOPIC_ODOM, 0))
-        self.truth = TrajectoryLog(ctx.observer, "world/trajectory/truth", counts.get(TOPIC_GROUND_TRUTH_POSE, 0))
+        self.estimate = TrajectoryLog(ctx.observer, "world/trajectory/estimate", counts.get(TOPIC_ODOM, 0) // 10)
+        self.truth = TrajectoryLog(ctx.observer, "world/trajectory/truth", counts.get(TOPIC_GROUND_TRUTH_POSE, 0) // 10)
         self.t_est: list[int] = []
         self.steps: list[int] = []
         self.est: list[np.ndarray] = []
@@ -75,6 +75,8 @@ class OdometryPipeline(Pipeline):
         est = np.asarray(self.est, np.float64).reshape(-1, 3)
         t_gt = np.asarray(self.t_gt, np.int64)
         gt = np.asarray(self.gt, np.float64).reshape(-1, 3)
+        self.estimate.finish()
+        self.truth.finish()
         pos_err, yaw_err = position_errors(t_est, est, t_gt, gt)
         if len(pos_err):
             inside = (t_est >= t_gt[0]) & (t_est <= t_gt[-1])

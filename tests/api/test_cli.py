@@ -168,3 +168,33 @@ def test_console_script_help_and_errors(tmp_path: Path) -> None:
     proc = subprocess.run([*cmd, "run", str(junk), "--pipeline", "odometry", "--out", str(tmp_path / "r")],
                           capture_output=True, text=True)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+
+
+def test_record_sim_and_run_with_timings(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """record sim-landmarks writes a recording whose odometry run succeeds; --log-timings adds timings/step_ms."""
+    out = tmp_path / "sim.mcap"
+    code, _, err = run_cli(["record", "sim-landmarks", "--out", str(out), "--seed", "4", "--duration-s", "30",
+                            "--landmarks", "400"], capsys)
+    assert code == 0 and "/400 landmarks seen" in err and out.exists()
+    code, _, err = run_cli(["record", "sim-landmarks", "--out", str(out)], capsys)
+    assert_bad_input(code, err, "already exists")
+    code, _, err = run_cli(["record", "sim-landmarks", "--out", str(tmp_path / "x.mcap"), "--speed-mps", "-1"],
+                           capsys)
+    assert_bad_input(code, err, "speed_mps must be > 0")
+    code, _, _ = run_cli(["run", str(out), "--pipeline", "odometry", "--out", str(tmp_path / "r"), "-q",
+                          "--log-timings"], capsys)
+    assert code == 0
+    from rerun.chunk import RrdReader
+
+    paths = {c.entity_path for c in RrdReader(tmp_path / "r" / "run.rrd").stream().to_chunks()}
+    assert "/timings/step_ms" in paths
+    code, _, _ = run_cli(["run", str(out), "--pipeline", "odometry", "--out", str(tmp_path / "r2"), "-q"], capsys)
+    paths = {c.entity_path for c in RrdReader(tmp_path / "r2" / "run.rrd").stream().to_chunks()}
+    assert "/timings/step_ms" not in paths  # no wall-clock value unless asked for
+
+
+def test_record_mrclam_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A missing dataset folder is a one-line error."""
+    code, _, err = run_cli(["record", "mrclam", str(tmp_path / "nope"), "--robot", "1", "--out",
+                            str(tmp_path / "m.mcap")], capsys)
+    assert_bad_input(code, err, "nope")

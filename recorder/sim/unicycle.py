@@ -1,0 +1,47 @@
+"""Planar unicycle kinematics for the simulators (recorder/ does not import algorithms/)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+F64 = NDArray[np.float64]
+
+
+def wrap_angle(theta: ArrayLike) -> F64:
+    """Wrap angles to [-pi, pi)."""
+    t = np.asarray(theta, dtype=np.float64)
+    return (t + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def arc_step(yaw_rad: ArrayLike, speed_mps: ArrayLike, turn_radps: ArrayLike, dt_s: ArrayLike) -> F64:
+    """Displacement ``(..., 3)`` = ``[dx, dy, dyaw]`` in the parent frame of an exact arc.
+
+    Constant forward speed and turn rate for ``dt_s`` from heading ``yaw_rad``: the chord has
+    length ``v dt sinc(w dt / 2)`` and points along the mid-arc heading, which stays exact
+    (no division) as the turn rate goes to zero.
+    """
+    yaw = np.asarray(yaw_rad, dtype=np.float64)
+    dt = np.asarray(dt_s, dtype=np.float64)
+    dyaw = np.asarray(turn_radps, dtype=np.float64) * dt
+    chord = np.asarray(speed_mps, dtype=np.float64) * dt * np.sinc(dyaw / (2.0 * np.pi))
+    mid = yaw + 0.5 * dyaw
+    return np.stack(np.broadcast_arrays(chord * np.cos(mid), chord * np.sin(mid), dyaw), -1)
+
+
+def integrate(start: ArrayLike, speed_mps: ArrayLike, turn_radps: ArrayLike, dt_s: float) -> F64:
+    """Poses ``(n + 1, 3)`` (unwrapped yaw) from ``start`` under n constant-velocity arcs of ``dt_s``.
+
+    ``speed_mps`` and ``turn_radps`` are (n,): the velocities held over each step.
+    """
+    p0 = np.asarray(start, dtype=np.float64)
+    v = np.asarray(speed_mps, dtype=np.float64)
+    w = np.asarray(turn_radps, dtype=np.float64)
+    yaw = p0[2] + np.concatenate([[0.0], np.cumsum(w * dt_s)])
+    d = arc_step(yaw[:-1], v, w, dt_s)
+    poses = np.empty((len(v) + 1, 3))
+    poses[0] = p0
+    poses[1:, 0] = p0[0] + np.cumsum(d[:, 0])
+    poses[1:, 1] = p0[1] + np.cumsum(d[:, 1])
+    poses[:, 2] = yaw
+    return poses
