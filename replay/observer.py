@@ -100,7 +100,8 @@ class RerunObserver:
 
     def send_series(self, path: str, steps: np.ndarray, times_ns: np.ndarray, values: np.ndarray) -> None:
         """A whole scalar time series in one call (computed after the replay)."""
-        self._send(path, np.asarray(steps), np.asarray(times_ns), [rr.Scalars.columns(scalars=np.asarray(values, float))])
+        columns = [rr.Scalars.columns(scalars=np.asarray(values, float))]
+        self._send(path, np.asarray(steps), np.asarray(times_ns), columns)
 
     def send_property(self, name: str, values: dict[str, Any]) -> None:
         self.stream.send_property(name, rr.AnyValues(**values))
