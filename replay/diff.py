@@ -230,8 +230,8 @@ def format_table(diff: RunDiff) -> str:
     width = max([len(m.name) for m in diff.metrics] + [6])
     lines.append(f"  {'metric':<{width}}  {'A':>14}  {'B':>14}  {'B - A':>12}  better  verdict")
     for m in diff.metrics:
-        fa = "null" if m.a is None else f"{m.a:.6g}"
-        fb = "null" if m.b is None else f"{m.b:.6g}"
+        fa = "-" if m.a is None else f"{m.a:.6g}"
+        fb = "-" if m.b is None else f"{m.b:.6g}"
         fd = "" if m.delta is None or not math.isfinite(m.delta) else f"{m.delta:+.4g}"
         mark = {"worse": "WORSE", "better": "better"}.get(m.verdict, m.verdict)
         lines.append(f"  {m.name:<{width}}  {fa:>14}  {fb:>14}  {fd:>12}  {m.better:<6}  {mark}")

@@ -99,9 +99,9 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
     if progress is not None:
         progress(n, n)
     metrics = pipeline.finish()
-    missing = set(pipeline_cls.metrics) ^ set(metrics)
-    if missing:
-        raise RuntimeError(f"pipeline {pipeline_cls.name} returned metrics that differ from its specs: {missing}")
+    unknown = set(metrics) - set(pipeline_cls.metrics)
+    if unknown:
+        raise RuntimeError(f"pipeline {pipeline_cls.name} returned metrics without a spec: {sorted(unknown)}")
     return ReplayStats(metrics, n, np.asarray(durations) if log_timings else None)
 
 

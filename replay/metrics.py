@@ -50,15 +50,22 @@ def rmse(x: F64) -> float:
 
 
 def format_metrics(pipeline: str, values: Mapping[str, float], specs: Mapping[str, MetricSpec]) -> dict[str, Any]:
-    """The metrics.json document: values with their direction, unit and tolerance. NaN -> null."""
-    missing = set(specs) ^ set(values)
-    if missing:
-        raise ValueError(f"metrics and their specs differ in: {', '.join(sorted(missing))}")
+    """The metrics.json document: values with their direction, unit and tolerance.
+
+    A metric that does not apply to a run is absent (the pipeline leaves it out); a value
+    that is not finite is an error of the pipeline.
+    """
+    unknown = set(values) - set(specs)
+    if unknown:
+        raise ValueError(f"metrics without a spec: {', '.join(sorted(unknown))}")
+    bad = [k for k, v in values.items() if not math.isfinite(v)]
+    if bad:
+        raise ValueError(f"metrics are not finite: {', '.join(sorted(bad))}")
     return {
         "format": METRICS_FORMAT,
         "pipeline": pipeline,
         "metrics": {
-            name: {"value": None if not math.isfinite(v) else float(v), "better": specs[name].better,
+            name: {"value": float(v), "better": specs[name].better,
                    "unit": specs[name].unit, "tolerance": specs[name].tolerance}
             for name, v in sorted(values.items())
         },

@@ -86,7 +86,7 @@ class Pipeline(ABC):
 
     @abstractmethod
     def finish(self) -> dict[str, float]:
-        """End of the recording: final logging, and the metrics (keys of ``metrics``)."""
+        """End of the recording: final logging, and the metrics (keys of ``metrics``; absent when not applicable)."""
 
     @classmethod
     def blueprint(cls) -> rrb.Blueprint:

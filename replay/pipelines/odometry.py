@@ -78,18 +78,18 @@ class OdometryPipeline(Pipeline):
         self.estimate.finish()
         self.truth.finish()
         pos_err, yaw_err = position_errors(t_est, est, t_gt, gt)
-        if len(pos_err):
-            inside = (t_est >= t_gt[0]) & (t_est <= t_gt[-1])
-            self.ctx.observer.send_series("metrics/robot_position_error_m", np.asarray(self.steps)[inside],
-                                          t_est[inside], pos_err)
-        else:
-            self.ctx.log("no ground truth overlaps the odometry: accuracy metrics are null")
         path = float(np.sum(np.hypot(*np.diff(est[:, :2], axis=0).T))) if len(est) > 1 else 0.0
+        metrics = {"path_length_m": path, "poses_scored": float(len(pos_err))}
+        if not len(pos_err):
+            self.ctx.log("no ground truth overlaps the odometry: the accuracy metrics do not apply")
+            return metrics
+        inside = (t_est >= t_gt[0]) & (t_est <= t_gt[-1])
+        self.ctx.observer.send_series("metrics/robot_position_error_m", np.asarray(self.steps)[inside],
+                                      t_est[inside], pos_err)
         return {
+            **metrics,
             "robot_ate_rmse_m": rmse(pos_err),
-            "robot_final_error_m": float(pos_err[-1]) if len(pos_err) else float("nan"),
-            "robot_max_error_m": float(pos_err.max()) if len(pos_err) else float("nan"),
+            "robot_final_error_m": float(pos_err[-1]),
+            "robot_max_error_m": float(pos_err.max()),
             "robot_heading_rmse_deg": float(np.degrees(rmse(yaw_err))),
-            "path_length_m": path,
-            "poses_scored": float(len(pos_err)),
         }
