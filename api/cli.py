@@ -347,7 +347,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         _eprint("slamreplay: interrupted")
         return 130
-    except Exception as err:
+    except Exception as err:  # noqa: BLE001 -- never a traceback to a user unless asked
         if args.debug:
             traceback.print_exc()
         _eprint(f"slamreplay: internal error: {type(err).__name__}: {err} (rerun with --debug for a traceback, "

@@ -76,7 +76,7 @@ def recover(src: str | Path, dst: str | Path) -> RecoveryReport:
                     writer.add_message(channel_id, record.log_time, record.data, record.publish_time,
                                        record.sequence)
                     count += 1
-        except Exception as err:
+        except Exception as err:  # noqa: BLE001 -- damage shows up as any decoder's error; stop there
             stopped = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
         writer.finish()
         out.flush()
