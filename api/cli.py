@@ -159,7 +159,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
 def cmd_pipelines(args: argparse.Namespace) -> int:
     from replay.pipeline import all_pipelines, config_schema
 
-    rows = [{"name": name, "summary": cls.summary, "required_topics": list(cls.required_topics),
+    rows: list[dict[str, Any]] = [{"name": name, "summary": cls.summary, "required_topics": list(cls.required_topics),
              "optional_topics": list(cls.optional_topics), "config": config_schema(cls.Config),
              "metrics": {k: {"better": m.better, "unit": m.unit, "description": m.description}
                          for k, m in cls.metrics.items()}}

@@ -25,7 +25,7 @@ import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
 from replay.errors import ReplayError
-from replay.observer import APPLICATION_ID, DETERMINISTIC_BATCHING
+from replay.observer import APPLICATION_ID, deterministic_batcher
 
 MANIFEST_FIELDS = ("pipeline", "recording.sha256", "seed", "config_hash", "slamreplay.version",
                    "slamreplay.git_commit", "window_ns", "status")
@@ -195,7 +195,7 @@ def write_comparison_rrd(a_dir: str | Path, b_dir: str | Path, out: str | Path) 
             raise ReplayError(f"{d} has no run.rrd")
     tmp = out.with_name(f".{out.name}.partial")
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=f"diff-{a_dir.name}-{b_dir.name}", send_properties=False,
-                             batcher_config=rr.ChunkBatcherConfig(**DETERMINISTIC_BATCHING))
+                             batcher_config=deterministic_batcher())
     rec.set_log_time_enabled(False)
     blueprint = rrb.Blueprint(
         rrb.Vertical(

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
@@ -30,9 +31,12 @@ from algorithms.observe import (
 
 APPLICATION_ID = "slamreplay"
 
-# Chunks are cut by row count only, never by the batcher's wall-clock tick, so that the
-# same run gives the same chunks and `rerun rrd compare` can tell two runs apart by content.
-DETERMINISTIC_BATCHING = dict(flush_tick=3600.0, flush_num_bytes=1 << 40, flush_num_rows=4096)
+
+
+def deterministic_batcher() -> rr.ChunkBatcherConfig:
+    """Chunks cut by row count only, never by the batcher's wall-clock tick: the same run gives
+    the same chunks, so `rerun rrd compare` can tell two runs apart by content."""
+    return rr.ChunkBatcherConfig(flush_tick=timedelta(hours=1), flush_num_bytes=1 << 40, flush_num_rows=4096)
 
 _COLORS = (  # first match on the entity path wins
     ("truth", (60, 180, 75)),
@@ -72,7 +76,7 @@ class RerunObserver:
     def __init__(self, path: Path, recording_id: str, blueprint: rrb.Blueprint | None,
                  recording_name: str | None = None, flush_rows: int = 1024) -> None:
         self.stream = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id, send_properties=False,
-                                         batcher_config=rr.ChunkBatcherConfig(**DETERMINISTIC_BATCHING))
+                                         batcher_config=deterministic_batcher())
         self.stream.set_log_time_enabled(False)
         self.stream.save(path, default_blueprint=blueprint)
         self.step, self.sensor_time_ns = 0, 0
@@ -179,14 +183,8 @@ def to_archetypes(path: str, item: Observation) -> list[Any]:
         x, y, th = (float(v) for v in item.pose)
         return [rr.Points2D([[x, y]], radii=0.12, colors=color, labels=[item.label] if item.label else None),
                 rr.Arrows2D(origins=[[x, y]], vectors=[[0.5 * np.cos(th), 0.5 * np.sin(th)]], colors=color)]
-    if isinstance(item, LineStrips):
-        return [rr.LineStrips2D(list(item.strips), colors=color, radii=0.03)]
-    if isinstance(item, Segments):
-        strips = np.stack([item.starts, item.ends], axis=1) if len(item.starts) else np.zeros((0, 2, 2))
-        return [rr.LineStrips2D(strips, colors=color, radii=0.015)]
-    if isinstance(item, CovarianceEllipses):
-        strips = [ellipse_points(m, c, item.n_sigma) for m, c in zip(item.means, item.covariances, strict=True)]
-        return [rr.LineStrips2D(strips, colors=color, radii=0.015)]
+    if isinstance(item, (LineStrips, Segments, CovarianceEllipses)):
+        return [rr.LineStrips2D(_strips(item), colors=color, radii=0.03 if isinstance(item, LineStrips) else 0.015)]
     if isinstance(item, Scalar):
         return [rr.Scalars(float(item.value))]
     if isinstance(item, Text):
@@ -233,7 +231,7 @@ class MemoryObserver:
         """Events as rounded, sorted JSON-friendly rows (for golden files)."""
         rows = []
         for step, t, path, item in self.events:
-            payload = {k: _round(getattr(item, k), decimals) for k in item.__slots__}  # type: ignore[union-attr]
+            payload = {k: _round(getattr(item, k), decimals) for k in item.__slots__}
             rows.append([step, t, path, type(item).__name__, payload])
         return sorted(rows, key=lambda r: (r[0], r[1], r[2], json.dumps(r[4], sort_keys=True)))
 
