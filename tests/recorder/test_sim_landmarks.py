@@ -7,23 +7,21 @@ import json
 import math
 import time
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 import pytest
 from mcap.reader import make_reader
 from numpy.typing import NDArray
+from readback import by_topic, poses, read_recording
 
-from recorder.codec import TopicDecoder
 from recorder.messages import (
     TOPIC_GROUND_TRUTH_LANDMARKS,
     TOPIC_GROUND_TRUTH_POSE,
     TOPIC_ODOM,
     TOPIC_RANGE_BEARING,
-    TOPIC_TYPES,
     LandmarkMap,
     Message,
-    PlanarPose,
     RangeBearingScan,
     assert_msg_equal,
 )
@@ -32,41 +30,6 @@ from recorder.sim.landmarks import EPOCH_NS, landmark_positions, simulate_motion
 
 NOISE_FREE: dict[str, Any] = {"range_sigma_m": 0.0, "bearing_sigma_deg": 0.0, "odom_speed_sigma_mps": 0.0,
                               "odom_turn_sigma_radps": 0.0}
-
-M = TypeVar("M")
-
-
-def read_recording(path: Path) -> list[tuple[str, int, Message]]:
-    """All messages of a recording as (topic, log_time_ns, message), in log-time order."""
-    out: list[tuple[str, int, Message]] = []
-    with open(path, "rb") as f:
-        reader = make_reader(f, validate_crcs=True)
-        decoders: dict[int, TopicDecoder] = {}
-        for schema, channel, m in reader.iter_messages(log_time_order=True):
-            dec = decoders.get(channel.id)
-            if dec is None:  # one decoder per channel: building one is costly
-                dec = decoders[channel.id] = TopicDecoder(channel.topic, TOPIC_TYPES[channel.topic], schema,
-                                                          channel.message_encoding)
-            out.append((channel.topic, m.log_time, dec(m.data, m.log_time)))
-    return out
-
-
-def by_topic(msgs: list[tuple[str, int, Message]], topic: str, kind: type[M]) -> list[M]:
-    """The messages of one topic, in order, checked to be of type ``kind``."""
-    out: list[M] = []
-    for t, _, m in msgs:
-        if t == topic:
-            assert isinstance(m, kind), f"{topic}: {type(m).__name__} is not a {kind.__name__}"
-            out.append(m)
-    return out
-
-
-def poses(msgs: list[tuple[str, int, Message]], topic: str) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """Stamps (n,) and [x, y, yaw] (n, 3) of a pose topic."""
-    items = by_topic(msgs, topic, PlanarPose)
-    return (np.array([p.stamp_ns for p in items], dtype=np.int64),
-            np.array([[p.x_m, p.y_m, p.yaw_rad] for p in items]))
-
 
 def compose(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
     """SE(2) a ⊕ b for a (3,) and b (n, 3)."""
