@@ -327,10 +327,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     try:
         from api.graph_cli import add_graph_parser
-    except ImportError:  # the pose-graph back end is optional during development
-        pass
-    else:
+
         add_graph_parser(sub)
+    except ImportError:  # the pose-graph back end is not in this checkout yet
+        pass
     return p
 
 
