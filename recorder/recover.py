@@ -80,6 +80,9 @@ def _records_of_cut_chunk(tail: bytes) -> list[Any]:
     """Complete schema/channel/message records in a chunk record cut short (``tail`` starts at its opcode)."""
     if len(tail) < 9 or tail[0] != Opcode.CHUNK:
         return []
+    (record_length,) = struct.unpack_from("<Q", tail, 1)
+    if len(tail) >= 9 + record_length:
+        return []  # the chunk is all there, so it is damaged, not cut: its content cannot be trusted
     body = tail[9:]
     if len(body) < 32:
         return []
