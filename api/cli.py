@@ -15,6 +15,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from api.graph_cli import add_graph_parser
 from recorder.errors import RecorderError
 from replay.errors import ReplayError
 
@@ -325,12 +326,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--data", default=None, help="public datasets folder; MRCLAM is replayed too when present")
     demo.set_defaults(func=cmd_demo)
 
-    try:
-        from api.graph_cli import add_graph_parser
-
-        add_graph_parser(sub)
-    except ImportError:  # the pose-graph back end is not in this checkout yet
-        pass
+    add_graph_parser(sub)
     return p
 
 

@@ -198,3 +198,20 @@ def test_record_mrclam_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     code, _, err = run_cli(["record", "mrclam", str(tmp_path / "nope"), "--robot", "1", "--out",
                             str(tmp_path / "m.mcap")], capsys)
     assert_bad_input(code, err, "nope")
+
+
+def test_graph_optimize(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """graph optimize: a consistent square loop reaches chi2 0; a malformed line is a one-line error naming it."""
+    g = tmp_path / "square.g2o"
+    lines = [f"VERTEX_SE2 {k} {0.1 * k} {0.05 * k} 0.0" for k in range(4)]
+    info = "100 0 0 100 0 1000"
+    lines += [f"EDGE_SE2 {k} {k + 1} 1.0 0.0 1.5707963267948966 {info}" for k in range(3)]
+    lines += [f"EDGE_SE2 3 0 1.0 0.0 1.5707963267948966 {info}"]
+    g.write_text("\n".join(lines) + "\n")
+    code, out, _ = run_cli(["graph", "optimize", str(g), "--out", str(tmp_path / "o.g2o"), "--json"], capsys)
+    summary = json.loads(out)
+    assert code == 0 and summary["chi2_final"] < 1e-12 and summary["status"] == "converged"
+    bad = tmp_path / "bad.g2o"
+    bad.write_text("VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1 oops\n")
+    code, _, err = run_cli(["graph", "optimize", str(bad), "--out", str(tmp_path / "b.g2o")], capsys)
+    assert_bad_input(code, err, r"bad.g2o:2")

@@ -1,0 +1,192 @@
+"""Block-sparse normal equations of a graph problem, and a sparse Cholesky that keeps its analysis.
+
+:class:`BlockSystem` does the symbolic work once per graph structure: a fill-reducing ordering of
+the vertex blocks and, for every (edge, block, row, column) contribution, its slot in the CSC
+data array. Each iteration then only fills numbers with ``np.bincount`` [1]_.
+
+:class:`SparseCholesky` uses CHOLMOD through scikit-sparse (``sksparse``) when it is importable,
+with its symbolic analysis done on the first factorization and reused after; otherwise SciPy's
+SuperLU on the already-permuted matrix with the natural ordering and no pivoting, which is the
+fastest SciPy path measured here (the ordering is the only symbolic step SciPy lets us reuse).
+
+References
+----------
+.. [1] R. Kümmerle et al., "g2o: A general framework for graph optimization", ICRA 2011, sec. III-C.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+Backend = Literal["auto", "cholmod", "superlu"]
+
+try:  # optional: CHOLMOD where SuiteSparse and scikit-sparse are installed
+    from sksparse.cholmod import analyze as _cholmod_analyze  # type: ignore[import-not-found, unused-ignore]
+except ImportError:  # the install keeps working on SciPy alone
+    _cholmod_analyze = None
+
+HAVE_CHOLMOD = _cholmod_analyze is not None
+
+
+def _block_ordering(n_free: int, rows: I64, cols: I64) -> I64:
+    """Fill-reducing block order (SuperLU's minimum degree on the block graph); returns pos."""
+    if n_free <= 2:
+        return np.arange(n_free, dtype=np.int64)
+    off = rows != cols
+    r, c = rows[off], cols[off]
+    deg = np.bincount(r, minlength=n_free).astype(np.float64)
+    # A diagonally dominant matrix with the block pattern: its MMD order is what we want.
+    a = sp.csc_matrix(
+        (np.r_[-np.ones(r.size), deg + 1.0], (np.r_[r, np.arange(n_free)], np.r_[c, np.arange(n_free)])),
+        shape=(n_free, n_free),
+    )
+    lu = sla.splu(a, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    return np.asarray(lu.perm_c, dtype=np.int64)  # perm_c[v] is the new position of block v
+
+
+class BlockSystem:
+    """Structure of ``H = sum_k J_k^T W_k J_k`` for edges (i_k, j_k) between d-dimensional blocks.
+
+    Parameters
+    ----------
+    n_vertices : int
+    i, j : (m,) int64
+        Edge endpoints, vertex indices in ``[0, n_vertices)``.
+    fixed : int or sequence of int
+        The gauge vertex (or vertices), whose blocks are removed from the system.
+    dim : int
+        Block size (3 for SE(2) poses).
+    order : (n_vertices - n_fixed,) int64, optional
+        Block position of each free vertex (in vertex order), e.g. a previous system's ``pos``
+        extended by new vertices; computed (minimum degree) when None.
+    """
+
+    def __init__(self, n_vertices: int, i: I64, j: I64, fixed: int | tuple[int, ...], dim: int = 3,
+                 order: I64 | None = None) -> None:
+        d = dim
+        free = np.ones(n_vertices, dtype=bool)
+        free[np.asarray(fixed, dtype=np.int64)] = False
+        n_free = int(free.sum())
+        idx = np.cumsum(free) - 1
+        ends = [(i, i), (i, j), (j, i), (j, j)]
+        rb0 = np.stack([np.where(free[a], idx[a], -1) for a, _ in ends], 1)  # (m, 4) unordered
+        cb0 = np.stack([np.where(free[b], idx[b], -1) for _, b in ends], 1)
+        valid = (rb0 >= 0) & (cb0 >= 0)
+        if order is None:
+            order = _block_ordering(n_free, rb0[valid], cb0[valid])
+        elif order.shape != (n_free,):
+            raise ValueError(f"order must have shape ({n_free},), got {order.shape}")
+        pos = np.full(n_vertices, -1, dtype=np.int64)
+        pos[free] = order
+        rb = np.stack([pos[a] for a, _ in ends], 1)
+        cb = np.stack([pos[b] for _, b in ends], 1)
+        keys = cb[valid] * n_free + rb[valid]  # column-major block keys: CSC order after sorting
+        ukeys, inv = np.unique(keys, return_inverse=True)
+        ucol, urow = ukeys // n_free, ukeys % n_free
+        cnt = np.bincount(ucol, minlength=n_free)
+        bstart = np.r_[0, np.cumsum(cnt)]
+        rank = np.arange(ukeys.size) - bstart[ucol]
+        rr, cc = np.arange(d)[:, None], np.arange(d)[None, :]
+        # data position of entry (r, c) of unique block t
+        colstart = (d * d * bstart[ucol])[:, None, None] + cc * d * cnt[ucol][:, None, None]
+        slot_of = colstart + d * rank[:, None, None] + rr
+        nnz = d * d * ukeys.size
+        indices = np.empty(nnz, dtype=np.int32)
+        indices[slot_of.ravel()] = np.broadcast_to(d * urow[:, None, None] + rr, slot_of.shape).ravel()
+        colptr = np.r_[0, np.cumsum(np.repeat(d * cnt, d))].astype(np.int32)
+        slot_h = np.full((i.size, 4, d, d), nnz, dtype=np.int64)
+        slot_h[valid] = slot_of[inv]
+        diag_t = np.searchsorted(ukeys, np.arange(n_free) * n_free + np.arange(n_free))
+        bpos = np.stack([pos[i], pos[j]], 1)  # (m, 2)
+        slot_b = np.where(bpos[:, :, None] >= 0, d * bpos[:, :, None] + np.arange(d), d * n_free)
+        self.dim = d
+        self.size = d * n_free
+        self.nnz = nnz
+        self.pos: I64 = pos
+        self._indices = indices
+        self._indptr = colptr
+        self._slot_h = np.ascontiguousarray(slot_h.transpose(1, 2, 3, 0)).ravel()  # edge-last layout
+        self._slot_b = np.ascontiguousarray(slot_b.transpose(1, 2, 0)).ravel()
+        self.diag_slots: I64 = slot_of[diag_t][:, np.arange(d), np.arange(d)].ravel()
+        self.n_edges = int(i.size)
+
+    def matrix(self, data: F64) -> sp.csc_matrix:
+        """CSC matrix with this structure and the given data (shares the index arrays)."""
+        m = sp.csc_matrix((self.size, self.size))
+        m.data, m.indices, m.indptr = data, self._indices, self._indptr
+        return m
+
+    def assemble(self, blocks: F64, grad: F64) -> tuple[F64, F64]:
+        """CSC data of H and the vector b, in the permuted order.
+
+        Parameters
+        ----------
+        blocks : (4, d, d, m) float64
+            Per edge ``J_i^T W J_i``, ``J_i^T W J_j``, ``J_j^T W J_i``, ``J_j^T W J_j`` (edge last).
+        grad : (2, d, m) float64
+            Per edge ``J_i^T W e`` and ``J_j^T W e``.
+        """
+        data = np.bincount(self._slot_h, weights=blocks.ravel(), minlength=self.nnz + 1)[: self.nnz]
+        b = np.bincount(self._slot_b, weights=grad.ravel(), minlength=self.size + 1)[: self.size]
+        return data.astype(np.float64, copy=False), b.astype(np.float64, copy=False)
+
+    def scatter(self, x: F64, n_vertices: int) -> F64:
+        """Map a permuted solution vector (size,) back to per-vertex blocks (n, d), 0 at the gauge."""
+        out = np.zeros((n_vertices, self.dim))
+        free = self.pos >= 0
+        out[free] = x.reshape(-1, self.dim)[self.pos[free]]
+        return out
+
+
+class SparseCholesky:
+    """Factorizations of SPD matrices that share one sparsity pattern.
+
+    Parameters
+    ----------
+    backend : {"auto", "cholmod", "superlu"}
+        ``auto`` picks CHOLMOD when ``sksparse`` imports, SuperLU otherwise.
+    """
+
+    def __init__(self, backend: Backend = "auto") -> None:
+        if backend not in ("auto", "cholmod", "superlu"):
+            raise ValueError(f"backend must be auto, cholmod or superlu, got {backend!r}")
+        if backend == "cholmod" and not HAVE_CHOLMOD:
+            raise ValueError("backend: 'cholmod' requested but scikit-sparse (sksparse) is not importable")
+        self.backend = "cholmod" if backend == "cholmod" or (backend == "auto" and HAVE_CHOLMOD) else "superlu"
+        self._symbolic: Any = None
+        self._lu: Any = None
+
+    def factor(self, h: sp.csc_matrix) -> bool:
+        """Factor ``h`` (symmetric, already fill-reduced); False when it is singular / not PD."""
+        if self.backend == "cholmod":
+            assert _cholmod_analyze is not None
+            try:
+                if self._symbolic is None:
+                    self._symbolic = _cholmod_analyze(h)
+                self._symbolic.cholesky_inplace(h)
+            except Exception:  # noqa: BLE001 - CholmodNotPositiveDefiniteError and friends
+                return False
+            return True
+        try:
+            # relax=1, panel_size=1 measured 35 % faster than SuperLU's defaults on M3500, intel and
+            # city10000; large values (relax 16, panel 32) crash SciPy 1.17's SuperLU.
+            self._lu = sla.splu(
+                h, permc_spec="NATURAL", diag_pivot_thresh=0.0, relax=1, panel_size=1,
+                options={"SymmetricMode": True},
+            )
+        except RuntimeError:  # "Factor is exactly singular"
+            return False
+        return True
+
+    def solve(self, rhs: F64) -> F64:
+        """Solve with the last successful factorization; rhs (N,) or (N, k)."""
+        if self.backend == "cholmod":
+            return np.asarray(self._symbolic(rhs), dtype=np.float64)
+        return np.asarray(self._lu.solve(np.ascontiguousarray(rhs)), dtype=np.float64)
