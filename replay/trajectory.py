@@ -2,9 +2,9 @@
 
 Re-logging the whole polyline at every step costs O(n^2). Instead a point is kept only when
 the robot has moved ``min_spacing_m`` from the last kept one (a polyline needs no 100 Hz
-samples), the full polyline is logged at ``checkpoints`` evenly spaced sizes, and at every
-kept point only the tail since the last checkpoint goes to ``<path>/tail``: at any time cursor
-the two together show the whole trajectory so far.
+samples); the full polyline is logged whenever the tail since the last full one reaches
+sqrt(n) points, and at every kept point only that tail goes to ``<path>/tail``. At any time
+cursor the two together show the whole trajectory so far, for O(n^1.5) points in total.
 """
 
 from __future__ import annotations
@@ -20,33 +20,42 @@ from replay.pipeline import ReplayObserver
 class TrajectoryLog:
     """One growing polyline on entity ``path``."""
 
-    def __init__(self, observer: ReplayObserver, path: str, expected_points: int, checkpoints: int = 100,
-                 min_spacing_m: float = 0.05) -> None:
+    def __init__(self, observer: ReplayObserver, path: str, min_spacing_m: float = 0.05) -> None:
         self.observer, self.path = observer, path
         self.min_spacing_m = min_spacing_m
-        self.every = max(1, expected_points // checkpoints)
-        self.points: list[tuple[float, float]] = []
+        self._xy = np.empty((1024, 2))
+        self._n = 0
         self._checkpoint = 0
         self._pending: tuple[float, float] | None = None
 
     def append(self, x: float, y: float) -> None:
         """Offer a point (at the observer's current time); draw when it is kept."""
-        if self.points and math.hypot(x - self.points[-1][0], y - self.points[-1][1]) < self.min_spacing_m:
+        n = self._n
+        if n and math.hypot(x - self._xy[n - 1, 0], y - self._xy[n - 1, 1]) < self.min_spacing_m:
             self._pending = (x, y)
             return
         self._pending = None
-        self.points.append((x, y))
-        n = len(self.points)
-        if n - self._checkpoint >= self.every:
-            self.observer.log(self.path, LineStrips((np.asarray(self.points),)))
-            self._checkpoint = n - 1
-        self.observer.log(f"{self.path}/tail", LineStrips((np.asarray(self.points[self._checkpoint:]),)))
+        self._push(x, y)
+        if self._n - self._checkpoint > max(10.0, math.sqrt(self._n)):
+            self.observer.log(self.path, LineStrips((self._xy[: self._n].copy(),)))
+            self._checkpoint = self._n - 1
+        self.observer.log(f"{self.path}/tail", LineStrips((self._xy[self._checkpoint: self._n].copy(),)))
 
     def finish(self) -> None:
         """Draw the whole polyline, ending at the last offered point, at the current time."""
         if self._pending is not None:
-            self.points.append(self._pending)
+            self._push(*self._pending)
             self._pending = None
-        if self.points:
-            self.observer.log(self.path, LineStrips((np.asarray(self.points),)))
+        if self._n:
+            self.observer.log(self.path, LineStrips((self._xy[: self._n].copy(),)))
             self.observer.log(f"{self.path}/tail", LineStrips(()))
+
+    def array(self) -> np.ndarray:
+        """The kept points (n, 2)."""
+        return self._xy[: self._n].copy()
+
+    def _push(self, x: float, y: float) -> None:
+        if self._n == len(self._xy):
+            self._xy = np.concatenate([self._xy, np.empty_like(self._xy)])
+        self._xy[self._n] = (x, y)
+        self._n += 1

@@ -46,9 +46,8 @@ class OdometryPipeline(Pipeline):
         super().__init__(config, ctx)
         start = ctx.T_world_start if ctx.T_world_start is not None else np.zeros(3)
         self.dead_reckoning = DeadReckoning(start)
-        counts = {t.logical_topic: t.message_count for t in ctx.info.topics}
-        self.estimate = TrajectoryLog(ctx.observer, "world/trajectory/estimate", counts.get(TOPIC_ODOM, 0) // 10)
-        self.truth = TrajectoryLog(ctx.observer, "world/trajectory/truth", counts.get(TOPIC_GROUND_TRUTH_POSE, 0) // 10)
+        self.estimate = TrajectoryLog(ctx.observer, "world/trajectory/estimate")
+        self.truth = TrajectoryLog(ctx.observer, "world/trajectory/truth")
         self.t_est: list[int] = []
         self.steps: list[int] = []
         self.est: list[np.ndarray] = []
