@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 DATA   ?= ../shared/data
 ARGS   ?=
 
-.PHONY: venv demo test lint bench clean
+.PHONY: venv demo test lint bench cholmod clean
 
 venv: $(STAMP)
 
@@ -29,6 +29,12 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[dev,bench]"
 	$(BIN)/python benchmarks/replay_throughput.py
+	$(BIN)/python benchmarks/posegraph.py --data $(DATA)
+
+# Optional: CHOLMOD (SuiteSparse) for the pose-graph solver; without it SciPy's SuperLU is used.
+cholmod: $(STAMP)
+	@dpkg -s libsuitesparse-dev >/dev/null 2>&1 || apt-get install -y -q libsuitesparse-dev
+	$(BIN)/python -m pip install --quiet -e ".[dev,cholmod]"
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .ruff_cache .hypothesis
