@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -28,7 +28,9 @@ Progress = Callable[[int, int], None]
 class ReplayStats:
     metrics: dict[str, float]
     messages: int
-    step_durations_s: np.ndarray | None  # only with log_timings
+    step_durations_s: np.ndarray | None  # only with log_timings; one per message, in replay order
+    step_times_ns: np.ndarray | None  # the log_time of each of those messages
+    timings: dict[str, float] = field(default_factory=dict)  # the pipeline's own (Pipeline.timings), seconds
 
 
 def check_topics(reader: RecordingReader, pipeline: type[Pipeline]) -> list[str]:
@@ -83,6 +85,7 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
         log("no ground truth at the start: the estimate starts at the origin")
     pipeline = pipeline_cls(config, ctx)
     durations: list[float] = []
+    times: list[int] = []
     n = 0
     every = max(1, total // 200)
     for env in reader.messages(topics, start_ns=start_ns, end_ns=end_ns):
@@ -91,6 +94,7 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
             tic = time.perf_counter()
             pipeline.step(env)
             durations.append(time.perf_counter() - tic)
+            times.append(env.log_time_ns)
         else:
             pipeline.step(env)
         n += 1
@@ -102,7 +106,8 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
     unknown = set(metrics) - set(pipeline_cls.metrics)
     if unknown:
         raise RuntimeError(f"pipeline {pipeline_cls.name} returned metrics without a spec: {sorted(unknown)}")
-    return ReplayStats(metrics, n, np.asarray(durations) if log_timings else None)
+    return ReplayStats(metrics, n, np.asarray(durations) if log_timings else None,
+                       np.asarray(times, np.int64) if log_timings else None, pipeline.timings())
 
 
 def text_logger(observer: ReplayObserver, lines: list[str]) -> Callable[[str], None]:

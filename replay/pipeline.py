@@ -88,6 +88,10 @@ class Pipeline(ABC):
     def finish(self) -> dict[str, float]:
         """End of the recording: final logging, and the metrics (keys of ``metrics``; absent when not applicable)."""
 
+    def timings(self) -> dict[str, float]:
+        """Wall-clock timings of the pipeline's own (seconds), for manifest.json only; none by default."""
+        return {}
+
     @classmethod
     def blueprint(cls) -> rrb.Blueprint:
         """The Rerun layout a run of this pipeline opens into."""

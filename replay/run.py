@@ -133,9 +133,10 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
                        log=text_logger(observer, lines), progress=progress, log_timings=log_timings)
         timings["replay_s"] = time.perf_counter() - tic
         values = stats.metrics
-        if stats.step_durations_s is not None and len(stats.step_durations_s):
-            n = len(stats.step_durations_s)
-            observer.send_series("timings/step_ms", np.arange(n), np.zeros(n, np.int64), stats.step_durations_s * 1e3)
+        timings.update({f"pipeline_{k}": v for k, v in stats.timings.items()})
+        if stats.step_durations_s is not None and stats.step_times_ns is not None and len(stats.step_durations_s):
+            observer.send_series("timings/step_ms", np.arange(len(stats.step_durations_s)), stats.step_times_ns,
+                                 stats.step_durations_s * 1e3)
         manifest["messages_replayed"] = stats.messages
         tic = time.perf_counter()
         observer.close()
