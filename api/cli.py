@@ -108,6 +108,29 @@ def cmd_record_sim_landmarks(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_record_sim_seabed(args: argparse.Namespace) -> int:
+    from recorder.sim.seabed import SeabedSimConfig, simulate_seabed
+
+    config = _collect_sim_config(args, SeabedSimConfig)
+    with progress_bar("simulating", args.quiet) as update:
+        summary = simulate_seabed(Path(args.out), config, seed=args.seed, progress=update)
+    if not args.quiet:
+        _eprint(f"wrote {args.out}: {summary.messages:,} messages, {summary.images} images over a "
+                f"{summary.texture_px[0]}x{summary.texture_px[1]} px seabed, {summary.path_length_m:.1f} m surveyed")
+    return EXIT_OK
+
+
+def cmd_record_images(args: argparse.Namespace) -> int:
+    from recorder.importers.images import import_images
+
+    with progress_bar("importing images", args.quiet) as update:
+        summary = import_images(Path(args.dir), Path(args.out), rate_hz=args.rate_hz, progress=update)
+    if not args.quiet:
+        _eprint(f"wrote {args.out}: {summary.images} images of {summary.width_px}x{summary.height_px} "
+                f"({summary.first} .. {summary.last})")
+    return EXIT_OK
+
+
 def cmd_record_mrclam(args: argparse.Namespace) -> int:
     from recorder.importers.mrclam import import_mrclam
 
@@ -262,13 +285,28 @@ def build_parser() -> argparse.ArgumentParser:
                                       "section 4.2 scenario) and record odometry, scans and ground truth.")
     sim.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
     sim.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    try:
-        from recorder.sim.landmarks import LandmarkSimConfig
+    from recorder.sim.landmarks import LandmarkSimConfig
 
-        _sim_options(sim, LandmarkSimConfig)
-    except ImportError:  # pragma: no cover -- during development only
-        pass
+    _sim_options(sim, LandmarkSimConfig)
     sim.set_defaults(func=cmd_record_sim_landmarks)
+    sea = rsub.add_parser("sim-seabed", parents=[quiet],
+                          help="downward camera over a seabed texture: lawn-mower survey with revisits",
+                          description="Simulate a downward camera flying a lawn-mower survey over a seabed texture "
+                                      "(procedural, an image file, or a folder of frames given with --texture) and "
+                                      "record images, odometry and ground truth.")
+    sea.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
+    sea.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    from recorder.sim.seabed import SeabedSimConfig
+
+    _sim_options(sea, SeabedSimConfig)
+    sea.set_defaults(func=cmd_record_sim_seabed)
+    ims = rsub.add_parser("images", parents=[quiet], help="import a folder of frames (no navigation)",
+                          description="Record the images of DIR, ordered by the frame counter in their names, as "
+                                      "/camera/image (mono8, PNG).")
+    ims.add_argument("dir", help="the folder holding the frames")
+    ims.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
+    ims.add_argument("--rate-hz", type=float, default=1.0, help="frame rate that sets the stamps (default: 1)")
+    ims.set_defaults(func=cmd_record_images)
     mr = rsub.add_parser("mrclam", parents=[quiet], help="import one robot of the UTIAS MRCLAM dataset",
                          description="Import one robot of an MRCLAM dataset folder: odometry integrated into "
                                      "poses, landmark sightings as scans, Vicon ground truth, the landmark map.")

@@ -1,5 +1,5 @@
 """Built-in pipelines; importing this package registers them."""
 
-from replay.pipelines import odometry
+from replay.pipelines import ifmi, odometry
 
-__all__ = ["odometry"]
+__all__ = ["ifmi", "odometry"]

@@ -1,0 +1,41 @@
+"""`record images`: frame order by counter, stamps from the rate, errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from api.cli import main
+from recorder.errors import RecorderError
+from recorder.importers.images import frame_key, import_images
+from replay.reader import RecordingReader
+
+
+def test_sorted_by_frame_counter(tmp_path: Path) -> None:
+    """Frames sort by the last number in the name, and stamps follow the rate."""
+    for name, value in [("ESC.1_9.0010.png", 10), ("ESC.2_1.0009.png", 9), ("ESC.0_5.0100.png", 100)]:
+        cv2.imwrite(str(tmp_path / name), np.full((40, 50), value, np.uint8))
+    s = import_images(tmp_path, tmp_path / "out.mcap", rate_hz=2.0)
+    msgs = [e.msg for e in RecordingReader(tmp_path / "out.mcap").messages()]
+    assert [int(m.pixels[0, 0]) for m in msgs] == [9, 10, 100]  # type: ignore[attr-defined]
+    assert [m.stamp_ns for m in msgs] == [1_000_000_000, 1_500_000_000, 2_000_000_000]  # type: ignore[attr-defined]
+    assert (s.images, s.width_px, s.height_px) == (3, 50, 40)
+    assert frame_key(Path("a.png")) > frame_key(Path("b.0001.png"))
+
+
+def test_errors(tmp_path: Path) -> None:
+    """No folder, no images, mixed sizes and a bad rate are RecorderErrors; the CLI exits 2."""
+    with pytest.raises(RecorderError, match="not a directory"):
+        import_images(tmp_path / "none", tmp_path / "o.mcap")
+    with pytest.raises(RecorderError, match="holds no images"):
+        import_images(tmp_path, tmp_path / "o.mcap")
+    with pytest.raises(RecorderError, match="rate-hz"):
+        import_images(tmp_path, tmp_path / "o.mcap", rate_hz=0.0)
+    cv2.imwrite(str(tmp_path / "f1.png"), np.zeros((40, 50), np.uint8))
+    cv2.imwrite(str(tmp_path / "f2.png"), np.zeros((30, 50), np.uint8))
+    with pytest.raises(RecorderError, match="every frame must have one size"):
+        import_images(tmp_path, tmp_path / "o.mcap")
+    assert main(["record", "images", str(tmp_path / "none"), "--out", str(tmp_path / "p.mcap"), "-q"]) == 2
