@@ -1,0 +1,158 @@
+"""D-SLAM data association (section 3.1 of [1]_): known landmark ids, or unknown ids by maximum likelihood.
+
+Unknown ids: the candidates are the mapped features in the robot's vicinity; the innovation
+covariance of candidate c is ``S_c = H_r P_r H_r^T + H_c P_c H_c^T + R`` with P_r the predicted
+robot covariance and P_c the feature's marginal from the vicinity covariance
+(:mod:`algorithms.dslam.covariance`). D-SLAM does not keep the robot-map cross-covariance, so
+it is taken as zero here. Matching, gating and the tentative list are
+:mod:`algorithms.common.association`; tentative features are placed with the localized pose,
+after Covariance Intersection.
+
+References
+----------
+.. [1] Z. Wang, S. Huang, G. Dissanayake, "Implementation issues and experimental evaluation
+   of D-SLAM", FSR 2005, section 3.1.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from algorithms.common import rangebearing
+from algorithms.common.association import (
+    AssociationConfig,
+    TentativeList,
+    innovation_covariance,
+    mahalanobis,
+    match,
+    outliers,
+)
+from algorithms.dslam.covariance import RefreshReport
+
+if TYPE_CHECKING:
+    from algorithms.dslam.filter import DSlam
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+@dataclass(frozen=True, slots=True)
+class Association:
+    """Mapped feature per observation (-1: none) and the observations that may start a feature."""
+
+    features: I64
+    candidates_new: tuple[int, ...]
+
+
+class Associator:
+    """Known-id or unknown-id association for one :class:`~algorithms.dslam.filter.DSlam`."""
+
+    def __init__(self, mode: str, params: AssociationConfig) -> None:
+        self.mode, self.params = mode, params
+        self.by_id: dict[int, int] = {}
+        self.tentative = TentativeList()
+        self.last_refresh: RefreshReport | None = None
+        self._ids: I64 | None = None
+        self.rejected = 0  # known-id observations rejected as outliers
+
+    def check_ids(self, ids: ArrayLike | None, m: int) -> I64 | None:
+        """Validated ids (m,) in known-id mode (ValueError when absent or negative); None otherwise."""
+        if self.mode != "known":
+            return None
+        if ids is None:
+            raise ValueError("ids are required in known-id association mode (use association='unknown')")
+        arr = np.asarray(ids, dtype=np.int64).reshape(-1)
+        if arr.shape != (m,):
+            raise ValueError(f"ids must have shape ({m},), got {arr.shape}")
+        if np.any(arr < 0):
+            raise ValueError("ids must all be >= 0 in known-id association mode (-1 means unknown)")
+        return arr
+
+    def pending_id(self, j: int) -> int:
+        """The landmark id of observation ``j`` of the current scan (known ids), else -1."""
+        return int(self._ids[j]) if self._ids is not None else -1
+
+    def associate(self, slam: DSlam, r: F64, b: F64, ids: I64 | None, r_old: F64) -> Association:
+        """Match the scan's observations with mapped features (predicted robot pose)."""
+        m = len(r)
+        self._ids = ids
+        self.last_refresh = None
+        features = np.full(m, -1, dtype=np.int64)
+        if ids is not None:
+            seen: set[int] = set()
+            new = []
+            for j, i in enumerate(ids.tolist()):
+                if i in seen:
+                    continue  # a landmark twice in one scan: keep its first reading
+                seen.add(i)
+                f = self.by_id.get(i)
+                if f is None:
+                    new.append(j)
+                else:
+                    features[j] = f
+            self._reject_outliers(slam, r, b, features, r_old)
+            return Association(features, tuple(new))
+        pose, cov = slam.pose, slam.pose_cov
+        spread = 3.0 * float(np.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0)))
+        cand = slam.within(pose[:2], slam.max_range + slam.config.vicinity_margin_m + spread)
+        if cand:
+            self.last_refresh = slam.ensure_covariance(cand)
+            z_pred, h_r, h_l = rangebearing.predict(pose, slam.recovery.x.reshape(-1, 2)[cand])
+            s = innovation_covariance(h_r, cov, h_l, slam.covariance.marginals(cand), r_old[:2, :2])
+            d2 = mahalanobis(np.stack([r, b], -1), z_pred, s)
+            assigned, far = match(d2, np.linalg.slogdet(s)[1], self.params.gate, self.params.new_gate)
+            ok = assigned >= 0
+            features[ok] = np.asarray(cand, dtype=np.int64)[assigned[ok]]
+        else:
+            far = np.ones(m, dtype=bool)
+        return Association(features, tuple(np.flatnonzero(far).tolist()))
+
+    def _reject_outliers(self, slam: DSlam, r: F64, b: F64, features: I64, r_old: F64) -> None:
+        """Known ids: drop observations of mapped features that fail the outlier gate (``features`` in place)."""
+        obs = np.flatnonzero(features >= 0)
+        if not len(obs) or not np.isfinite(self.params.outlier_gate):
+            return
+        f = features[obs].tolist()
+        self.last_refresh = slam.ensure_covariance(f)
+        z_pred, h_r, h_l = rangebearing.predict(slam.pose, slam.recovery.x.reshape(-1, 2)[f])
+        s = innovation_covariance(h_r, slam.pose_cov, h_l, slam.covariance.marginals(f),
+                                  rangebearing.blocks(r_old)[obs])
+        bad = outliers(np.stack([r[obs], b[obs]], -1), z_pred, s, self.params.outlier_gate)
+        features[obs[bad]] = -1
+        self.rejected += int(bad.sum())
+
+    def confirm(self, slam: DSlam, r: F64, b: F64, assoc: Association, r_old: F64
+                ) -> tuple[list[int], I64]:
+        """The observations to map as new features now, and the tentative entry of each observation.
+
+        Known ids: every observation of an unmapped id. Unknown ids: observations far from every
+        mapped feature go to the tentative list (placed with the localized pose); those whose
+        entry reaches the confirmation count are returned.
+        """
+        m = len(r)
+        tentative = np.full(m, -1, dtype=np.int64)
+        obs = list(assoc.candidates_new)
+        if self.mode == "known" or not obs:
+            return (obs if self.mode == "known" else []), tentative
+        lm, g_pose, g_z = rangebearing.landmarks_from(slam.pose, r[obs], b[obs])
+        r_cov = rangebearing.blocks(r_old)[obs]
+        covs = g_pose @ slam.pose_cov @ g_pose.transpose(0, 2, 1) + g_z @ r_cov @ g_z.transpose(0, 2, 1)
+        self.tentative.prune(slam.scans, self.params)
+        index, confirmed = self.tentative.observe(lm, covs, slam.scans, self.params)
+        tentative[obs] = index
+        return [j for j, ok in zip(obs, confirmed.tolist(), strict=True) if ok], tentative
+
+    def commit(self, features: I64, tentative: I64) -> None:
+        """Record the scan's outcome: ids of new features; tentative entries that joined the map."""
+        if self.mode == "known":
+            if self._ids is not None:
+                for j in np.flatnonzero(features >= 0).tolist():
+                    self.by_id.setdefault(int(self._ids[j]), int(features[j]))
+            return
+        mapped = [int(tentative[j]) for j in range(len(features)) if features[j] >= 0 and tentative[j] >= 0]
+        if mapped:
+            self.tentative.remove(mapped)

@@ -1,0 +1,400 @@
+"""D-SLAM [1]_: decoupled EIF mapping of absolute feature positions and CI localization.
+
+Per odometry increment, :meth:`DSlam.predict` propagates the robot estimate (the process model
+of :mod:`algorithms.common.motion`). Per scan, :meth:`DSlam.observe`
+
+1. associates the observations with mapped features (known ids, or maximum likelihood with
+   gating and the confirmed/tentative lists, section 3.1);
+2. phase I (the robot has not moved, its pose is exactly the map origin): initialises and
+   updates features from the original range-bearing measurements;
+3. phase II: localizes (section 2.3) from the odometry prediction and the measurement estimate
+   (eq. 12), fused by Covariance Intersection; then, with at least two mapped features f_1, f_2
+   in the scan, recasts the scan (eqs. 3-4), initialises new features by eq. (9) and updates
+   the information matrix and vector by eq. (10) with ``z_map`` only; a scan with fewer than
+   two mapped features goes to localization only;
+4. recovers the state (sections 3.2-3.3) without inverting I.
+
+Localization uses the map as it was before this scan's update, so ``z_loc`` and the map
+estimate it is compared with are independent.
+
+References
+----------
+.. [1] Z. Wang, S. Huang, G. Dissanayake, "Implementation issues and experimental evaluation
+   of D-SLAM", FSR 2005.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from algorithms.common import motion, rangebearing
+from algorithms.common.association import AssociationConfig
+from algorithms.common.ci import Criterion, covariance_intersection
+from algorithms.common.motion import OdometryNoise
+from algorithms.common.se2 import wrap_angle
+from algorithms.dslam import mapping
+from algorithms.dslam.associate import Associator
+from algorithms.dslam.covariance import CovarianceCache, RefreshReport
+from algorithms.dslam.information import InformationMatrix, dofs
+from algorithms.dslam.localization import MeasurementPose, PoseStatus, chi2_quantile, measurement_pose
+from algorithms.dslam.recast import angle_rows, init_features, map_invariants, recast
+from algorithms.dslam.recovery import Recovery, RecoveryReport, factor
+from algorithms.observe import NULL_OBSERVER, Observer, Scalar, Text
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+@dataclass(frozen=True, slots=True)
+class DSlamConfig:
+    """Parameters of D-SLAM; the docstrings of the modules named say what each one does."""
+
+    odometry_noise: OdometryNoise = field(default_factory=OdometryNoise)  # motion
+    default_range_sigma_m: float = 0.1  # when a scan states no sigma
+    default_bearing_sigma_rad: float = 0.02
+    association: Literal["known", "unknown"] = "known"
+    association_params: AssociationConfig = field(default_factory=AssociationConfig)
+    ci_criterion: Criterion = "det"  # ci
+    localization_gate_probability: float = 0.9999  # localization; also gates measurement vs prediction
+    map_gate_probability: float = 0.9999  # a recast update whose z_map innovation fails this gate is skipped
+    recovery: Literal["local", "pcg", "direct"] = "local"  # recovery.Recovery
+    recovery_tol_m: float = 1e-6
+    local_tol_m: float = 1e-4
+    local_max_hops: int = 4
+    pcg_max_iterations: int = 1000
+    global_every_scans: int = 100
+    covariance_rtol: float = 1e-4  # covariance
+    covariance_refresh_scans: int = 200
+    vicinity_margin_m: float = 2.0  # the vicinity is the largest range seen so far plus this margin
+    loop_closure_gap_scans: int = 300  # a mapped feature unseen for this long closes a loop
+
+    def __post_init__(self) -> None:
+        positive = ("default_range_sigma_m", "default_bearing_sigma_rad", "recovery_tol_m", "local_tol_m",
+                    "covariance_rtol")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("local_max_hops", "pcg_max_iterations", "global_every_scans", "covariance_refresh_scans",
+                     "loop_closure_gap_scans"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.association not in ("known", "unknown"):
+            raise ValueError(f"association must be 'known' or 'unknown', got {self.association!r}")
+        if self.recovery not in ("local", "pcg", "direct"):
+            raise ValueError(f"recovery must be 'local', 'pcg' or 'direct', got {self.recovery!r}")
+        for name in ("localization_gate_probability", "map_gate_probability"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
+
+
+class ScanStatus(enum.Enum):
+    EMPTY = "empty"  # no observations
+    PHASE_I = "phase_i"  # robot at its initial pose: direct feature updates
+    BOOTSTRAP = "bootstrap"  # phase II with fewer than two mapped features (mapping.bootstrap_increment)
+    MAPPED = "mapped"  # phase II: localized, recast, eqs. (9)-(10)
+    LOCALIZATION_ONLY = "localization_only"  # fewer than two mapped features observed
+    MAP_REJECTED = "map_rejected"  # the recast innovation of the mapped features failed the map gate
+
+
+@dataclass(frozen=True, slots=True)
+class ScanResult:
+    """Everything one scan did, in the map frame (the initial robot frame)."""
+
+    status: ScanStatus
+    prediction: F64  # (3,) odometry prediction and its covariance (3, 3)
+    prediction_cov: F64
+    measurement: MeasurementPose | None  # eq. (12) estimate, None without two mapped features
+    omega: float | None  # CI weight of the prediction; None when nothing was fused
+    pose: F64  # (3,) the localization result and its covariance
+    pose_cov: F64
+    features: I64  # (m,) mapped feature of each observation after this scan, -1 for none
+    tentative: I64  # (m,) tentative-list entry of each observation (unknown ids), -1 for none
+    anchors: tuple[int, int] | None  # f_1, f_2 of the recast measurement
+    new_features: tuple[int, ...]
+    loop_closure: bool
+    recovery: RecoveryReport | None
+    covariance: RefreshReport | None  # when the vicinity covariance was recomputed
+    note: str = ""
+
+
+class DSlam:
+    """D-SLAM with absolute map (module docstring); the map frame is the initial robot frame.
+
+    ``clock`` (e.g. ``time.perf_counter``), when given, times the stages into ``profile``
+    (seconds per call, by stage); results never depend on it.
+    """
+
+    def __init__(self, config: DSlamConfig = DSlamConfig(), observer: Observer = NULL_OBSERVER,
+                 clock: Callable[[], float] | None = None) -> None:
+        self.config = config
+        self.observer = observer
+        self.info = InformationMatrix()
+        self.recovery = Recovery(self.info, config.recovery, config.recovery_tol_m, config.local_tol_m,
+                                 config.local_max_hops, config.pcg_max_iterations, config.global_every_scans)
+        self.covariance = CovarianceCache()
+        self.pose = np.zeros(3)
+        self.pose_cov = np.zeros((3, 3))
+        self.moved = False
+        self.scans = 0
+        self.feature_ids: list[int] = []  # the scan's landmark id of each feature (known ids), else -1
+        self.last_seen: list[int] = []
+        self.max_range = 0.0
+        self.associator = Associator(config.association, config.association_params)
+        self._order: list[int] = []
+        self._clock = clock
+        self.profile: dict[str, list[float]] = {}
+
+    @property
+    def n(self) -> int:
+        """Mapped features."""
+        return self.info.n
+
+    @property
+    def rejected(self) -> int:
+        """Known-id observations rejected by the outlier gate so far."""
+        return self.associator.rejected
+
+    def estimates(self) -> F64:
+        """Current feature estimates (N, 2) in the map frame."""
+        return self.recovery.x.reshape(-1, 2).copy()
+
+    def _tic(self) -> float:
+        return self._clock() if self._clock is not None else 0.0
+
+    def _toc(self, stage: str, tic: float) -> None:
+        if self._clock is not None:
+            self.profile.setdefault(stage, []).append(self._clock() - tic)
+
+    def predict(self, increment: ArrayLike) -> None:
+        """Propagate the robot estimate by one odometry increment ``[dx, dy, dtheta]`` (robot frame)."""
+        u = motion.check_increment(increment)
+        if np.any(u != 0.0):
+            self.moved = True
+        q = self.config.odometry_noise.covariance(u)
+        self.pose, self.pose_cov, _ = motion.predict(self.pose, self.pose_cov, u, q)
+
+    def _sigmas(self, range_sigma: float, bearing_sigma: float) -> tuple[float, float]:
+        for name, value in (("range_sigma", range_sigma), ("bearing_sigma", bearing_sigma)):
+            if not math.isfinite(value) or value < 0:
+                raise ValueError(f"{name} must be finite and >= 0, got {value}")
+        return (range_sigma if range_sigma > 0 else self.config.default_range_sigma_m,
+                bearing_sigma if bearing_sigma > 0 else self.config.default_bearing_sigma_rad)
+
+    def within(self, position: F64, radius: float) -> list[int]:
+        """Mapped features whose estimate is within ``radius`` of ``position`` (2,)."""
+        if self.n == 0:
+            return []
+        d = np.hypot(*(self.recovery.x.reshape(-1, 2) - position).T)
+        return np.flatnonzero(d <= radius).tolist()
+
+    def vicinity(self, position: F64) -> list[int]:
+        """Mapped features within the largest range seen so far plus the margin of ``position`` (2,)."""
+        return self.within(position, self.max_range + self.config.vicinity_margin_m)
+
+    def ensure_covariance(self, needed: list[int]) -> RefreshReport | None:
+        """Recompute the vicinity covariance when a needed feature is missing or the snapshot is old."""
+        cov = self.covariance
+        if cov.has(needed) and self.scans - cov.scan < self.config.covariance_refresh_scans:
+            return None
+        tic = self._tic()
+        features = sorted(set(needed) | set(self.vicinity(self.pose[:2])))
+        report = cov.refresh(self.info, self.recovery.inv_blocks, features, self.scans,
+                             self.config.covariance_rtol, self.config.pcg_max_iterations)
+        self._toc("covariance", tic)
+        self.observer.log("dslam/covariance/pcg_iterations", Scalar(report.iterations))
+        return report
+
+    def observe(self, ranges: ArrayLike, bearings: ArrayLike, ids: ArrayLike | None = None,
+                range_sigma: float = 0.0, bearing_sigma: float = 0.0) -> ScanResult:
+        """Process one scan: ranges (m,) metres, bearings (m,) radians, ids (m,) landmark ids (known mode).
+
+        Sigmas of 0 mean "not stated": the config's defaults apply. Raises ValueError for NaN or
+        negative ranges, mismatched lengths, or missing ids in known-id mode.
+        """
+        r, b = rangebearing.check_scan(ranges, bearings)
+        sr, sb = self._sigmas(range_sigma, bearing_sigma)
+        ids_arr = self.associator.check_ids(ids, len(r))
+        r_old = rangebearing.noise(len(r), sr, sb)  # eq. (2)
+        self.scans += 1
+        m = len(r)
+        if m:
+            self.max_range = max(self.max_range, float(r.max()))
+        pred, pred_cov = self.pose.copy(), self.pose_cov.copy()
+        if m == 0:
+            return self._result(ScanStatus.EMPTY, pred, pred_cov, np.full(0, -1), np.full(0, -1), note="empty scan")
+        tic = self._tic()
+        assoc = self.associator.associate(self, r, b, ids_arr, r_old)
+        self._toc("associate", tic)
+        old = [j for j in range(m) if assoc.features[j] >= 0]
+        old_f = [int(assoc.features[j]) for j in old]
+        measurement, omega = None, None
+        if self.moved and len(old) >= 2:
+            tic = self._tic()
+            self.ensure_covariance(old_f)
+            measurement = measurement_pose(r[old], b[old], r_old[np.ix_(dofs(old), dofs(old))],
+                                           self.recovery.x.reshape(-1, 2)[old_f],
+                                           self.covariance.block(old_f), self.config.localization_gate_probability)
+            if measurement.status is PoseStatus.OK and not self._agrees(pred, pred_cov, measurement):
+                measurement = MeasurementPose(PoseStatus.INCONSISTENT, measurement.pose, measurement.cov,
+                                              measurement.chi2, measurement.iterations)
+            if measurement.status is PoseStatus.OK:
+                jitter = 1e-12 * np.eye(3)
+                ci = covariance_intersection(pred, pred_cov + jitter, measurement.pose, measurement.cov,
+                                             self.config.ci_criterion, angular=(2,))
+                self.pose, self.pose_cov, omega = ci.mean, ci.cov, ci.omega
+            self._toc("localize", tic)
+        new, tentative = self.associator.confirm(self, r, b, assoc, r_old)
+        result = self._map(r, b, r_old, assoc.features, tentative, old, new, pred, pred_cov, measurement, omega)
+        self.associator.commit(result.features, tentative)
+        return result
+
+    def _map(self, r: F64, b: F64, r_old: F64, features: I64, tentative: I64, old: list[int],
+             new: list[int], pred: F64, pred_cov: F64, measurement: MeasurementPose | None,
+             omega: float | None) -> ScanResult:
+        """The mapping half of :meth:`observe` (phase I, bootstrap or eqs. 9-10) and the recovery."""
+        r_blocks = rangebearing.blocks(r_old)
+        features = features.copy()
+        tic = self._tic()
+        anchors: tuple[int, int] | None = None
+        created: list[int] = []
+        loop = False
+        if not self.moved:
+            status = ScanStatus.PHASE_I
+            created = self._add_features(rangebearing.landmarks_from(np.zeros(3), r[new], b[new])[0], new, features)
+            touched = [int(features[j]) for j in old + new]
+            for j in old + new:
+                f = int(features[j])
+                d_matrix, d_vector = mapping.phase_one_increment(self.recovery.x[2 * f:2 * f + 2],
+                                                                 np.array([r[j], b[j]]), r_blocks[j])
+                self._apply([f], d_matrix, d_vector)
+        elif new and self.n < 2:
+            status = ScanStatus.BOOTSTRAP
+            lm, d_matrix, d_vector = mapping.bootstrap_increment(self.pose, self.pose_cov, r[new], b[new],
+                                                                 r_old[np.ix_(dofs(new), dofs(new))])
+            created = self._add_features(lm, new, features)
+            touched = created
+            self._apply(created, d_matrix, d_vector)
+        elif len(old) >= 2 and not self._map_outlier(r, b, r_old, features, old):
+            status = ScanStatus.MAPPED
+            old_f = [int(features[j]) for j in old]
+            order = self._order  # anchors first, chosen by _map_outlier
+            f1, f2 = int(features[order[0]]), int(features[order[1]])
+            anchors = (f1, f2)
+            order = order + new
+            rc = recast(r[order], b[order], r_old[np.ix_(dofs(order), dofs(order))])
+            x = self.recovery.x.reshape(-1, 2)
+            k0 = len(order) - len(new)
+            alpha, dist = rc.z_map[2 * k0 - 3::2], rc.z_map[2 * k0 - 2::2]
+            pos, j_x, j_z = init_features(x[f1], x[f2], alpha, dist)  # eq. (9)
+            created = self._add_features(pos, new, features)
+            ordered = [int(features[j]) for j in order]
+            d_matrix, d_vector = mapping.recast_increment(self.recovery.x.reshape(-1, 2)[ordered], rc)
+            self._apply(ordered, d_matrix, d_vector)
+            rows = np.arange(2 * k0 - 3, rc.r_map.shape[0])
+            self.covariance.augment(created, anchors, j_x, j_z, rc.r_map[np.ix_(rows, rows)])
+            loop = any(self.scans - self.last_seen[f] >= self.config.loop_closure_gap_scans for f in old_f)
+            touched = ordered
+        else:
+            status = ScanStatus.LOCALIZATION_ONLY if len(old) < 2 else ScanStatus.MAP_REJECTED
+            touched = []
+            for j in new:
+                features[j] = -1
+        self._toc("update", tic)
+        for j in old:
+            self.last_seen[int(features[j])] = self.scans
+        report = None
+        if touched:
+            tic = self._tic()
+            report = self.recovery.solve(sorted(set(touched)), loop)
+            self._toc("recover", tic)
+            self.observer.log("dslam/recovery/cg_iterations", Scalar(report.iterations))
+        note = {ScanStatus.LOCALIZATION_ONLY: f"scan {self.scans}: {len(old)} mapped feature(s) observed, fewer "
+                                              f"than two: localization only",
+                ScanStatus.MAP_REJECTED: f"scan {self.scans}: the recast measurement disagrees with the map "
+                                         f"(map gate): localization only"}.get(status, "")
+        if note:
+            self.observer.log("dslam/log", Text(note))
+        return self._result(status, pred, pred_cov, features, tentative, measurement, omega, anchors,
+                            tuple(created), loop, report, note=note)
+
+    def _agrees(self, pred: F64, pred_cov: F64, m: MeasurementPose) -> bool:
+        """Whether the measurement pose is within the localization gate of the prediction (3 dof)."""
+        d = m.pose - pred
+        d[2] = float(wrap_angle(d[2]))
+        d2 = float(d @ np.linalg.solve(pred_cov + m.cov, d))
+        return d2 <= chi2_quantile(self.config.localization_gate_probability, 3)
+
+    def _map_outlier(self, r: F64, b: F64, r_old: F64, features: I64, old: list[int]) -> bool:
+        """Choose the anchors and recast the mapped features' part of the scan; True when it fails the map gate.
+
+        The innovation of ``z_map`` over the mapped features alone, against the map estimate, has
+        covariance ``H P H^T + R_map`` with P their joint (conservative) covariance.
+        """
+        old_f = [int(features[j]) for j in old]
+        points, _ = rangebearing.to_points(r[old], b[old])
+        traces = np.trace(self.covariance.marginals(old_f), axis1=1, axis2=2)
+        a1, a2 = mapping.choose_anchors(points, traces)
+        order = [old[a1], old[a2]] + [j for k, j in enumerate(old) if k not in (a1, a2)]
+        rc = recast(r[order], b[order], r_old[np.ix_(dofs(order), dofs(order))])
+        self._order = order
+        ordered = [int(features[j]) for j in order]
+        h, jac = map_invariants(self.recovery.x.reshape(-1, 2)[ordered])
+        nu = rc.z_map - h
+        rows = angle_rows(len(order))
+        nu[rows] = wrap_angle(nu[rows])
+        s = jac @ self.covariance.block(ordered) @ jac.T + rc.r_map
+        stat = float(nu @ np.linalg.solve(s, nu))
+        return stat > chi2_quantile(self.config.map_gate_probability, len(nu))
+
+    def _add_features(self, positions: F64, obs: list[int], features: I64) -> list[int]:
+        """Append features at ``positions`` for the observations ``obs``; returns their indices."""
+        if not obs:
+            return []
+        created = self.info.add_features(len(obs)).tolist()
+        self.recovery.grow(positions)
+        for j, f in zip(obs, created, strict=True):
+            features[j] = f
+            self.feature_ids.append(self.associator.pending_id(j))
+            self.last_seen.append(self.scans)
+        return created
+
+    def _apply(self, features: list[int], d_matrix: F64, d_vector: F64) -> None:
+        idx = np.asarray(features, dtype=np.int64)
+        self.info.add(idx, d_matrix, d_vector)
+        self.recovery.record(idx, d_matrix, d_vector)
+
+    def _result(self, status: ScanStatus, pred: F64, pred_cov: F64, features: I64, tentative: I64,
+                measurement: MeasurementPose | None = None, omega: float | None = None,
+                anchors: tuple[int, int] | None = None, new: tuple[int, ...] = (), loop: bool = False,
+                report: RecoveryReport | None = None, note: str = "") -> ScanResult:
+        return ScanResult(status, pred, pred_cov, measurement, omega, self.pose.copy(), self.pose_cov.copy(),
+                          features, tentative, anchors, new, loop, report, self.associator.last_refresh, note)
+
+    def finalize(self) -> RecoveryReport:
+        """Solve I x = i exactly (direct) so that :meth:`estimates` is the EIF estimate to round-off."""
+        return self.recovery.solve_direct() if self.n else RecoveryReport("none", 0, 0, 0.0)
+
+    def marginal_covariances(self) -> F64:
+        """Exact marginal covariances (N, 2, 2) of all features, by direct solves I c = e_j (costly: for scoring)."""
+        n = self.n
+        out = np.empty((n, 2, 2))
+        if n == 0:
+            return out
+        lu = factor(self.info)
+        chunk = 256
+        for start in range(0, n, chunk):
+            f = np.arange(start, min(n, start + chunk))
+            e = np.zeros((2 * n, 2 * len(f)))
+            e[2 * f, 2 * np.arange(len(f))] = 1.0
+            e[2 * f + 1, 2 * np.arange(len(f)) + 1] = 1.0
+            cols = lu.solve(e)
+            for k, g in enumerate(f.tolist()):
+                out[g] = cols[2 * g:2 * g + 2, 2 * k:2 * k + 2]
+        return 0.5 * (out + out.transpose(0, 2, 1))

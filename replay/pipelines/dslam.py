@@ -1,0 +1,105 @@
+"""Pipeline ``dslam``: D-SLAM (Wang, Huang, Dissanayake 2005) over odometry and range-bearing scans.
+
+Draws, per scan: the odometry prediction, the measurement-based pose (eq. 12) and the CI result,
+each with its 2-sigma ellipse; the anchors f_1, f_2 of the recast measurement; the associations;
+the observed landmarks' ellipses; NEES, CI weight and solver iterations as time series. Every
+``info_every_scans`` scans, and at the end: the links of the information matrix as segments
+between features (the paper's Fig. 3c) and its block sparsity pattern as an image (Fig. 3d).
+Metrics add ``info_nnz_blocks`` and ``info_nnz_blocks_per_landmark`` to the shared ones
+(:mod:`replay.pipelines.landmark_slam`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+
+from algorithms.dslam import DSlam, DSlamConfig
+from algorithms.dslam.localization import PoseStatus
+from algorithms.observe import CovarianceEllipses, Image, Points, Pose, Scalar, Segments
+from replay.pipeline import MetricSpec, register
+from replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, LandmarkSlamPipeline
+
+
+@dataclass(frozen=True, slots=True)
+class DSlamPipelineConfig(LandmarkSlamConfig):
+    """The shared parameters plus D-SLAM's (algorithms/dslam/filter.py DSlamConfig)."""
+
+    ci_criterion: Literal["det", "trace"] = "det"
+    recovery: Literal["local", "pcg", "direct"] = "local"
+    global_every_scans: int = 100
+    covariance_refresh_scans: int = 200
+    loop_closure_gap_scans: int = 300
+    info_every_scans: int = 100  # links and sparsity image interval
+
+    def __post_init__(self) -> None:
+        LandmarkSlamConfig.__post_init__(self)
+        if self.info_every_scans < 1:
+            raise ValueError(f"info_every_scans must be >= 1, got {self.info_every_scans}")
+        self.algorithm("known")
+
+    def algorithm(self, mode: str) -> DSlamConfig:
+        return DSlamConfig(odometry_noise=self.odometry_noise(), default_range_sigma_m=self.range_sigma_m,
+                           default_bearing_sigma_rad=self.bearing_sigma_rad, association=mode,  # type: ignore[arg-type]
+                           association_params=self.association_params(), ci_criterion=self.ci_criterion,
+                           recovery=self.recovery, global_every_scans=self.global_every_scans,
+                           covariance_refresh_scans=self.covariance_refresh_scans,
+                           loop_closure_gap_scans=self.loop_closure_gap_scans)
+
+
+@register
+class DSlamPipeline(LandmarkSlamPipeline):
+    name = "dslam"
+    summary = "D-SLAM: decoupled EIF mapping (recast measurements) and Covariance Intersection localization"
+    prefix = "dslam"
+    Config = DSlamPipelineConfig
+    metrics = {
+        **METRICS,
+        "info_nnz_blocks": MetricSpec("none", "", "nonzero 2x2 blocks of the final information matrix"),
+        "info_nnz_blocks_per_landmark": MetricSpec("none", "", "nonzero blocks per mapped feature", 1e-9),
+    }
+
+    def make_filter(self, mode: str) -> DSlam:
+        return DSlam(self.config.algorithm(mode), observer=self.ctx.observer, clock=time.perf_counter)
+
+    def observed_covariances(self, features: list[int]) -> np.ndarray | None:
+        cov = self.filter.covariance
+        return cov.marginals(features) if cov.has(features) else None
+
+    def draw_scan(self, result: Any, world_xy: np.ndarray) -> None:
+        obs = self.ctx.observer
+        m = result.measurement
+        if m is not None and m.status is PoseStatus.OK:
+            pose_w = self.to_world_pose(m.pose)
+            obs.log("world/robot/measurement", Pose(pose_w))
+            obs.log("world/robot/measurement/covariance",
+                    CovarianceEllipses(pose_w[None, :2], self.to_world_cov(m.cov[:2, :2])[None]))
+        if result.omega is not None:
+            obs.log("metrics/ci_omega", Scalar(result.omega))
+        if result.anchors is not None:
+            f1, f2 = result.anchors
+            obs.log("world/landmarks/anchors", Points(world_xy[[f1, f2]], labels=(f"f1 #{f1}", f"f2 #{f2}"),
+                                                      radius=0.12))
+        if result.recovery is not None:
+            obs.log("metrics/cg_iterations", Scalar(result.recovery.iterations))
+        if self.scans % self.config.info_every_scans == 0:
+            self.draw_information(world_xy)
+
+    def draw_information(self, world_xy: np.ndarray) -> None:
+        """Fig. 3(c): links as segments between the features; Fig. 3(d): the block sparsity pattern."""
+        links = self.filter.info.links()
+        self.ctx.observer.log("world/information/links", Segments(world_xy[links[:, 0]], world_xy[links[:, 1]]))
+        self.ctx.observer.log("dslam/information/sparsity", Image(self.filter.info.sparsity_image()))
+
+    def finalize(self) -> None:
+        report = self.filter.finalize()
+        self.draw_information(self.to_world_xy(self.filter.estimates()))
+        self.ctx.log(f"final recovery: {report.method}; {self.filter.n} features")
+
+    def extra_metrics(self) -> dict[str, float]:
+        n = self.filter.n
+        blocks = float(self.filter.info.nnz_blocks)
+        return {"info_nnz_blocks": blocks, **({"info_nnz_blocks_per_landmark": blocks / n} if n else {})}

@@ -1,0 +1,401 @@
+"""What the ``dslam`` and ``ekfslam`` pipelines share: adapting messages, drawing, scoring.
+
+Odometry messages become increments ``⊖o_{k-1} ⊕ o_k`` for the filter's prediction; scans go to
+its update with their ids (known-id mode) or without (unknown-id mode; the true ids, when the
+recording has them, are kept for scoring only). The filter works in its map frame, the initial
+robot frame of the paper; everything is drawn and scored in the world frame through the known
+transform ``T_world_start`` (the ground-truth pose at the first odometry message): no fitted
+alignment, so every error the filter makes, including in its first pose, is counted.
+
+Landmarks are matched with the truth by id in known-id mode, and one-to-one by position (a
+linear assignment within ``match_radius_m``) in unknown-id mode; a mapped feature with no
+match is a false landmark. NEES values are the plain squared Mahalanobis error, whose
+expected value for a consistent estimate is 2 for a landmark and 3 for the robot pose.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+import rerun.blueprint as rrb
+from scipy.optimize import linear_sum_assignment
+
+from algorithms.common import se2
+from algorithms.common.association import AssociationConfig
+from algorithms.common.motion import OdometryNoise, between1, compose1
+from algorithms.observe import CovarianceEllipses, Points, Pose, Scalar, Segments
+from recorder.messages import (
+    TOPIC_GROUND_TRUTH_LANDMARKS,
+    TOPIC_GROUND_TRUTH_POSE,
+    TOPIC_ODOM,
+    TOPIC_RANGE_BEARING,
+    GroundTruthPose,
+    LandmarkMap,
+    OdometryPose,
+    RangeBearingScan,
+)
+from replay.metrics import position_errors, rmse
+from replay.pipeline import MetricSpec, Pipeline, ReplayContext
+from replay.reader import Envelope
+from replay.trajectory import TrajectoryLog
+
+Association = Literal["auto", "known", "unknown"]
+
+
+@dataclass(frozen=True, slots=True)
+class LandmarkSlamConfig:
+    """Inputs and noise models shared by the landmark SLAM pipelines."""
+
+    association: Association = "auto"  # auto: known ids when the first non-empty scan has them all
+    translation_sigma_per_sqrt_m: float = 0.02  # odometry noise (algorithms/common/motion.py)
+    heading_sigma_per_sqrt_m: float = 0.02
+    heading_sigma_per_sqrt_rad: float = 0.05
+    range_sigma_m: float = 0.15  # used when a scan states no sigma (0)
+    bearing_sigma_rad: float = 0.02
+    gate_probability: float = 0.99  # unknown ids (algorithms/common/association.py)
+    new_feature_probability: float = 0.9999
+    confirm_hits: int = 3
+    tentative_window_scans: int = 25
+    outlier_probability: float = 1.0  # known ids: reject an observation outside this gate (1: keep all)
+    map_every_scans: int = 25  # draw every landmark with its ellipse at this interval (and at the end)
+    match_radius_m: float = 1.0  # unknown ids: a feature farther than this from every true landmark is false
+
+    def __post_init__(self) -> None:
+        if self.map_every_scans < 1:
+            raise ValueError(f"map_every_scans must be >= 1, got {self.map_every_scans}")
+        if not self.match_radius_m > 0:
+            raise ValueError(f"match_radius_m must be > 0, got {self.match_radius_m}")
+        self.odometry_noise()
+        self.association_params()
+
+    def odometry_noise(self) -> OdometryNoise:
+        return OdometryNoise(self.translation_sigma_per_sqrt_m, self.heading_sigma_per_sqrt_m,
+                             self.heading_sigma_per_sqrt_rad)
+
+    def association_params(self) -> AssociationConfig:
+        return AssociationConfig(self.gate_probability, self.new_feature_probability, self.confirm_hits,
+                                 self.tentative_window_scans, self.outlier_probability)
+
+
+METRICS = {
+    "landmark_rmse_m": MetricSpec("lower", "m", "RMS error of the matched landmarks (world frame, known start)", 1e-9),
+    "landmark_nees_mean": MetricSpec("none", "", "mean landmark NEES (2 when consistent, less when conservative)",
+                                     1e-9),
+    "robot_ate_rmse_m": MetricSpec("lower", "m", "RMS robot position error against ground truth, no alignment", 1e-9),
+    "robot_final_error_m": MetricSpec("lower", "m", "robot position error at the last estimate", 1e-9),
+    "robot_nees_mean": MetricSpec("none", "", "mean robot pose NEES at scans (3 when consistent)", 1e-9),
+    "landmarks_mapped": MetricSpec("higher", "", "features in the final map"),
+    "landmarks_true": MetricSpec("none", "", "landmarks in the ground-truth map"),
+    "false_landmarks": MetricSpec("lower", "", "mapped features matching no true landmark"),
+    "data_association_errors": MetricSpec("lower", "", "unknown ids: observations given the wrong feature"),
+    "steps": MetricSpec("none", "", "scans processed"),
+}
+
+
+class LandmarkSlamPipeline(Pipeline):
+    """Shared adapter; subclasses build the filter and add their own drawing and metrics."""
+
+    required_topics = (TOPIC_ODOM, TOPIC_RANGE_BEARING)
+    optional_topics = (TOPIC_GROUND_TRUTH_POSE, TOPIC_GROUND_TRUTH_LANDMARKS)
+    start_topic = TOPIC_ODOM
+    prefix: ClassVar[str]
+
+    def __init__(self, config: LandmarkSlamConfig, ctx: ReplayContext) -> None:
+        super().__init__(config, ctx)
+        self.T = ctx.T_world_start if ctx.T_world_start is not None else np.zeros(3)
+        self.filter: Any = None  # built at the first scan, once the association mode is known
+        self.mode: str | None = None if config.association == "auto" else config.association
+        self.traj = {k: TrajectoryLog(ctx.observer, f"world/trajectory/{k}") for k in ("estimate", "odometry", "truth")}
+        self.prev_odom: np.ndarray | None = None
+        self.first_odom: np.ndarray | None = None
+        self.pending: list[np.ndarray] = []  # increments that arrived before the filter was built
+        self.t_est: list[int] = []
+        self.est: list[np.ndarray] = []
+        self.t_gt: list[int] = []
+        self.gt: list[np.ndarray] = []
+        self.truth_ids: np.ndarray | None = None
+        self.truth_xy: np.ndarray | None = None
+        self.scan_poses: list[tuple[int, np.ndarray, np.ndarray]] = []
+        self.scans = 0
+        self.dropped_unknown = 0
+        self.labels: list[int] = []  # true id of the observation that created each feature (unknown mode)
+        self.da_errors = 0
+        self.da_checked = 0
+        self.step_s: list[float] = []  # per scan: the filter's observe()
+        self.predict_s: list[float] = []
+
+    # -- to be provided by subclasses
+    def make_filter(self, mode: str) -> Any:
+        raise NotImplementedError
+
+    def observed_covariances(self, features: list[int]) -> np.ndarray | None:
+        """Marginal covariances (k, 2, 2) of observed features in the map frame, or None."""
+        return None
+
+    def draw_scan(self, result: Any, world_xy: np.ndarray) -> None:
+        """Subclass drawing at each scan (``world_xy``: all feature estimates in the world frame)."""
+
+    def extra_metrics(self) -> dict[str, float]:
+        return {}
+
+    # -- frames
+    def to_world_pose(self, pose: np.ndarray) -> np.ndarray:
+        return compose1(self.T, pose)
+
+    def to_world_xy(self, xy: np.ndarray) -> np.ndarray:
+        return se2.transform_points(self.T, np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+
+    def to_world_cov(self, cov: np.ndarray) -> np.ndarray:
+        rot = se2.rot(self.T[2])
+        return rot @ cov @ rot.T
+
+    # -- messages
+    def step(self, env: Envelope) -> None:
+        msg = env.msg
+        if isinstance(msg, OdometryPose):
+            self._odometry(env.log_time_ns, msg.xy_yaw)
+        elif isinstance(msg, RangeBearingScan):
+            self._scan(env.log_time_ns, msg)
+        elif isinstance(msg, GroundTruthPose):
+            self.t_gt.append(env.log_time_ns)
+            self.gt.append(msg.xy_yaw)
+            self.traj["truth"].append(msg.x_m, msg.y_m)
+        elif isinstance(msg, LandmarkMap):
+            self.truth_ids, self.truth_xy = np.asarray(msg.landmark_ids), np.asarray(msg.positions_m)
+            labels = tuple(str(i) for i in self.truth_ids.tolist())
+            self.ctx.observer.log_static("world/landmarks/truth", Points(self.truth_xy, labels=labels, radius=0.06))
+
+    def _odometry(self, t: int, odom: np.ndarray) -> None:
+        if self.first_odom is None:
+            self.first_odom = odom
+        if self.prev_odom is not None:
+            u = between1(self.prev_odom, odom)
+            if self.filter is None:
+                self.pending.append(u)
+            else:
+                tic = time.perf_counter()
+                self.filter.predict(u)
+                self.predict_s.append(time.perf_counter() - tic)
+        self.prev_odom = odom
+        dead = self.to_world_pose(between1(self.first_odom, odom))
+        self.traj["odometry"].append(float(dead[0]), float(dead[1]))
+        pose = self.to_world_pose(self.filter.pose) if self.filter is not None else dead
+        self.t_est.append(t)
+        self.est.append(pose)
+        self.traj["estimate"].append(float(pose[0]), float(pose[1]))
+
+    def _scan(self, t: int, msg: RangeBearingScan) -> None:
+        ids = np.asarray(msg.landmark_ids)
+        if self.mode is None:
+            if not len(ids):
+                return
+            self.mode = "known" if np.all(ids >= 0) else "unknown"
+            self.ctx.log(f"association mode: {self.mode} ids (chosen from the first non-empty scan)")
+        if self.filter is None:
+            self.filter = self.make_filter(self.mode)
+            for u in self.pending:
+                self.filter.predict(u)
+        keep = ids >= 0 if self.mode == "known" else np.ones(len(ids), dtype=bool)
+        self.dropped_unknown += int(np.sum(~keep))
+        r, b, ids = msg.ranges_m[keep], msg.bearings_rad[keep], ids[keep]
+        tic = time.perf_counter()
+        res = self.filter.observe(r, b, ids if self.mode == "known" else None, msg.range_sigma_m,
+                                  msg.bearing_sigma_rad)
+        self.step_s.append(time.perf_counter() - tic)
+        self.scans += 1
+        self._score_association(res, ids)
+        self._draw(t, res)
+
+    def _score_association(self, res: Any, ids: np.ndarray) -> None:
+        if self.mode != "unknown":
+            return
+        created = set(res.new_features)
+        for j, f in enumerate(res.features.tolist()):
+            if f < 0:
+                continue
+            if f in created:
+                self.labels.extend([-1] * (f + 1 - len(self.labels)))
+                self.labels[f] = int(ids[j])
+            elif ids[j] >= 0 and self.labels[f] >= 0:
+                self.da_checked += 1
+                self.da_errors += int(self.labels[f] != ids[j])
+
+    def _draw(self, t: int, res: Any) -> None:
+        obs = self.ctx.observer
+        pose_w = self.to_world_pose(res.pose)
+        self.scan_poses.append((t, res.pose, res.pose_cov))
+        obs.log("world/robot", Pose(pose_w))
+        obs.log("world/robot/covariance",
+                CovarianceEllipses(pose_w[None, :2], self.to_world_cov(res.pose_cov[:2, :2])[None]))
+        pred_w = self.to_world_pose(res.prediction)
+        obs.log("world/robot/prediction", Pose(pred_w))
+        obs.log("world/robot/prediction/covariance",
+                CovarianceEllipses(pred_w[None, :2], self.to_world_cov(res.prediction_cov[:2, :2])[None]))
+        world_xy = self.to_world_xy(self.filter.estimates())
+        seen = [f for f in res.features.tolist() if f >= 0]
+        obs.log("world/associations", Segments(np.repeat(pose_w[None, :2], len(seen), 0), world_xy[seen]))
+        covs = self.observed_covariances(seen)
+        if covs is not None and seen:
+            obs.log("world/landmarks/observed", CovarianceEllipses(world_xy[seen], self.to_world_cov(covs)))
+            self._landmark_nees(seen, world_xy, covs, res)
+        tent = self.tentative_means()
+        if tent is not None:
+            obs.log("world/landmarks/tentative", Points(self.to_world_xy(tent), radius=0.05))
+        self._robot_nees(t, res)
+        if self.scans % self.config.map_every_scans == 0:
+            self.draw_map(world_xy)
+        self.draw_scan(res, world_xy)
+
+    def tentative_means(self) -> np.ndarray | None:
+        tentative = getattr(self.filter, "tentative", None)
+        return None if tentative is None or self.mode != "unknown" else tentative.means
+
+    def draw_map(self, world_xy: np.ndarray) -> None:
+        """Every landmark with its 2-sigma ellipse (exact marginals: costly, hence the interval)."""
+        labels = tuple(str(i) for i in self.filter.feature_ids) if self.mode == "known" else None
+        self.ctx.observer.log("world/landmarks/estimate", Points(world_xy, labels=labels, radius=0.07))
+        if len(world_xy):
+            covs = self.to_world_cov(self.filter.marginal_covariances())
+            self.ctx.observer.log("world/landmarks/estimate/covariance", CovarianceEllipses(world_xy, covs))
+
+    def _truth_pose_at(self, t: int) -> np.ndarray | None:
+        if not self.t_gt or t < self.t_gt[0] or t > self.t_gt[-1]:
+            return None
+        tg = np.asarray(self.t_gt, dtype=np.int64)
+        k = int(np.searchsorted(tg, t))
+        if tg[k] == t or k == 0:
+            return self.gt[k]
+        return se2.interpolate([float(t - tg[k - 1])], [0.0, float(tg[k] - tg[k - 1])],
+                               np.stack([self.gt[k - 1], self.gt[k]]))[0]
+
+    def _robot_nees(self, t: int, res: Any) -> None:
+        truth = self._truth_pose_at(t)
+        if truth is None or not np.all(np.linalg.eigvalsh(res.pose_cov) > 0):
+            return
+        e = se2.between(self.T, truth) - res.pose
+        e[2] = se2.wrap_angle(e[2])
+        self.ctx.observer.log("metrics/robot_nees", Scalar(float(e @ np.linalg.solve(res.pose_cov, e))))
+
+    def _landmark_nees(self, seen: list[int], world_xy: np.ndarray, covs: np.ndarray, res: Any) -> None:
+        truth = self._truth_of(seen)
+        if truth is None:
+            return
+        ok = ~np.isnan(truth[:, 0])
+        if ok.any():
+            e = (world_xy[seen] - truth)[ok]
+            c = self.to_world_cov(covs[ok])
+            self.ctx.observer.log("metrics/landmark_nees", Scalar(float(np.mean(np.einsum("ni,nij,nj->n", e,
+                                                                                           np.linalg.inv(c), e)))))
+
+    def _truth_of(self, features: list[int]) -> np.ndarray | None:
+        """True world positions (k, 2) of features by id or label (NaN where unknown); None without a truth map."""
+        if self.truth_xy is None or self.truth_ids is None:
+            return None
+        lookup = {int(i): k for k, i in enumerate(self.truth_ids.tolist())}
+        keys = self.filter.feature_ids if self.mode == "known" else self.labels
+        out = np.full((len(features), 2), np.nan)
+        for j, f in enumerate(features):
+            k = lookup.get(keys[f]) if f < len(keys) else None
+            if k is not None:
+                out[j] = self.truth_xy[k]
+        return out
+
+    # -- the end
+    def finish(self) -> dict[str, float]:
+        for traj in self.traj.values():
+            traj.finish()
+        metrics: dict[str, float] = {"steps": float(self.scans)}
+        if self.dropped_unknown:
+            self.ctx.log(f"known-id mode: {self.dropped_unknown} observations without an id were dropped")
+        if self.filter is None:
+            self.ctx.log("no scan with observations: nothing was mapped")
+            return metrics
+        if self.filter.rejected:
+            self.ctx.log(f"known ids: {self.filter.rejected} observations failed the outlier gate and were not used")
+        self.finalize()
+        world_xy = self.to_world_xy(self.filter.estimates())
+        self.draw_map(world_xy)
+        metrics.update(self._robot_metrics())
+        metrics.update(self._landmark_metrics(world_xy))
+        if self.mode == "unknown" and self.da_checked:
+            metrics["data_association_errors"] = float(self.da_errors)
+            self.ctx.log(f"data association: {self.da_errors} wrong of {self.da_checked} checked "
+                         f"({100.0 * self.da_errors / self.da_checked:.3f} %)")
+        metrics.update(self.extra_metrics())
+        return metrics
+
+    def finalize(self) -> None:
+        """Last exact solve before scoring (D-SLAM); nothing by default."""
+
+    def _robot_metrics(self) -> dict[str, float]:
+        t_est, est = np.asarray(self.t_est, dtype=np.int64), np.asarray(self.est).reshape(-1, 3)
+        t_gt, gt = np.asarray(self.t_gt, dtype=np.int64), np.asarray(self.gt).reshape(-1, 3)
+        pos_err, _ = position_errors(t_est, est, t_gt, gt)
+        if not len(pos_err):
+            return {}
+        out = {"robot_ate_rmse_m": rmse(pos_err), "robot_final_error_m": float(pos_err[-1])}
+        nees = []
+        for t, pose, cov in self.scan_poses:
+            truth = self._truth_pose_at(t)
+            if truth is not None and np.all(np.linalg.eigvalsh(cov) > 0):
+                e = se2.between(self.T, truth) - pose
+                e[2] = se2.wrap_angle(e[2])
+                nees.append(float(e @ np.linalg.solve(cov, e)))
+        if nees:
+            out["robot_nees_mean"] = float(np.mean(nees))
+        return out
+
+    def _landmark_metrics(self, world_xy: np.ndarray) -> dict[str, float]:
+        n = len(world_xy)
+        out = {"landmarks_mapped": float(n)}
+        if self.truth_xy is None or self.truth_ids is None:
+            return out
+        out["landmarks_true"] = float(len(self.truth_ids))
+        if self.mode == "known":
+            lookup = {int(i): k for k, i in enumerate(self.truth_ids.tolist())}
+            pairs = [(f, lookup[i]) for f, i in enumerate(self.filter.feature_ids) if i in lookup]
+        else:
+            d = np.hypot(*(world_xy[:, None, :] - self.truth_xy[None, :, :]).transpose(2, 0, 1))
+            rows, cols = linear_sum_assignment(np.where(d <= self.config.match_radius_m, d, 1e9))
+            pairs = [(int(f), int(k)) for f, k in zip(rows, cols, strict=True) if d[f, k] <= self.config.match_radius_m]
+        out["false_landmarks"] = float(n - len(pairs))
+        if pairs:
+            f_idx, t_idx = np.array(pairs).T
+            err = world_xy[f_idx] - self.truth_xy[t_idx]
+            covs = self.to_world_cov(self.filter.marginal_covariances()[f_idx])
+            out["landmark_rmse_m"] = float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
+            out["landmark_nees_mean"] = float(np.mean(np.einsum("ni,nij,nj->n", err, np.linalg.inv(covs), err)))
+        return out
+
+    def timings(self) -> dict[str, float]:
+        if not self.step_s:
+            return {}
+        steps = np.asarray(self.step_s)
+        out = {"scan_step_mean_s": float(steps.mean()), "scan_step_p95_s": float(np.percentile(steps, 95)),
+               "algorithm_total_s": float(steps.sum() + sum(self.predict_s))}
+        if self.predict_s:
+            out["predict_mean_s"] = float(np.mean(self.predict_s))
+        profile = getattr(self.filter, "profile", {})
+        for stage, values in sorted(profile.items()):
+            out[f"{stage}_mean_s"] = float(np.mean(values))
+            out[f"{stage}_total_s"] = float(np.sum(values))
+        return out
+
+    @classmethod
+    def blueprint(cls) -> rrb.Blueprint:
+        return rrb.Blueprint(
+            rrb.Horizontal(
+                rrb.Spatial2DView(name="Map", origin="/world"),
+                rrb.Vertical(
+                    rrb.TimeSeriesView(name="NEES and solver", origin="/metrics"),
+                    rrb.Spatial2DView(name="Information matrix", origin=f"/{cls.prefix}/information"),
+                    rrb.TextLogView(name="Log", origin="/"),
+                    row_shares=[2, 2, 1],
+                ),
+                column_shares=[3, 2],
+            ),
+            collapse_panels=True,
+        )
