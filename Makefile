@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 DATA   ?= ../shared/data
 ARGS   ?=
 
-.PHONY: venv demo test lint bench cholmod clean
+.PHONY: venv demo serve test lint bench cholmod clean
 
 venv: $(STAMP)
 
@@ -19,6 +19,11 @@ $(STAMP): pyproject.toml
 
 demo: $(STAMP)
 	$(BIN)/slamreplay demo --data $(DATA) $(ARGS)
+
+# The HTTP service on the built-in defaults: SQLite job store and local worker processes,
+# uploads in recordings/, runs in runs/ (SLAMREPLAY_TOKEN, SLAMREPLAY_WORKERS... apply).
+serve: $(STAMP)
+	$(BIN)/slamreplay serve --data-dir . $(ARGS)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -n 2 -q $(ARGS)

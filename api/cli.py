@@ -262,6 +262,27 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(Path(args.out), Path(args.data) if args.data else None, quiet=args.quiet)
 
 
+def cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+    from pydantic import ValidationError
+
+    from api.app import create_app
+    from api.settings import Settings
+
+    try:
+        settings = Settings.from_env(data_dir=args.data_dir, workers=args.workers, executor=args.executor)
+    except ValidationError as err:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'settings'}: {e['msg']}" for e in err.errors())
+        raise CliError(f"invalid setting (from SLAMREPLAY_* or the options): {problems}") from None
+    if not settings.data_dir.is_dir():
+        raise CliError(f"--data-dir {settings.data_dir} does not exist: create it first")
+    auth = "bearer token required" if settings.token else "no token (set SLAMREPLAY_TOKEN to require one)"
+    _eprint(f"slamreplay serve: http://{args.host}:{args.port} over {settings.data_dir.resolve()} "
+            f"({settings.workers} {settings.executor} worker(s), {auth})")
+    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level=args.log_level)
+    return EXIT_OK
+
+
 # ---------------------------------------------------------------------------------------
 
 
@@ -363,6 +384,22 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", default="runs/demo", help="where recordings and runs go (default: runs/demo)")
     demo.add_argument("--data", default=None, help="public datasets folder; MRCLAM is replayed too when present")
     demo.set_defaults(func=cmd_demo)
+
+    srv = sub.add_parser("serve", help="run the HTTP service: upload recordings, run jobs, fetch runs and diffs",
+                         description="Serve the HTTP API (OpenAPI docs at /docs). Settings come from SLAMREPLAY_* "
+                                     "environment variables (SLAMREPLAY_TOKEN, SLAMREPLAY_MAX_UPLOAD_BYTES ...); "
+                                     "these options win over them.")
+    srv.add_argument("--host", default="127.0.0.1", help="address to listen on (default: 127.0.0.1)")
+    srv.add_argument("--port", type=int, default=8000, help="port (default: 8000)")
+    srv.add_argument("--data-dir", default=None,
+                     help="holds recordings/ and runs/ (default: SLAMREPLAY_DATA_DIR, else the current directory)")
+    srv.add_argument("--workers", type=int, default=None,
+                     help="jobs running at once, each in its own process (default: SLAMREPLAY_WORKERS, else 2)")
+    srv.add_argument("--executor", choices=["local"], default=None,
+                     help="where jobs run: local worker processes (default: SLAMREPLAY_EXECUTOR, else local)")
+    srv.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"],
+                     help="uvicorn log level (default: info)")
+    srv.set_defaults(func=cmd_serve)
 
     add_graph_parser(sub)
     return p

@@ -1,0 +1,255 @@
+"""The HTTP service: ``create_app(settings)`` builds a FastAPI app over the job store and an executor.
+
+Routes only validate and delegate (to ``RecordingService``, ``JobService`` and ``replay``);
+replays run in worker processes, never in the event loop. Ids in paths and queries must be
+hex (sha256 for recordings, 32 digits for jobs), so user input never names a file. When a
+token is set, every route but ``/healthz`` needs ``Authorization: Bearer <token>`` (the
+interactive ``/docs`` page is then off, as a browser cannot send the token from it).
+"""
+
+from __future__ import annotations
+
+import hmac
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, FastAPI, Path, Query, Request, Response
+from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from starlette.concurrency import run_in_threadpool
+
+from api.errors import ApiError, UnauthorizedError
+from api.executor import Executor, LocalExecutor
+from api.jobs import JobService
+from api.models import JOB_ID, SHA256, DiffOut, ErrorOut, HealthOut, JobOut, JobSpec, JobStatusName, RecordingOut
+from api.monitoring import CONTENT_TYPE, prometheus_text
+from api.recordings import RecordingService
+from api.settings import Settings, get_settings
+from api.store import Store
+from recorder.errors import RecorderError
+from recorder.version import version
+from replay.diff import diff_runs, parse_tolerances
+from replay.errors import ReplayError
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+RecordingId = Annotated[str, Path(pattern=SHA256, description="sha256 of the recording")]
+JobId = Annotated[str, Path(pattern=JOB_ID, description="job id (32 hex digits)")]
+JobQuery = Annotated[str, Query(pattern=JOB_ID, description="job id (32 hex digits)")]
+# Errors are JSON on every route, file downloads included (FastAPI would document them with the route's media type).
+ERRORS: dict[int | str, dict[str, Any]] = {
+    code: {"model": ErrorOut, "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}}}
+    for code in (400, 401, 404, 409, 413, 415, 422)}
+_bearer = HTTPBearer(auto_error=False, description="SLAMREPLAY_TOKEN, when the server has one")
+
+
+def get_jobs(request: Request) -> JobService:
+    jobs: JobService = request.app.state.jobs
+    return jobs
+
+
+def get_recordings(request: Request) -> RecordingService:
+    recordings: RecordingService = request.app.state.recordings
+    return recordings
+
+
+JobsDep = Annotated[JobService, Depends(get_jobs)]
+RecordingsDep = Annotated[RecordingService, Depends(get_recordings)]
+
+
+def require_token(settings: SettingsDep,
+                  credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
+    """401 unless the request carries the server's bearer token (when it has one)."""
+    if settings.token is None:
+        return
+    if credentials is None:
+        raise UnauthorizedError("this server needs a token: send the header `Authorization: Bearer <SLAMREPLAY_TOKEN>`")
+    if not hmac.compare_digest(credentials.credentials.encode(), settings.token.encode()):
+        raise UnauthorizedError("wrong bearer token")
+
+
+async def handle_error(request: Request, exc: Exception) -> JSONResponse:
+    """The one error handler: service errors carry their status; ReplayError/RecorderError are bad input (422)."""
+    if isinstance(exc, ApiError):
+        status, body = exc.status, {"detail": exc.detail, **exc.extra}
+    else:
+        status, body = 422, {"detail": str(exc)}
+    return JSONResponse(body, status, headers={"WWW-Authenticate": "Bearer"} if status == 401 else None)
+
+
+public = APIRouter()
+router = APIRouter(dependencies=[Depends(require_token)], responses=ERRORS)
+
+
+@public.get("/healthz", tags=["service"])
+def healthz() -> HealthOut:
+    return HealthOut(status="ok", version=version())
+
+
+@router.get("/metrics", tags=["service"], response_class=PlainTextResponse)
+def prometheus_metrics(jobs: JobsDep) -> PlainTextResponse:
+    return PlainTextResponse(prometheus_text(jobs.store, jobs.executor.slots), media_type=CONTENT_TYPE)
+
+
+# -- recordings ------------------------------------------------------------------------------
+
+UPLOAD_BODY = {"requestBody": {"required": True, "description": "the .mcap file, as the raw request body",
+                               "content": {"application/octet-stream": {"schema": {"type": "string",
+                                                                                   "format": "binary"}}}}}
+
+
+@router.post("/recordings", status_code=201, tags=["recordings"], openapi_extra=UPLOAD_BODY,
+             responses={200: {"model": RecordingOut, "description": "the same file was stored before"}})
+async def upload_recording(request: Request, response: Response, recordings: RecordingsDep,
+                           filename: Annotated[str | None, Query(max_length=255, description="a label")] = None,
+                           recover: Annotated[bool, Query(description="salvage a damaged file at once")] = False,
+                           ) -> RecordingOut:
+    """Upload a recording as the raw body (streamed to disk); 201 new, 200 when already stored."""
+    length = request.headers.get("content-length")
+    declared = int(length) if length is not None and length.isdigit() else None
+    stored = await recordings.upload(request.stream(), filename, declared, recover)
+    response.status_code = 201 if stored.created else 200
+    return RecordingOut.of(stored.recording, stored.report, stored.recovered_from)
+
+
+@router.post("/recordings/{recording_id}/recover", status_code=201, tags=["recordings"])
+def recover_recording(recording_id: RecordingId, response: Response, recordings: RecordingsDep) -> RecordingOut:
+    """Salvage the readable messages of a damaged upload into a new recording."""
+    stored = recordings.recover(recording_id)
+    response.status_code = 201 if stored.created else 200
+    return RecordingOut.of(stored.recording, stored.report, stored.recovered_from)
+
+
+@router.get("/recordings", tags=["recordings"])
+def list_recordings(recordings: RecordingsDep) -> list[RecordingOut]:
+    return [RecordingOut.of(r) for r in recordings.store.list_recordings()]
+
+
+@router.get("/recordings/{recording_id}", tags=["recordings"])
+def get_recording(recording_id: RecordingId, recordings: RecordingsDep) -> RecordingOut:
+    return RecordingOut.of(recordings.get(recording_id))
+
+
+@router.get("/recordings/{recording_id}/download", tags=["recordings"], response_class=FileResponse)
+def download_recording(recording_id: RecordingId, recordings: RecordingsDep) -> FileResponse:
+    rec, path = recordings.file(recording_id)
+    return FileResponse(path, media_type="application/octet-stream", filename=rec.filename)
+
+
+@router.delete("/recordings/{recording_id}", status_code=204, tags=["recordings"])
+def delete_recording(recording_id: RecordingId, recordings: RecordingsDep) -> Response:
+    """Delete a recording; 409 while a queued or running job uses it."""
+    recordings.delete(recording_id)
+    return Response(status_code=204)
+
+
+# -- jobs ---------------------------------------------------------------------------------------
+
+
+@router.post("/jobs", status_code=202, tags=["jobs"])
+def submit_job(spec: JobSpec, jobs: JobsDep) -> JobOut:
+    """Queue a job; 422 naming an unknown pipeline or config key, 404 for an unknown recording."""
+    return JobOut.of(jobs.submit(spec.recording_id, spec.pipeline, spec.config, spec.seed))
+
+
+@router.get("/jobs", tags=["jobs"])
+def list_jobs(jobs: JobsDep, recording: Annotated[str | None, Query(pattern=SHA256)] = None,
+              pipeline: Annotated[str | None, Query(max_length=100)] = None, status: JobStatusName | None = None,
+              limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> list[JobOut]:
+    """Jobs, newest first, filtered by recording, pipeline and status."""
+    rows = jobs.store.list_jobs(recording_id=recording, pipeline=pipeline, status=status, limit=limit)
+    return [JobOut.of(j) for j in rows]
+
+
+@router.get("/jobs/{job_id}", tags=["jobs"])
+def get_job(job_id: JobId, jobs: JobsDep) -> JobOut:
+    """Status, progress, and metrics and manifest once written."""
+    return JobOut.of(jobs.get(job_id), jobs.run_dir(job_id))
+
+
+@router.delete("/jobs/{job_id}", tags=["jobs"])
+def cancel_job(job_id: JobId, jobs: JobsDep) -> JobOut:
+    """Cancel a queued or running job; 409 when it has already ended."""
+    return JobOut.of(jobs.cancel(job_id))
+
+
+@router.get("/jobs/{job_id}/rrd", tags=["jobs"], response_class=FileResponse)
+def job_rrd(job_id: JobId, jobs: JobsDep) -> FileResponse:
+    return FileResponse(jobs.artifact(job_id, "run.rrd"), media_type="application/octet-stream",
+                        filename=f"{job_id}.rrd")
+
+
+@router.get("/jobs/{job_id}/metrics", tags=["jobs"], response_class=FileResponse)
+def job_metrics(job_id: JobId, jobs: JobsDep) -> FileResponse:
+    return FileResponse(jobs.artifact(job_id, "metrics.json"), media_type="application/json")
+
+
+@router.get("/jobs/{job_id}/manifest", tags=["jobs"], response_class=FileResponse)
+def job_manifest(job_id: JobId, jobs: JobsDep) -> FileResponse:
+    return FileResponse(jobs.artifact(job_id, "manifest.json"), media_type="application/json")
+
+
+@router.get("/jobs/{job_id}/log", tags=["jobs"], response_class=FileResponse)
+def job_log(job_id: JobId, jobs: JobsDep) -> FileResponse:
+    return FileResponse(jobs.artifact(job_id, "log.txt"), media_type="text/plain; charset=utf-8")
+
+
+# -- diff -----------------------------------------------------------------------------------------
+
+
+@router.get("/diff", tags=["diff"])
+def diff(a: JobQuery, b: JobQuery, jobs: JobsDep,
+         tolerance: Annotated[list[str] | None, Query(description="NAME=VALUE or NAME=N%; * for all")] = None,
+         ) -> DiffOut:
+    """Job B against job A: what changed, metric deltas with verdicts, run.rrd content equality."""
+    result = diff_runs(jobs.finished_run(a), jobs.finished_run(b), parse_tolerances(tolerance or []))
+    return DiffOut(**(result.to_json() | {"a": a, "b": b}))
+
+
+@router.get("/diff.rrd", tags=["diff"], response_class=FileResponse)
+def diff_rrd(a: JobQuery, b: JobQuery, jobs: JobsDep) -> FileResponse:
+    """One .rrd with job A under runs/A and job B under runs/B."""
+    return FileResponse(jobs.comparison_rrd(a, b), media_type="application/octet-stream",
+                        filename=f"diff-{a[:8]}-{b[:8]}.rrd")
+
+
+# -- the app --------------------------------------------------------------------------------------
+
+
+def make_executor(settings: Settings) -> Executor:
+    """The executor named by the settings."""
+    return LocalExecutor(settings.workers)
+
+
+def create_app(settings: Settings | None = None, executor: Executor | None = None) -> FastAPI:
+    """The service over ``settings.data_dir``; the executor runs (and the scheduler starts) with the lifespan."""
+    settings = settings or Settings.from_env()
+    settings.make_dirs()
+    store = Store(settings.db_path)
+    jobs = JobService(settings, store, executor or make_executor(settings))
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        await run_in_threadpool(jobs.start)
+        try:
+            yield
+        finally:
+            await run_in_threadpool(jobs.stop)
+
+    docs = settings.token is None
+    app = FastAPI(title="slamreplay", version=version(), lifespan=lifespan, docs_url="/docs" if docs else None,
+                  redoc_url=None, openapi_url="/openapi.json" if docs else None,
+                  description="Upload MCAP recordings, replay them through SLAM pipelines as jobs, "
+                              "fetch metrics and Rerun recordings, and diff runs.")
+    app.state.settings = settings
+    app.state.jobs = jobs
+    app.state.recordings = RecordingService(settings, store)
+    for exc in (ApiError, ReplayError, RecorderError):
+        app.add_exception_handler(exc, handle_error)
+    app.include_router(public)
+    app.include_router(router)
+    if not docs:
+        @app.get("/openapi.json", include_in_schema=False, dependencies=[Depends(require_token)])
+        def openapi() -> JSONResponse:
+            return JSONResponse(app.openapi())
+    return app

@@ -1,0 +1,160 @@
+"""Jobs: validation before queueing, the scheduler threads that feed the executor, cancellation.
+
+One scheduler thread per executor slot claims the oldest queued job from the store, runs it
+through the executor (blocking that thread, never the event loop) and records the outcome.
+Submitting only inserts a row and wakes the threads, so queued jobs survive a restart: at
+start-up, jobs left running by the previous server are re-queued once, then everything
+queued runs.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import uuid
+from pathlib import Path
+from typing import Any
+
+from api.errors import ConflictError, NotFoundError
+from api.executor import Executor, Outcome, Task
+from api.settings import Settings
+from api.store import JobRow, Store
+from replay.diff import write_comparison_rrd
+from replay.errors import ReplayError
+from replay.pipeline import all_pipelines, get_pipeline, resolve_config
+
+log = logging.getLogger("slamreplay.jobs")
+
+
+class JobService:
+    """Queue, run and cancel jobs; owns the scheduler threads."""
+
+    def __init__(self, settings: Settings, store: Store, executor: Executor) -> None:
+        self.settings = settings
+        self.store = store
+        self.executor = executor
+        self._wake = threading.Condition()
+        self._stopping = threading.Event()
+        self._threads: list[threading.Thread] = []
+
+    # -- lifecycle -------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Re-queue jobs a previous server left running, start the executor and the scheduler threads."""
+        all_pipelines()  # import them now rather than in the first POST /jobs
+        requeued, interrupted = self.store.recover_after_restart()
+        if requeued or interrupted:
+            log.warning("after a restart: re-queued %d interrupted job(s), gave up on %d", len(requeued),
+                        len(interrupted))
+        self.executor.start()
+        for i in range(self.executor.slots):
+            t = threading.Thread(target=self._loop, name=f"slamreplay-scheduler-{i}", daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def stop(self) -> None:
+        """Stop claiming jobs and stop the workers; running jobs stay ``running`` and are re-queued at start-up."""
+        self._stopping.set()
+        self.wake()
+        self.executor.close()
+        for t in self._threads:
+            t.join(5.0)
+
+    def wake(self) -> None:
+        with self._wake:
+            self._wake.notify_all()
+
+    def _loop(self) -> None:
+        while not self._stopping.is_set():
+            try:
+                job = self.store.claim_next()
+            except Exception:  # a locked or failing database must not kill the scheduler
+                log.exception("could not claim a job")
+                job = None
+            if job is None:
+                with self._wake:
+                    self._wake.wait(1.0)
+                continue
+            try:
+                outcome = self.executor.run(self.task_of(job))
+            except Exception as err:  # the executor itself failed (e.g. no process could start): fail this job
+                log.exception("executor failed on job %s", job.id)
+                outcome = Outcome("failed", f"the executor could not run this job: {type(err).__name__}: {err}")
+            if outcome.status == "interrupted":
+                continue  # left running on purpose: the next start re-queues it
+            for attempt in range(3):
+                try:
+                    self.store.finish_job(job.id, outcome.status, outcome.error)
+                    break
+                except Exception:  # a busy database: retry; the job stays running and is re-queued at start-up
+                    log.exception("could not record the end of job %s (try %d)", job.id, attempt + 1)
+
+    def task_of(self, job: JobRow) -> Task:
+        return Task(job.id, str(self.recording_path(job.recording_id)), job.pipeline, job.config, job.seed,
+                    str(self.run_dir(job.id)), str(self.settings.db_path))
+
+    # -- locations ---------------------------------------------------------------------------
+
+    def recording_path(self, recording_id: str) -> Path:
+        return self.settings.recordings_dir / f"{recording_id}.mcap"
+
+    def run_dir(self, job_id: str) -> Path:
+        return self.settings.runs_dir / job_id
+
+    # -- requests ------------------------------------------------------------------------------
+
+    def submit(self, recording_id: str, pipeline: str, config: dict[str, Any], seed: int) -> JobRow:
+        """Validate and queue a job. ReplayError names an unknown pipeline or config key; NotFoundError a recording."""
+        resolve_config(get_pipeline(pipeline), config)
+        try:
+            json.dumps(config, allow_nan=False)
+        except ValueError as err:
+            raise ReplayError(f"config must be plain JSON values: {err}") from err
+        job = self.store.add_job(uuid.uuid4().hex, recording_id, pipeline, config, seed)
+        if job is None:
+            raise NotFoundError(f"recording {recording_id} not found; upload it with POST /recordings first")
+        self.wake()
+        return job
+
+    def get(self, job_id: str) -> JobRow:
+        job = self.store.get_job(job_id)
+        if job is None:
+            raise NotFoundError(f"job {job_id} not found")
+        return job
+
+    def cancel(self, job_id: str) -> JobRow:
+        """Cancel a queued or running job; ConflictError when it has already ended."""
+        job, before = self.store.cancel_job(job_id)
+        if job is None:
+            raise NotFoundError(f"job {job_id} not found")
+        if before == "running":
+            self.executor.cancel(job_id)
+        elif before != "queued":
+            raise ConflictError(f"job {job_id} has already ended ({before}); there is nothing to cancel")
+        return job
+
+    def artifact(self, job_id: str, name: str) -> Path:
+        """A file of a job's run directory; NotFoundError saying why it is not there (yet)."""
+        job = self.get(job_id)
+        path = self.run_dir(job_id) / name
+        if not path.is_file():
+            why = {"queued": "it has not started", "running": "it is still running",
+                   "cancelled": "it was cancelled"}.get(job.status, f"its status is {job.status}")
+            raise NotFoundError(f"job {job_id} has no {name}: {why}")
+        return path
+
+    def finished_run(self, job_id: str) -> Path:
+        """The run directory of a succeeded job; ConflictError when the job has not succeeded."""
+        job = self.get(job_id)
+        if job.status != "succeeded":
+            raise ConflictError(f"job {job_id} is {job.status}; only succeeded jobs can be compared")
+        return self.run_dir(job_id)
+
+    def comparison_rrd(self, a: str, b: str) -> Path:
+        """One .rrd holding both runs (made once per pair, then served from ``runs/diffs/``)."""
+        run_a, run_b = self.finished_run(a), self.finished_run(b)
+        out = self.settings.runs_dir / "diffs" / f"{a}-{b}.rrd"
+        if not out.is_file():
+            write_comparison_rrd(run_a, run_b, out)
+        return out

@@ -1,0 +1,286 @@
+"""The job store: recordings and jobs in SQLite (WAL), shared by the server and its worker processes.
+
+The database is the queue: a job is ``queued`` until a worker slot claims it (one atomic
+UPDATE), so nothing queued lives only in memory and a restart loses nothing. Each call
+opens its own short connection, so the store is safe to use from any thread or process.
+
+Job states: ``queued`` -> ``running`` -> ``succeeded`` | ``failed`` | ``cancelled``; a job
+found ``running`` at start-up was cut off by a server stop: it is re-queued once, and
+marked ``interrupted`` when that happens a second time.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled", "interrupted"]
+JOB_STATUSES: tuple[JobStatus, ...] = ("queued", "running", "succeeded", "failed", "cancelled", "interrupted")
+ACTIVE: tuple[JobStatus, ...] = ("queued", "running")
+MAX_ATTEMPTS = 2  # the first run, and one re-queue after a server stop
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS recordings (
+    id TEXT PRIMARY KEY,            -- sha256 of the file
+    filename TEXT NOT NULL,         -- as uploaded, for display and downloads only
+    size INTEGER NOT NULL,
+    topics TEXT NOT NULL,           -- JSON list of {topic, read_as, schema, encoding, messages}
+    message_count INTEGER NOT NULL,
+    start_ns INTEGER NOT NULL,
+    end_ns INTEGER NOT NULL,
+    created REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS jobs (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    id TEXT NOT NULL UNIQUE,
+    recording_id TEXT NOT NULL,
+    pipeline TEXT NOT NULL,
+    config TEXT NOT NULL,           -- JSON object, as submitted (validated)
+    seed INTEGER NOT NULL,
+    status TEXT NOT NULL,
+    progress REAL NOT NULL DEFAULT 0,
+    error TEXT,
+    note TEXT,
+    attempts INTEGER NOT NULL DEFAULT 0,
+    created REAL NOT NULL,
+    started REAL,
+    finished REAL
+);
+CREATE INDEX IF NOT EXISTS jobs_status ON jobs (status, seq);
+CREATE INDEX IF NOT EXISTS jobs_recording ON jobs (recording_id);
+"""
+
+
+@dataclass(frozen=True, slots=True)
+class RecordingRow:
+    id: str
+    filename: str
+    size: int
+    topics: list[dict[str, Any]]
+    message_count: int
+    start_ns: int
+    end_ns: int
+    created: float
+
+
+@dataclass(frozen=True, slots=True)
+class JobRow:
+    id: str
+    recording_id: str
+    pipeline: str
+    config: dict[str, Any]
+    seed: int
+    status: JobStatus
+    progress: float
+    error: str | None
+    note: str | None
+    attempts: int
+    created: float
+    started: float | None
+    finished: float | None
+
+
+def _connect(path: Path) -> sqlite3.Connection:
+    conn = sqlite3.connect(path, timeout=30.0, isolation_level=None, check_same_thread=False)
+    conn.row_factory = sqlite3.Row
+    conn.execute("PRAGMA busy_timeout = 30000")
+    conn.execute("PRAGMA synchronous = NORMAL")
+    return conn
+
+
+@contextmanager
+def _connection(path: Path) -> Iterator[sqlite3.Connection]:
+    conn = _connect(path)
+    try:
+        yield conn
+    finally:
+        conn.close()
+
+
+def _recording(row: sqlite3.Row) -> RecordingRow:
+    return RecordingRow(row["id"], row["filename"], row["size"], json.loads(row["topics"]), row["message_count"],
+                        row["start_ns"], row["end_ns"], row["created"])
+
+
+def _job(row: sqlite3.Row) -> JobRow:
+    return JobRow(row["id"], row["recording_id"], row["pipeline"], json.loads(row["config"]), row["seed"],
+                  row["status"], row["progress"], row["error"], row["note"], row["attempts"], row["created"],
+                  row["started"], row["finished"])
+
+
+def set_progress(db_path: str | Path, job_id: str, fraction: float) -> None:
+    """Record a running job's progress (0..1); called from worker processes."""
+    with _connection(Path(db_path)) as conn:
+        conn.execute("UPDATE jobs SET progress = ? WHERE id = ? AND status = 'running'",
+                     (min(max(fraction, 0.0), 1.0), job_id))
+
+
+class Store:
+    """Recordings and jobs in one SQLite file (created, in WAL mode, when missing)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        with _connection(path) as conn:
+            conn.execute("PRAGMA journal_mode = WAL")
+            conn.executescript(SCHEMA)
+
+    @contextmanager
+    def _tx(self) -> Iterator[sqlite3.Connection]:
+        """A write transaction that takes the lock up front (no upgrade deadlocks)."""
+        with _connection(self.path) as conn:
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                yield conn
+            except BaseException:
+                conn.execute("ROLLBACK")
+                raise
+            conn.execute("COMMIT")
+
+    # -- recordings ----------------------------------------------------------------------
+
+    def add_recording(self, rec: RecordingRow) -> tuple[RecordingRow, bool]:
+        """Insert ``rec`` unless its id is known; (the stored row, whether it was new)."""
+        with self._tx() as conn:
+            cur = conn.execute(
+                "INSERT OR IGNORE INTO recordings (id, filename, size, topics, message_count, start_ns, end_ns, "
+                "created) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (rec.id, rec.filename, rec.size, json.dumps(rec.topics), rec.message_count, rec.start_ns,
+                 rec.end_ns, rec.created))
+            row = conn.execute("SELECT * FROM recordings WHERE id = ?", (rec.id,)).fetchone()
+        return _recording(row), cur.rowcount == 1
+
+    def get_recording(self, recording_id: str) -> RecordingRow | None:
+        with _connection(self.path) as conn:
+            row = conn.execute("SELECT * FROM recordings WHERE id = ?", (recording_id,)).fetchone()
+        return None if row is None else _recording(row)
+
+    def list_recordings(self) -> list[RecordingRow]:
+        with _connection(self.path) as conn:
+            rows = conn.execute("SELECT * FROM recordings ORDER BY created DESC, id").fetchall()
+        return [_recording(r) for r in rows]
+
+    def delete_recording(self, recording_id: str) -> Literal["deleted", "missing", "busy"]:
+        """Delete the row unless a queued or running job uses it (checked in the same transaction)."""
+        with self._tx() as conn:
+            if conn.execute("SELECT 1 FROM recordings WHERE id = ?", (recording_id,)).fetchone() is None:
+                return "missing"
+            busy = conn.execute("SELECT 1 FROM jobs WHERE recording_id = ? AND status IN ('queued', 'running')",
+                                (recording_id,)).fetchone()
+            if busy is not None:
+                return "busy"
+            conn.execute("DELETE FROM recordings WHERE id = ?", (recording_id,))
+        return "deleted"
+
+    # -- jobs ------------------------------------------------------------------------------
+
+    def add_job(self, job_id: str, recording_id: str, pipeline: str, config: dict[str, Any],
+                seed: int) -> JobRow | None:
+        """Queue a job; None when the recording is unknown (checked in the same transaction)."""
+        with self._tx() as conn:
+            cur = conn.execute(
+                "INSERT INTO jobs (id, recording_id, pipeline, config, seed, status, created) "
+                "SELECT ?, ?, ?, ?, ?, 'queued', ? WHERE EXISTS (SELECT 1 FROM recordings WHERE id = ?)",
+                (job_id, recording_id, pipeline, json.dumps(config), seed, time.time(), recording_id))
+            if cur.rowcount != 1:
+                return None
+            row = conn.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return _job(row)
+
+    def get_job(self, job_id: str) -> JobRow | None:
+        with _connection(self.path) as conn:
+            row = conn.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return None if row is None else _job(row)
+
+    def list_jobs(self, *, recording_id: str | None = None, pipeline: str | None = None,
+                  status: str | None = None, limit: int = 100) -> list[JobRow]:
+        """Newest first, filtered by whichever arguments are given."""
+        where, args = [], []
+        for column, value in (("recording_id", recording_id), ("pipeline", pipeline), ("status", status)):
+            if value is not None:
+                where.append(f"{column} = ?")
+                args.append(value)
+        sql = "SELECT * FROM jobs" + (" WHERE " + " AND ".join(where) if where else "") + " ORDER BY seq DESC LIMIT ?"
+        with _connection(self.path) as conn:
+            rows = conn.execute(sql, (*args, limit)).fetchall()
+        return [_job(r) for r in rows]
+
+    def claim_next(self) -> JobRow | None:
+        """Mark the oldest queued job running and return it; None when nothing is queued."""
+        with self._tx() as conn:
+            row = conn.execute("SELECT seq FROM jobs WHERE status = 'queued' ORDER BY seq LIMIT 1").fetchone()
+            if row is None:
+                return None
+            job = conn.execute("UPDATE jobs SET status = 'running', progress = 0, attempts = attempts + 1, "
+                               "started = ?, finished = NULL, error = NULL WHERE seq = ? RETURNING *",
+                               (time.time(), row["seq"])).fetchone()
+        return _job(job)
+
+    def finish_job(self, job_id: str, status: JobStatus, error: str | None) -> bool:
+        """Record how a running job ended; False when it is no longer running (e.g. cancelled meanwhile)."""
+        progress = "1.0" if status == "succeeded" else "progress"
+        with self._tx() as conn:
+            cur = conn.execute(f"UPDATE jobs SET status = ?, error = ?, finished = ?, progress = {progress} "
+                               "WHERE id = ? AND status = 'running'", (status, error, time.time(), job_id))
+        return cur.rowcount == 1
+
+    def cancel_job(self, job_id: str) -> tuple[JobRow | None, JobStatus | None]:
+        """Cancel a queued or running job: (the job after, its status before); (None, None) if unknown."""
+        with self._tx() as conn:
+            row = conn.execute("SELECT status FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            if row is None:
+                return None, None
+            before: JobStatus = row["status"]
+            if before in ACTIVE:
+                conn.execute("UPDATE jobs SET status = 'cancelled', error = 'cancelled by request', finished = ? "
+                             "WHERE id = ?", (time.time(), job_id))
+            job = conn.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return _job(job), before
+
+    def recover_after_restart(self) -> tuple[list[str], list[str]]:
+        """Jobs left ``running`` by a previous server: re-queue those run once, mark the others interrupted.
+
+        Returns (re-queued ids, interrupted ids).
+        """
+        now = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+        with self._tx() as conn:
+            rows = conn.execute("SELECT id, attempts FROM jobs WHERE status = 'running' ORDER BY seq").fetchall()
+            requeued = [r["id"] for r in rows if r["attempts"] < MAX_ATTEMPTS]
+            interrupted = [r["id"] for r in rows if r["attempts"] >= MAX_ATTEMPTS]
+            for job_id in requeued:
+                conn.execute("UPDATE jobs SET status = 'queued', progress = 0, started = NULL, "
+                             "note = ? WHERE id = ?", (f"interrupted by a server stop; re-queued at {now}", job_id))
+            for job_id in interrupted:
+                conn.execute("UPDATE jobs SET status = 'interrupted', finished = ?, error = ? WHERE id = ?",
+                             (time.time(), f"interrupted by a server stop after {MAX_ATTEMPTS} attempts; "
+                                           "not re-queued again (submit it anew)", job_id))
+        return requeued, interrupted
+
+    def count_by_status(self) -> dict[str, int]:
+        with _connection(self.path) as conn:
+            rows = conn.execute("SELECT status, COUNT(*) AS n FROM jobs GROUP BY status").fetchall()
+        counts: dict[str, int] = dict.fromkeys(JOB_STATUSES, 0)
+        counts.update({r["status"]: r["n"] for r in rows})
+        return counts
+
+    def durations(self) -> list[tuple[str, float]]:
+        """(status, seconds from start to end) of every finished job that started."""
+        with _connection(self.path) as conn:
+            rows = conn.execute("SELECT status, finished - started AS d FROM jobs "
+                                "WHERE started IS NOT NULL AND finished IS NOT NULL").fetchall()
+        return [(r["status"], max(float(r["d"]), 0.0)) for r in rows]
+
+    def count_recordings(self) -> int:
+        with _connection(self.path) as conn:
+            return int(conn.execute("SELECT COUNT(*) FROM recordings").fetchone()[0])
+
+    def active_jobs_of(self, recording_id: str) -> int:
+        with _connection(self.path) as conn:
+            row = conn.execute("SELECT COUNT(*) FROM jobs WHERE recording_id = ? AND status IN ('queued', 'running')",
+                               (recording_id,)).fetchone()
+        return int(row[0])

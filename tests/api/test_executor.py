@@ -1,0 +1,107 @@
+"""LocalExecutor: jobs in spawned worker processes; a killed worker fails only its job; cancel; progress."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from conftest import write_tiny_recording
+
+from api.executor import LocalExecutor, Outcome, Task, describe_exit, run_task
+from api.store import RecordingRow, Store
+
+SHA = "a" * 64
+
+
+@pytest.fixture(scope="module")
+def executor() -> Iterator[LocalExecutor]:
+    """One spawned worker, shared by the tests of this module."""
+    ex = LocalExecutor(1)
+    ex.start()
+    yield ex
+    ex.close()
+
+
+@pytest.fixture
+def store(tmp_path: Path) -> Store:
+    s = Store(tmp_path / "jobs.sqlite")
+    s.add_recording(RecordingRow(SHA, "x.mcap", 10, [], 0, 0, 0, 0.0))
+    return s
+
+
+def claimed_task(store: Store, recording: Path, job_id: str, tmp_path: Path) -> Task:
+    """Queue and claim a job (as the scheduler does), and describe it as a task."""
+    store.add_job(job_id, SHA, "odometry", {}, 0)
+    job = store.claim_next()
+    assert job is not None and job.id == job_id
+    return Task(job_id, str(recording), "odometry", {}, 0, str(tmp_path / job_id), str(store.path))
+
+
+def run_in_thread(executor: LocalExecutor, task: Task) -> tuple[threading.Thread, list[Outcome]]:
+    out: list[Outcome] = []
+    t = threading.Thread(target=lambda: out.append(executor.run(task)))
+    t.start()
+    return t, out
+
+
+def pid_of(executor: LocalExecutor, job_id: str, timeout_s: float = 30.0) -> int:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        pid = executor.worker_pids().get(job_id)
+        if pid is not None:
+            return pid
+        time.sleep(0.02)
+    raise AssertionError(f"job {job_id} never reached a worker")
+
+
+def test_killed_worker_fails_only_its_job(executor: LocalExecutor, store: Store, tmp_path: Path) -> None:
+    """SIGKILL of the worker fails that job with the cause; the next job runs in a fresh worker and reports progress."""
+    rec = write_tiny_recording(tmp_path / "tiny.mcap")
+    doomed = claimed_task(store, rec, "1" * 32, tmp_path)
+    thread, out = run_in_thread(executor, doomed)
+    os.kill(pid_of(executor, doomed.job_id), signal.SIGKILL)
+    thread.join(60)
+    assert out == [Outcome("failed", "the worker process was killed by SIGKILL (for example by the out-of-memory "
+                                     "killer) while running this job")]
+    healthy = claimed_task(store, rec, "2" * 32, tmp_path)
+    assert executor.run(healthy) == Outcome("succeeded")
+    assert (tmp_path / healthy.job_id / "run.rrd").is_file()
+    job = store.get_job(healthy.job_id)
+    assert job is not None and job.progress == 1.0  # written by the worker process itself
+
+
+def test_cancel_stops_a_running_job(executor: LocalExecutor, store: Store, tmp_path: Path) -> None:
+    """cancel() of a running job ends it as cancelled, and the worker is replaced."""
+    rec = write_tiny_recording(tmp_path / "tiny.mcap")
+    task = claimed_task(store, rec, "3" * 32, tmp_path)
+    thread, out = run_in_thread(executor, task)
+    pid = pid_of(executor, task.job_id)
+    executor.cancel(task.job_id)
+    thread.join(60)
+    assert out == [Outcome("cancelled", "cancelled by request")]
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)
+
+
+def test_run_task_reports_bad_input_and_clears_a_stale_run_dir(store: Store, tmp_path: Path) -> None:
+    """run_task turns a ReplayError into a failed outcome and replaces what an interrupted attempt left."""
+    missing = Task("4" * 32, str(tmp_path / "nope.mcap"), "odometry", {}, 0, str(tmp_path / "r4"), str(store.path))
+    outcome = run_task(missing)
+    assert outcome.status == "failed" and "nope.mcap: no such file" in (outcome.error or "")
+    rec = write_tiny_recording(tmp_path / "tiny.mcap")
+    stale = tmp_path / "r5"
+    stale.mkdir()
+    (stale / ".run.rrd.partial").write_bytes(b"half")
+    assert run_task(Task("5" * 32, str(rec), "odometry", {}, 0, str(stale), str(store.path))) == Outcome("succeeded")
+    assert not (stale / ".run.rrd.partial").exists()
+
+
+def test_describe_exit() -> None:
+    """Exit codes and signals are told in words."""
+    assert describe_exit(2) == "the worker process exited with code 2"
+    assert describe_exit(-signal.SIGSEGV) == "the worker process was killed by SIGSEGV"
