@@ -107,25 +107,42 @@ def covariance_intersection(mean_a: ArrayLike, cov_a: ArrayLike, mean_b: ArrayLi
 
 
 def _optimal_omega(ia: F64, ib: F64, criterion: Criterion, xatol: float) -> float:
-    """The minimiser over [0, 1] of det or trace of (w ia + (1 - w) ib)^-1 (see the Notes above)."""
-    lam, vec = sla.eigh(ia - ib, ib)
-    weight = np.einsum("ij,ij->j", vec, vec)
+    """The minimiser over [0, 1] of det or trace of (w ia + (1 - w) ib)^-1 (see the Notes above).
 
-    def slope(w: float) -> float:  # derivative of the criterion; increasing in w
-        d = 1.0 + w * lam
-        if criterion == "det":
-            return -float(np.sum(lam / d))
-        return -float(np.sum(weight * lam / d**2))
+    The criterion's derivative is increasing in w: its root is found by Newton steps kept
+    inside a shrinking bracket (a bisection step whenever Newton would leave it).
+    """
+    lam_arr, vec = sla.eigh(ia - ib, ib, check_finite=False)
+    lam = lam_arr.tolist()
+    weight = np.einsum("ij,ij->j", vec, vec).tolist()
+    det = criterion == "det"
 
-    if slope(0.0) >= 0.0:
+    def slope(w: float) -> tuple[float, float]:  # derivative of the criterion and its derivative
+        g = h = 0.0
+        for li, wi in zip(lam, weight, strict=True):
+            d = 1.0 + w * li
+            if det:
+                g -= li / d
+                h += li * li / (d * d)
+            else:
+                g -= wi * li / (d * d)
+                h += 2.0 * wi * li * li / (d * d * d)
+        return g, h
+
+    if slope(0.0)[0] >= 0.0:
         return 0.0
-    if slope(1.0) <= 0.0:
+    if slope(1.0)[0] <= 0.0:
         return 1.0
-    lo, hi = 0.0, 1.0
+    lo, hi, w = 0.0, 1.0, 0.5
     while hi - lo > xatol:
-        mid = 0.5 * (lo + hi)
-        if slope(mid) < 0.0:
-            lo = mid
+        g, h = slope(w)
+        if g < 0.0:
+            lo = w
         else:
-            hi = mid
+            hi = w
+        step = w - g / h if h > 0 else -1.0
+        new = step if lo < step < hi else 0.5 * (lo + hi)
+        if abs(new - w) <= 0.5 * xatol:
+            return new
+        w = new
     return 0.5 * (lo + hi)

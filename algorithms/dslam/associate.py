@@ -2,11 +2,12 @@
 
 Unknown ids: the candidates are the mapped features in the robot's vicinity; the innovation
 covariance of candidate c is ``S_c = H_r P_r H_r^T + H_c P_c H_c^T + R`` with P_r the predicted
-robot covariance and P_c the feature's marginal from the vicinity covariance
-(:mod:`algorithms.dslam.covariance`). D-SLAM does not keep the robot-map cross-covariance, so
-it is taken as zero here. Matching, gating and the tentative list are
-:mod:`algorithms.common.association`; tentative features are placed with the localized pose,
-after Covariance Intersection.
+robot covariance and P_c the feature's marginal bound (:mod:`algorithms.dslam.covariance`: from
+the vicinity covariance, or the bound kept when the feature left the vicinity). D-SLAM does not
+keep the robot-map cross-covariance, so it is taken as zero here. The candidates come from a
+grid over the estimates (:mod:`algorithms.dslam.spatial`), not a scan of all N features.
+Matching, gating and the tentative list are :mod:`algorithms.common.association`; tentative
+features are placed with the localized pose, after Covariance Intersection.
 
 References
 ----------
@@ -31,7 +32,6 @@ from algorithms.common.association import (
     match,
     outliers,
 )
-from algorithms.dslam.covariance import RefreshReport
 
 if TYPE_CHECKING:
     from algorithms.dslam.filter import DSlam
@@ -55,7 +55,6 @@ class Associator:
         self.mode, self.params = mode, params
         self.by_id: dict[int, int] = {}
         self.tentative = TentativeList()
-        self.last_refresh: RefreshReport | None = None
         self._ids: I64 | None = None
         self.rejected = 0  # known-id observations rejected as outliers
 
@@ -80,7 +79,6 @@ class Associator:
         """Match the scan's observations with mapped features (predicted robot pose)."""
         m = len(r)
         self._ids = ids
-        self.last_refresh = None
         features = np.full(m, -1, dtype=np.int64)
         if ids is not None:
             seen: set[int] = set()
@@ -100,7 +98,6 @@ class Associator:
         spread = 3.0 * float(np.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0)))
         cand = slam.within(pose[:2], slam.max_range + slam.config.vicinity_margin_m + spread)
         if cand:
-            self.last_refresh = slam.ensure_covariance(cand)
             z_pred, h_r, h_l = rangebearing.predict(pose, slam.recovery.x.reshape(-1, 2)[cand])
             s = innovation_covariance(h_r, cov, h_l, slam.covariance.marginals(cand), r_old[:2, :2])
             d2 = mahalanobis(np.stack([r, b], -1), z_pred, s)
@@ -117,7 +114,6 @@ class Associator:
         if not len(obs) or not np.isfinite(self.params.outlier_gate):
             return
         f = features[obs].tolist()
-        self.last_refresh = slam.ensure_covariance(f)
         z_pred, h_r, h_l = rangebearing.predict(slam.pose, slam.recovery.x.reshape(-1, 2)[f])
         s = innovation_covariance(h_r, slam.pose_cov, h_l, slam.covariance.marginals(f),
                                   rangebearing.blocks(r_old)[obs])

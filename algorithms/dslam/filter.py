@@ -12,7 +12,14 @@ of :mod:`algorithms.common.motion`). Per scan, :meth:`DSlam.observe`
    in the scan, recasts the scan (eqs. 3-4), initialises new features by eq. (9) and updates
    the information matrix and vector by eq. (10) with ``z_map`` only; a scan with fewer than
    two mapped features goes to localization only;
-4. recovers the state (sections 3.2-3.3) without inverting I.
+4. recovers the state (sections 3.2-3.3) without inverting I, and carries the joint covariance
+   of the features near the robot in covariance form (:mod:`algorithms.dslam.covariance`).
+
+Cost per scan: everything above works on the scan's features, the features near the robot and
+their neighbours in I, so a scan costs the same whatever the map size N, except for the
+fallbacks: a global PCG or direct solve when the local recovery is not enough, and an exact
+recomputation of the vicinity covariance (O(N) each) when a scan sees fewer than two features
+of the vicinity set.
 
 Localization uses the map as it was before this scan's update, so ``z_loc`` and the map
 estimate it is compared with are independent.
@@ -44,8 +51,9 @@ from algorithms.dslam.associate import Associator
 from algorithms.dslam.covariance import CovarianceCache, RefreshReport
 from algorithms.dslam.information import InformationMatrix, dofs
 from algorithms.dslam.localization import MeasurementPose, PoseStatus, chi2_quantile, measurement_pose
-from algorithms.dslam.recast import angle_rows, init_features, map_invariants, recast
+from algorithms.dslam.recast import Recast, angle_rows, init_features, map_invariants, recast
 from algorithms.dslam.recovery import Recovery, RecoveryReport, factor
+from algorithms.dslam.spatial import Grid
 from algorithms.observe import NULL_OBSERVER, Observer, Scalar, Text
 
 F64 = NDArray[np.float64]
@@ -65,13 +73,13 @@ class DSlamConfig:
     localization_gate_probability: float = 0.9999  # localization; also gates measurement vs prediction
     map_gate_probability: float = 0.9999  # a recast update whose z_map innovation fails this gate is skipped
     recovery: Literal["local", "pcg", "direct"] = "local"  # recovery.Recovery
-    recovery_tol_m: float = 1e-6
-    local_tol_m: float = 1e-4
-    local_max_hops: int = 4
+    recovery_tol_m: float = 1e-5
+    local_tol_m: float = 1e-3
+    local_max_hops: int = 20
     pcg_max_iterations: int = 1000
-    global_every_scans: int = 100
+    global_every_scans: int = 100  # a global solve every this many updates in local recovery (0: only when needed)
     covariance_rtol: float = 1e-4  # covariance
-    covariance_refresh_scans: int = 200
+    covariance_refresh_scans: int = 0  # exact recomputation of the vicinity covariance (0: only when needed)
     vicinity_margin_m: float = 2.0  # the vicinity is the largest range seen so far plus this margin
     loop_closure_gap_scans: int = 300  # a mapped feature unseen for this long closes a loop
 
@@ -81,10 +89,12 @@ class DSlamConfig:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("local_max_hops", "pcg_max_iterations", "global_every_scans", "covariance_refresh_scans",
-                     "loop_closure_gap_scans"):
+        for name in ("local_max_hops", "pcg_max_iterations", "loop_closure_gap_scans"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("global_every_scans", "covariance_refresh_scans"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.association not in ("known", "unknown"):
             raise ValueError(f"association must be 'known' or 'unknown', got {self.association!r}")
         if self.recovery not in ("local", "pcg", "direct"):
@@ -120,7 +130,7 @@ class ScanResult:
     new_features: tuple[int, ...]
     loop_closure: bool
     recovery: RecoveryReport | None
-    covariance: RefreshReport | None  # when the vicinity covariance was recomputed
+    covariance: RefreshReport | None  # when the vicinity covariance was recomputed exactly
     note: str = ""
 
 
@@ -147,7 +157,9 @@ class DSlam:
         self.last_seen: list[int] = []
         self.max_range = 0.0
         self.associator = Associator(config.association, config.association_params)
-        self._order: list[int] = []
+        self._recast: tuple[list[int], int, Recast] | None = None  # set by _map_outlier for _map
+        self._refresh: RefreshReport | None = None
+        self._grid: Grid | None = None  # built at the first spatial query
         self._clock = clock
         self.profile: dict[str, list[float]] = {}
 
@@ -188,28 +200,64 @@ class DSlam:
                 bearing_sigma if bearing_sigma > 0 else self.config.default_bearing_sigma_rad)
 
     def within(self, position: F64, radius: float) -> list[int]:
-        """Mapped features whose estimate is within ``radius`` of ``position`` (2,)."""
+        """Mapped features whose estimate is within ``radius`` of ``position`` (2,) (a grid: O(1) in N)."""
         if self.n == 0:
             return []
-        d = np.hypot(*(self.recovery.x.reshape(-1, 2) - position).T)
-        return np.flatnonzero(d <= radius).tolist()
+        x = self.recovery.x.reshape(-1, 2)
+        if self._grid is None:
+            self._grid = Grid(max(1.0, self.max_range))
+            self._grid.rebuild(x)
+        return self._grid.near(position, radius, x)
+
+    def _refile(self) -> None:
+        """Keep the grid in step with the estimates the last recovery moved."""
+        if self._grid is None:
+            return
+        changed = self.recovery.changed
+        x = self.recovery.x.reshape(-1, 2)
+        if changed is None:
+            self._grid.rebuild(x)
+        elif changed:
+            self._grid.file(changed, x[changed])
 
     def vicinity(self, position: F64) -> list[int]:
         """Mapped features within the largest range seen so far plus the margin of ``position`` (2,)."""
-        return self.within(position, self.max_range + self.config.vicinity_margin_m)
+        return self.within(position, self.vicinity_radius)
+
+    @property
+    def vicinity_radius(self) -> float:
+        """The largest range seen so far plus the margin (m)."""
+        return self.max_range + self.config.vicinity_margin_m
 
     def ensure_covariance(self, needed: list[int]) -> RefreshReport | None:
-        """Recompute the vicinity covariance when a needed feature is missing or the snapshot is old."""
+        """Recompute the vicinity covariance exactly when V holds fewer than two of ``needed``, or periodically.
+
+        The period is ``covariance_refresh_scans`` (0: never). The new V is the old one plus ``needed``.
+        """
         cov = self.covariance
-        if cov.has(needed) and self.scans - cov.scan < self.config.covariance_refresh_scans:
+        period = self.config.covariance_refresh_scans
+        inside = sum(f in cov.position for f in needed)
+        if inside >= min(2, len(needed)) and not (period and self.scans - cov.scan >= period):
             return None
         tic = self._tic()
-        features = sorted(set(needed) | set(self.vicinity(self.pose[:2])))
+        features = sorted(set(needed) | set(cov.features))
         report = cov.refresh(self.info, self.recovery.inv_blocks, features, self.scans,
-                             self.config.covariance_rtol, self.config.pcg_max_iterations)
+                             self.config.covariance_rtol, self.config.pcg_max_iterations, self.recovery.x)
         self._toc("covariance", tic)
+        self._refresh = report
         self.observer.log("dslam/covariance/pcg_iterations", Scalar(report.iterations))
         return report
+
+    def _leave(self) -> None:
+        """Marginalise out of V the features farther than the vicinity radius from the robot. O(|V|)."""
+        cov = self.covariance
+        if not cov.features:
+            return
+        feats = np.asarray(cov.features, dtype=np.int64)
+        d = np.hypot(*(self.recovery.x.reshape(-1, 2)[feats] - self.pose[:2]).T)
+        far = feats[d > self.vicinity_radius]
+        if len(far):
+            cov.drop(far.tolist())
 
     def observe(self, ranges: ArrayLike, bearings: ArrayLike, ids: ArrayLike | None = None,
                 range_sigma: float = 0.0, bearing_sigma: float = 0.0) -> ScanResult:
@@ -227,6 +275,7 @@ class DSlam:
         if m:
             self.max_range = max(self.max_range, float(r.max()))
         pred, pred_cov = self.pose.copy(), self.pose_cov.copy()
+        self._refresh = None
         if m == 0:
             return self._result(ScanStatus.EMPTY, pred, pred_cov, np.full(0, -1), np.full(0, -1), note="empty scan")
         tic = self._tic()
@@ -238,9 +287,11 @@ class DSlam:
         if self.moved and len(old) >= 2:
             tic = self._tic()
             self.ensure_covariance(old_f)
-            measurement = measurement_pose(r[old], b[old], r_old[np.ix_(dofs(old), dofs(old))],
-                                           self.recovery.x.reshape(-1, 2)[old_f],
-                                           self.covariance.block(old_f), self.config.localization_gate_probability)
+            loc = [j for j in old if int(assoc.features[j]) in self.covariance.position]  # z_loc: features in V
+            loc_f = [int(assoc.features[j]) for j in loc]
+            measurement = measurement_pose(r[loc], b[loc], r_old[np.ix_(dofs(loc), dofs(loc))],
+                                           self.recovery.x.reshape(-1, 2)[loc_f],
+                                           self.covariance.block(loc_f), self.config.localization_gate_probability)
             if measurement.status is PoseStatus.OK and not self._agrees(pred, pred_cov, measurement):
                 measurement = MeasurementPose(PoseStatus.INCONSISTENT, measurement.pose, measurement.cov,
                                               measurement.chi2, measurement.iterations)
@@ -258,9 +309,10 @@ class DSlam:
     def _map(self, r: F64, b: F64, r_old: F64, features: I64, tentative: I64, old: list[int],
              new: list[int], pred: F64, pred_cov: F64, measurement: MeasurementPose | None,
              omega: float | None) -> ScanResult:
-        """The mapping half of :meth:`observe` (phase I, bootstrap or eqs. 9-10) and the recovery."""
+        """The mapping half of :meth:`observe` (phase I, bootstrap or eqs. 9-10), the recovery, the covariance."""
         r_blocks = rangebearing.blocks(r_old)
         features = features.copy()
+        cov = self.covariance
         tic = self._tic()
         anchors: tuple[int, int] | None = None
         created: list[int] = []
@@ -269,11 +321,14 @@ class DSlam:
             status = ScanStatus.PHASE_I
             created = self._add_features(rangebearing.landmarks_from(np.zeros(3), r[new], b[new])[0], new, features)
             touched = [int(features[j]) for j in old + new]
+            jacs = []
             for j in old + new:
                 f = int(features[j])
-                d_matrix, d_vector = mapping.phase_one_increment(self.recovery.x[2 * f:2 * f + 2],
-                                                                 np.array([r[j], b[j]]), r_blocks[j])
+                d_matrix, d_vector, h = mapping.phase_one_terms(self.recovery.x[2 * f:2 * f + 2],
+                                                                np.array([r[j], b[j]]), r_blocks[j])
                 self._apply([f], d_matrix, d_vector)
+                jacs.append(h)
+            self._phase_one_covariance(touched, jacs, r_blocks[old + new])
         elif new and self.n < 2:
             status = ScanStatus.BOOTSTRAP
             lm, d_matrix, d_vector = mapping.bootstrap_increment(self.pose, self.pose_cov, r[new], b[new],
@@ -281,25 +336,24 @@ class DSlam:
             created = self._add_features(lm, new, features)
             touched = created
             self._apply(created, d_matrix, d_vector)
-        elif len(old) >= 2 and not self._map_outlier(r, b, r_old, features, old):
+            cov.insert(created, np.linalg.inv(d_matrix))
+        elif len(old) >= 2 and not self._map_outlier(r, b, r_old, features, old, new):
             status = ScanStatus.MAPPED
-            old_f = [int(features[j]) for j in old]
-            order = self._order  # anchors first, chosen by _map_outlier
+            assert self._recast is not None
+            order, k_v, rc = self._recast  # anchors first, the scan's features in V, the others, the new ones
             f1, f2 = int(features[order[0]]), int(features[order[1]])
             anchors = (f1, f2)
-            order = order + new
-            rc = recast(r[order], b[order], r_old[np.ix_(dofs(order), dofs(order))])
             x = self.recovery.x.reshape(-1, 2)
             k0 = len(order) - len(new)
             alpha, dist = rc.z_map[2 * k0 - 3::2], rc.z_map[2 * k0 - 2::2]
-            pos, j_x, j_z = init_features(x[f1], x[f2], alpha, dist)  # eq. (9)
+            pos, _, _ = init_features(x[f1], x[f2], alpha, dist)  # eq. (9)
             created = self._add_features(pos, new, features)
             ordered = [int(features[j]) for j in order]
-            d_matrix, d_vector = mapping.recast_increment(self.recovery.x.reshape(-1, 2)[ordered], rc)
+            d_matrix, d_vector, jac = mapping.recast_terms(self.recovery.x.reshape(-1, 2)[ordered], rc)
             self._apply(ordered, d_matrix, d_vector)
-            rows = np.arange(2 * k0 - 3, rc.r_map.shape[0])
-            self.covariance.augment(created, anchors, j_x, j_z, rc.r_map[np.ix_(rows, rows)])
-            loop = any(self.scans - self.last_seen[f] >= self.config.loop_closure_gap_scans for f in old_f)
+            cov.recast_update(ordered[:k_v], ordered[k_v:], jac, rc.r_map)
+            loop = any(self.scans - self.last_seen[int(features[j])] >= self.config.loop_closure_gap_scans
+                       for j in old)
             touched = ordered
         else:
             status = ScanStatus.LOCALIZATION_ONLY if len(old) < 2 else ScanStatus.MAP_REJECTED
@@ -313,8 +367,10 @@ class DSlam:
         if touched:
             tic = self._tic()
             report = self.recovery.solve(sorted(set(touched)), loop)
+            self._refile()
             self._toc("recover", tic)
             self.observer.log("dslam/recovery/cg_iterations", Scalar(report.iterations))
+        self._leave()
         note = {ScanStatus.LOCALIZATION_ONLY: f"scan {self.scans}: {len(old)} mapped feature(s) observed, fewer "
                                               f"than two: localization only",
                 ScanStatus.MAP_REJECTED: f"scan {self.scans}: the recast measurement disagrees with the map "
@@ -324,6 +380,31 @@ class DSlam:
         return self._result(status, pred, pred_cov, features, tentative, measurement, omega, anchors,
                             tuple(created), loop, report, note=note)
 
+    def _phase_one_covariance(self, features: list[int], jacs: list[F64], r_blocks: F64) -> None:
+        """Phase I in covariance form: Kalman update of the features in V, the others join with ``H^-1 R H^-T``.
+
+        The robot is exactly at the origin, so each reading is independent of everything else:
+        a feature not in V (new, or one that left V) joins with the covariance of this reading
+        alone, uncorrelated with V (exact for a new feature, an upper bound otherwise).
+        """
+        cov = self.covariance
+        inside = [k for k, f in enumerate(features) if f in cov.position]
+        if inside:
+            k = len(inside)
+            jac, r_cov = np.zeros((2 * k, 2 * k)), np.zeros((2 * k, 2 * k))
+            for p, q in enumerate(inside):
+                jac[2 * p:2 * p + 2, 2 * p:2 * p + 2] = jacs[q]
+                r_cov[2 * p:2 * p + 2, 2 * p:2 * p + 2] = r_blocks[q]
+            cov.update([features[q] for q in inside], jac, r_cov)
+        joining = [k for k, f in enumerate(features) if f not in cov.position]
+        if joining:
+            k = len(joining)
+            block = np.zeros((2 * k, 2 * k))
+            for p, q in enumerate(joining):
+                h_inv = np.linalg.inv(jacs[q])
+                block[2 * p:2 * p + 2, 2 * p:2 * p + 2] = h_inv @ r_blocks[q] @ h_inv.T
+            cov.insert([features[q] for q in joining], block)
+
     def _agrees(self, pred: F64, pred_cov: F64, m: MeasurementPose) -> bool:
         """Whether the measurement pose is within the localization gate of the prediction (3 dof)."""
         d = m.pose - pred
@@ -331,25 +412,33 @@ class DSlam:
         d2 = float(d @ np.linalg.solve(pred_cov + m.cov, d))
         return d2 <= chi2_quantile(self.config.localization_gate_probability, 3)
 
-    def _map_outlier(self, r: F64, b: F64, r_old: F64, features: I64, old: list[int]) -> bool:
-        """Choose the anchors and recast the mapped features' part of the scan; True when it fails the map gate.
+    def _map_outlier(self, r: F64, b: F64, r_old: F64, features: I64, old: list[int], new: list[int]) -> bool:
+        """Choose the anchors, recast the scan (eqs. 3-4); True when the part in V fails the map gate.
 
-        The innovation of ``z_map`` over the mapped features alone, against the map estimate, has
-        covariance ``H P H^T + R_map`` with P their joint (conservative) covariance.
+        Only the scan's features in V (at least two, :meth:`ensure_covariance`) have a joint
+        covariance; the innovation of their ``z_map`` rows (the first ``2 k_v - 3``) against the
+        map estimate has covariance ``H P H^T + R_map`` with P their joint (conservative)
+        covariance. The recast, ordered anchors first, then the other features in V, the other
+        mapped features, the new ones, is kept in ``self._recast`` for the update.
         """
-        old_f = [int(features[j]) for j in old]
-        points, _ = rangebearing.to_points(r[old], b[old])
-        traces = np.trace(self.covariance.marginals(old_f), axis1=1, axis2=2)
+        cov = self.covariance
+        in_v = [j for j in old if int(features[j]) in cov.position]
+        in_f = [int(features[j]) for j in in_v]
+        points, _ = rangebearing.to_points(r[in_v], b[in_v])
+        traces = np.trace(cov.marginals(in_f), axis1=1, axis2=2)
         a1, a2 = mapping.choose_anchors(points, traces)
-        order = [old[a1], old[a2]] + [j for k, j in enumerate(old) if k not in (a1, a2)]
+        ordered_v = [in_v[a1], in_v[a2]] + [j for k, j in enumerate(in_v) if k not in (a1, a2)]
+        order = ordered_v + [j for j in old if j not in in_v] + new
         rc = recast(r[order], b[order], r_old[np.ix_(dofs(order), dofs(order))])
-        self._order = order
-        ordered = [int(features[j]) for j in order]
+        k_v = len(ordered_v)
+        self._recast = (order, k_v, rc)
+        ordered = [int(features[j]) for j in ordered_v]
         h, jac = map_invariants(self.recovery.x.reshape(-1, 2)[ordered])
-        nu = rc.z_map - h
-        rows = angle_rows(len(order))
+        rows_v = 2 * k_v - 3
+        nu = rc.z_map[:rows_v] - h
+        rows = angle_rows(k_v)
         nu[rows] = wrap_angle(nu[rows])
-        s = jac @ self.covariance.block(ordered) @ jac.T + rc.r_map
+        s = jac @ cov.block(ordered) @ jac.T + rc.r_map[:rows_v, :rows_v]
         stat = float(nu @ np.linalg.solve(s, nu))
         return stat > chi2_quantile(self.config.map_gate_probability, len(nu))
 
@@ -375,7 +464,7 @@ class DSlam:
                 anchors: tuple[int, int] | None = None, new: tuple[int, ...] = (), loop: bool = False,
                 report: RecoveryReport | None = None, note: str = "") -> ScanResult:
         return ScanResult(status, pred, pred_cov, measurement, omega, self.pose.copy(), self.pose_cov.copy(),
-                          features, tentative, anchors, new, loop, report, self.associator.last_refresh, note)
+                          features, tentative, anchors, new, loop, report, self._refresh, note)
 
     def finalize(self) -> RecoveryReport:
         """Solve I x = i exactly (direct) so that :meth:`estimates` is the EIF estimate to round-off."""

@@ -4,11 +4,13 @@ Block ``(a, b)`` couples features ``a`` and ``b``; it is nonzero only when the t
 together (section 3.2): eq. (10) adds ``grad H^T R^-1 grad H``, dense over the features of one
 scan and zero elsewhere, and there is no prediction step to fill the matrix in.
 
-Storage: the upper-triangle blocks live in one growing array addressed by a dict, with the
-neighbour sets of each feature. For products, the matrix is a CSR ``base`` (rebuilt from the
-blocks) plus a CSR ``delta`` holding the increments since: rebuilding ``base`` costs O(nnz) and
-happens when ``delta`` exceeds a fixed fraction of it, so the cost per update stays O(1)
-amortised while every product sees exactly I.
+Storage: the upper-triangle blocks live in one growing array (capacity doubling) addressed by a
+dict keyed by feature pair, and each feature keeps the list of its neighbours with the slots of
+the shared blocks. An update by eq. (10) on k features writes k(k+1)/2 blocks in place: O(k^2),
+whatever N. Local operations (the recovery of the features near the robot,
+:mod:`algorithms.dslam.recovery`) read the blocks of a set of rows through the neighbour lists,
+in time proportional to the blocks read. Only global operations (a full PCG or a direct solve,
+which are O(N) or more anyway) assemble a CSR matrix, cached until the next update.
 
 References
 ----------
@@ -24,14 +26,21 @@ from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
-DELTA_FRACTION = 0.125  # rebuild the CSR base when the increments exceed this share of its entries
-DELTA_MIN_ENTRIES = 4096
 
 
 def dofs(features: I64 | list[int]) -> I64:
     """The 2k state indices (x, y interleaved) of k features."""
     f = np.asarray(features, dtype=np.int64)
     return np.stack([2 * f, 2 * f + 1], -1).reshape(-1)
+
+
+def _grown(a: NDArray, size: int) -> NDArray:  # type: ignore[type-arg]
+    """``a`` with room for at least ``size`` rows (capacity doubling; the new rows are zero)."""
+    if len(a) >= size:
+        return a
+    out = np.zeros((max(size, 2 * len(a)),) + a.shape[1:], dtype=a.dtype)
+    out[: len(a)] = a
+    return out
 
 
 class InformationMatrix:
@@ -44,12 +53,12 @@ class InformationMatrix:
         self._rows = np.zeros(64, dtype=np.int64)
         self._cols = np.zeros(64, dtype=np.int64)
         self._slots: dict[tuple[int, int], int] = {}
-        self._diag: list[int] = []
+        self._diag = np.zeros(32, dtype=np.int64)  # slot of each feature's diagonal block
         self.neighbours: list[set[int]] = []
-        self._base: sp.csr_matrix | None = None
-        self._delta: list[tuple[I64, I64, F64]] = []  # COO rows, columns, values of each increment
-        self._delta_entries = 0
-        self._delta_csr: sp.csr_matrix | None = None
+        self._adj: list[list[int]] = []  # per feature: neighbours, then (same order) the shared slots
+        self._adj_slots: list[list[int]] = []
+        self.version = 0  # incremented by every update
+        self._csr: tuple[int, sp.csr_matrix] | None = None
 
     @property
     def vector(self) -> F64:
@@ -68,15 +77,23 @@ class InformationMatrix:
         """Nonzero 2x2 blocks of the full symmetric matrix: N diagonal + 2 per link."""
         return self.n + 2 * (len(self._slots) - self.n)
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the numeric arrays (blocks, their indices, i): O(N + links)."""
+        return self._vec.nbytes + self._values.nbytes + self._rows.nbytes + self._cols.nbytes + self._diag.nbytes
+
     def add_features(self, k: int) -> I64:
         """Append ``k`` features with zero information; returns their indices."""
         new = np.arange(self.n, self.n + k, dtype=np.int64)
         self.n += k
-        while len(self._vec) < 2 * self.n:
-            self._vec = np.concatenate([self._vec, np.zeros_like(self._vec)])
+        self._vec = _grown(self._vec, 2 * self.n)
+        self._diag = _grown(self._diag, self.n)
         for f in new.tolist():
-            self._diag.append(self._slot(f, f))
             self.neighbours.append(set())
+            self._adj.append([])
+            self._adj_slots.append([])
+            self._diag[f] = self._slot(f, f)
+        self.version += 1
         return new
 
     def _slot(self, a: int, b: int) -> int:
@@ -85,48 +102,75 @@ class InformationMatrix:
         if slot is None:
             slot = len(self._slots)
             if slot == len(self._values):
-                self._values = np.concatenate([self._values, np.zeros_like(self._values)])
-                self._rows = np.concatenate([self._rows, np.zeros_like(self._rows)])
-                self._cols = np.concatenate([self._cols, np.zeros_like(self._cols)])
+                self._values = _grown(self._values, slot + 1)
+                self._rows = _grown(self._rows, slot + 1)
+                self._cols = _grown(self._cols, slot + 1)
             self._slots[key] = slot
             self._rows[slot], self._cols[slot] = key
             if a != b:
                 self.neighbours[a].add(b)
                 self.neighbours[b].add(a)
+                self._adj[a].append(b)
+                self._adj_slots[a].append(slot)
+                self._adj[b].append(a)
+                self._adj_slots[b].append(slot)
         return slot
 
     def add(self, features: I64, d_matrix: F64, d_vector: F64) -> None:
         """Eq. (10): ``I += d_matrix`` and ``i += d_vector`` on the dofs of ``features`` (k,).
 
-        ``d_matrix`` (2k, 2k) must be symmetric; it links every pair of the k features.
+        ``d_matrix`` (2k, 2k) must be symmetric; it links every pair of the k features. O(k^2).
         """
         f = np.asarray(features, dtype=np.int64)
         k = len(f)
         if d_matrix.shape != (2 * k, 2 * k) or d_vector.shape != (2 * k,):
             raise ValueError(f"d_matrix must be ({2 * k}, {2 * k}) and d_vector ({2 * k},), "
                              f"got {d_matrix.shape} and {d_vector.shape}")
-        if len(np.unique(f)) != k or np.any(f < 0) or np.any(f >= self.n):
-            raise ValueError(f"features must be distinct indices in [0, {self.n}), got {f.tolist()}")
-        idx = dofs(f)
-        self._vec[idx] += d_vector
         fl = f.tolist()
-        for p in range(k):
-            for q in range(p, k):
-                a, b = fl[p], fl[q]
-                block = d_matrix[2 * p:2 * p + 2, 2 * q:2 * q + 2]
-                slot = self._slot(a, b)  # may grow (replace) the value array: look it up first
-                self._values[slot] += block if a <= b else block.T
-        self._delta.append((np.repeat(idx, idx.size), np.tile(idx, idx.size),
-                            np.array(d_matrix, dtype=np.float64).reshape(-1)))
-        self._delta_entries += idx.size**2
-        self._delta_csr = None
+        if len(set(fl)) != k or any(a < 0 or a >= self.n for a in fl):
+            raise ValueError(f"features must be distinct indices in [0, {self.n}), got {fl}")
+        self._vec[dofs(f)] += d_vector
+        p, q = np.triu_indices(k)
+        slots = np.fromiter((self._slot(fl[a], fl[b]) for a, b in zip(p.tolist(), q.tolist(), strict=True)),
+                            dtype=np.int64, count=len(p))
+        blocks = np.asarray(d_matrix, dtype=np.float64).reshape(k, 2, k, 2).transpose(0, 2, 1, 3)[p, q]
+        flip = f[p] > f[q]
+        blocks[flip] = blocks[flip].transpose(0, 2, 1)
+        self._values[slots] += blocks  # one slot per pair: no repeated index
+        self.version += 1
 
-    def diagonal_blocks(self, features: I64 | None = None) -> F64:
+    def diagonal_blocks(self, features: I64 | list[int] | None = None) -> F64:
         """The diagonal blocks I_ff (k, 2, 2) of ``features`` (all when None)."""
-        diag = np.asarray(self._diag, dtype=np.int64)
+        diag = self._diag[: self.n]
         return self._values[diag if features is None else diag[np.asarray(features, dtype=np.int64)]].copy()
 
-    def _build_base(self) -> None:
+    def row_blocks(self, features: list[int]) -> tuple[I64, I64, F64]:
+        """The stored blocks of the block rows ``features``: (position in ``features``, column feature, I_fg (2, 2)).
+
+        Each block row lists its diagonal block and one block per neighbour; O(blocks read).
+        """
+        cols_l: list[int] = []
+        slots_l: list[int] = []
+        lengths = np.empty(len(features), dtype=np.int64)
+        diag = self._diag
+        for k, f in enumerate(features):
+            cols_l.append(f)
+            cols_l.extend(self._adj[f])
+            slots_l.append(int(diag[f]))
+            slots_l.extend(self._adj_slots[f])
+            lengths[k] = len(self._adj[f]) + 1
+        cols = np.array(cols_l, dtype=np.int64)
+        slots = np.array(slots_l, dtype=np.int64)
+        pos = np.repeat(np.arange(len(features)), lengths)
+        vals = self._values[slots]
+        flip = np.asarray(features, dtype=np.int64)[pos] > cols  # stored as (min, max): transpose
+        vals[flip] = vals[flip].transpose(0, 2, 1)
+        return pos, cols, vals
+
+    def csr(self) -> sp.csr_matrix:
+        """I as a CSR matrix (2N, 2N), assembled from the blocks and cached until the next update."""
+        if self._csr is not None and self._csr[0] == self.version:
+            return self._csr[1]
         nb = len(self._slots)
         rows, cols, vals = self._rows[:nb], self._cols[:nb], self._values[:nb]
         off = rows != cols
@@ -136,56 +180,17 @@ class InformationMatrix:
         c = np.concatenate([(2 * cols[:, None, None] + jj).reshape(-1),
                             (2 * rows[off][:, None, None] + ii).reshape(-1)])
         v = np.concatenate([vals.reshape(-1), vals[off].reshape(-1)])
-        self._base = sp.csr_matrix((v, (r, c)), shape=(2 * self.n, 2 * self.n))
-        self._delta.clear()
-        self._delta_entries = 0
-        self._delta_csr = None
-
-    def matrices(self) -> tuple[sp.csr_matrix, sp.csr_matrix | None]:
-        """``(base, delta)`` CSR matrices (2N, 2N) with ``I = base + delta`` (delta None when zero)."""
-        base_nnz = 0 if self._base is None else self._base.nnz
-        if self._base is None or self._delta_entries > max(DELTA_MIN_ENTRIES, DELTA_FRACTION * base_nnz):
-            self._build_base()
-        assert self._base is not None
-        shape = (2 * self.n, 2 * self.n)
-        if self._base.shape != shape:  # features added since the build: their rows are still zero
-            pad = np.full(shape[0] - self._base.shape[0], self._base.indptr[-1])
-            self._base = sp.csr_matrix((self._base.data, self._base.indices,
-                                        np.concatenate([self._base.indptr, pad])), shape=shape)
-        if not self._delta:
-            return self._base, None
-        if self._delta_csr is None or self._delta_csr.shape != shape:
-            r, c, v = (np.concatenate(parts) for parts in zip(*self._delta, strict=True))
-            self._delta_csr = sp.csr_matrix((v, (r, c)), shape=shape)
-        return self._base, self._delta_csr
+        mat = sp.csr_matrix((v, (r, c)), shape=(2 * self.n, 2 * self.n))
+        self._csr = (self.version, mat)
+        return mat
 
     def matvec(self, x: F64) -> F64:
-        """I @ x for x (2N,) or (2N, k)."""
-        base, delta = self.matrices()
-        return base @ x if delta is None else base @ x + delta @ x
-
-    def row_entries(self, idx: I64) -> tuple[I64, I64, F64]:
-        """The stored entries of rows ``idx`` of I as COO triplets: (position in ``idx``, column, value).
-
-        Entries of ``base`` and ``delta`` are listed separately (a column may appear twice: add them).
-        """
-        out = []
-        for mat in self.matrices():
-            if mat is None:
-                continue
-            starts, ends = mat.indptr[idx], mat.indptr[idx + 1]
-            lengths = ends - starts
-            total = int(lengths.sum())
-            offsets = np.repeat(starts - np.concatenate([[0], np.cumsum(lengths)[:-1]]), lengths)
-            pos = np.arange(total) + offsets
-            out.append((np.repeat(np.arange(len(idx)), lengths), mat.indices[pos].astype(np.int64), mat.data[pos]))
-        rows, cols, vals = (np.concatenate(parts) for parts in zip(*out, strict=True))
-        return rows, cols, vals
+        """I @ x for x (2N,) or (2N, k): a global product (assembles the CSR matrix when stale)."""
+        return self.csr() @ x
 
     def csc(self) -> sp.csc_matrix:
         """I as one CSC matrix (for a direct solve)."""
-        base, delta = self.matrices()
-        return (base if delta is None else base + delta).tocsc()
+        return self.csr().tocsc()
 
     def links(self) -> I64:
         """Feature pairs (L, 2), a < b, with a nonzero off-diagonal block: the links of Fig. 3(c)."""

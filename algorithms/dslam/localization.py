@@ -28,6 +28,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg as sla
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
@@ -92,25 +93,27 @@ def measurement_pose(ranges: F64, bearings: F64, r_loc: F64, landmarks: F64,
     points, _ = rangebearing.to_points(ranges, bearings)
     pose = align(points, landmarks)
     z = np.stack([ranges, bearings], -1).reshape(-1)
+    idx = np.arange(m)
     h_f = np.zeros((2 * m, 2 * m))
-    rows = np.repeat(np.arange(2 * m), 2)
-    cols = (2 * np.arange(m)[:, None, None] + np.array([[0, 1], [0, 1]])).reshape(-1)
     info = np.zeros((3, 3))
-    w = np.zeros((2 * m, 2 * m))
-    nu = np.zeros(2 * m)
-    h_pose = np.zeros((2 * m, 3))
+    a = np.zeros((2 * m, 3))  # L^-1 H_X, with S = L L^T
+    e = np.zeros(2 * m)  # L^-1 nu
     it = 0
     for it in range(1, max_iterations + 1):
         zp, hp, hl = rangebearing.predict(pose, landmarks)
         nu = z - zp.reshape(-1)
         nu[1::2] = wrap_angle(nu[1::2])
-        h_pose = hp.reshape(2 * m, 3)
-        h_f[rows, cols] = hl.reshape(-1)  # block-diagonal dz/dX_f
+        h_f.reshape(m, 2, m, 2)[idx, :, idx, :] = hl  # block-diagonal dz/dX_f
         s = r_loc + h_f @ landmark_cov @ h_f.T
-        w = np.linalg.inv(0.5 * (s + s.T))
-        info = h_pose.T @ w @ h_pose
         try:
-            step = np.linalg.solve(info, h_pose.T @ w @ nu)
+            chol = np.linalg.cholesky(0.5 * (s + s.T))
+        except np.linalg.LinAlgError:
+            return MeasurementPose(PoseStatus.DEGENERATE, nan, np.full((3, 3), np.nan), math.nan, it)
+        a = sla.solve_triangular(chol, hp.reshape(2 * m, 3), lower=True, check_finite=False)
+        e = sla.solve_triangular(chol, nu, lower=True, check_finite=False)
+        info = a.T @ a
+        try:
+            step = np.linalg.solve(info, a.T @ e)
         except np.linalg.LinAlgError:
             return MeasurementPose(PoseStatus.DEGENERATE, nan, np.full((3, 3), np.nan), math.nan, it)
         pose = pose + step
@@ -120,8 +123,8 @@ def measurement_pose(ranges: F64, bearings: F64, r_loc: F64, landmarks: F64,
     eig = np.linalg.eigvalsh(info)
     if not eig[0] > 1e-12 * eig[-1]:
         return MeasurementPose(PoseStatus.DEGENERATE, nan, np.full((3, 3), np.nan), math.nan, it)
-    resid = nu - h_pose @ np.linalg.solve(info, h_pose.T @ w @ nu)
-    stat = float(resid @ w @ resid)
+    resid = e - a @ np.linalg.solve(info, a.T @ e)  # whitened residual at the last linearisation
+    stat = float(resid @ resid)
     cov = np.linalg.inv(info)
     cov = 0.5 * (cov + cov.T)
     dof = 2 * m - 3

@@ -25,8 +25,8 @@ F64 = NDArray[np.float64]
 
 def eif_increment(h_jac: F64, r_cov: F64, innovation: F64, x_lin: F64) -> tuple[F64, F64]:
     """Eq. (10): ``dI = H^T R^-1 H`` and ``di = H^T R^-1 (nu + H x_lin)``, with nu = z - h(x_lin) wrapped."""
-    chol = sla.cho_factor(0.5 * (r_cov + r_cov.T))
-    w_h = sla.cho_solve(chol, h_jac)
+    chol = sla.cho_factor(0.5 * (r_cov + r_cov.T), check_finite=False)
+    w_h = sla.cho_solve(chol, h_jac, check_finite=False)
     d_matrix = h_jac.T @ w_h
     d_vector = w_h.T @ (innovation + h_jac @ x_lin)
     return 0.5 * (d_matrix + d_matrix.T), d_vector
@@ -38,10 +38,17 @@ def phase_one_increment(position: F64, z: F64, r_cov: F64) -> tuple[F64, F64]:
     The robot is at the origin of the map frame, exactly known: the original measurement
     (eq. 1) is a direct, nonlinear observation of the feature, linearised at ``position`` (2,).
     """
+    d_matrix, d_vector, _ = phase_one_terms(position, z, r_cov)
+    return d_matrix, d_vector
+
+
+def phase_one_terms(position: F64, z: F64, r_cov: F64) -> tuple[F64, F64, F64]:
+    """:func:`phase_one_increment` and the Jacobian dz/dX_f (2, 2) it was linearised with (eq. 1)."""
     zp, _, h_l = rangebearing.predict(np.zeros(3), position[None, :])
     nu = z - zp[0]
     nu[1] = wrap_angle(nu[1])
-    return eif_increment(h_l[0], r_cov, nu, position)
+    d_matrix, d_vector = eif_increment(h_l[0], r_cov, nu, position)
+    return d_matrix, d_vector, h_l[0]
 
 
 def recast_increment(positions: F64, rc: Recast) -> tuple[F64, F64]:
@@ -49,11 +56,18 @@ def recast_increment(positions: F64, rc: Recast) -> tuple[F64, F64]:
 
     ``positions`` are ordered like the recast measurement: anchors f_1, f_2 first.
     """
+    d_matrix, d_vector, _ = recast_terms(positions, rc)
+    return d_matrix, d_vector
+
+
+def recast_terms(positions: F64, rc: Recast) -> tuple[F64, F64, F64]:
+    """:func:`recast_increment` and the Jacobian ``grad H_map`` (2m-3, 2m) it was linearised with (eq. 8)."""
     h, jac = map_invariants(positions)
     nu = rc.z_map - h
     rows = angle_rows(len(positions))
     nu[rows] = wrap_angle(nu[rows])
-    return eif_increment(jac, rc.r_map, nu, positions.reshape(-1))
+    d_matrix, d_vector = eif_increment(jac, rc.r_map, nu, positions.reshape(-1))
+    return d_matrix, d_vector, jac
 
 
 def bootstrap_increment(pose: F64, pose_cov: F64, ranges: F64, bearings: F64, r_old: F64

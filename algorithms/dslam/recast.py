@@ -33,6 +33,18 @@ from algorithms.common.se2 import wrap_angle
 F64 = NDArray[np.float64]
 
 
+def _positive_definite(a: F64) -> bool:
+    """Whether the symmetric part of ``a`` is positive definite (a diagonal one: positive diagonal)."""
+    diag = np.diagonal(a)
+    if np.count_nonzero(a) == np.count_nonzero(diag):
+        return bool(np.all(diag > 0))
+    try:
+        np.linalg.cholesky(0.5 * (a + a.T))
+    except np.linalg.LinAlgError:
+        return False
+    return True
+
+
 def angle_rows(m: int) -> NDArray[np.int64]:
     """Indices of the angle entries ``alpha_i12`` of an ``m``-feature ``z_map`` (eq. 7)."""
     return np.arange(1, 2 * m - 3, 2, dtype=np.int64)
@@ -62,14 +74,17 @@ def map_invariants(points: F64) -> tuple[F64, F64]:
     jac = np.zeros((2 * m - 3, 2 * m))
     values[0] = dist[0]
     jac[0, 2:4], jac[0, 0:2] = unit[0], -unit[0]
-    for i in range(2, m):  # feature f_{i+1} in the paper's 1-based numbering
+    if m > 2:  # features f_3 .. f_m (paper numbering): rows alpha_i12 = 2i - 3 and d_1i = 2i - 2, i = 2..m-1
+        i = np.arange(2, m)
         ra, rd = 2 * i - 3, 2 * i - 2
-        values[ra] = wrap_angle(beta[i - 1] - beta[0])
-        values[rd] = dist[i - 1]
-        jac[ra, 2 * i:2 * i + 2] = normal[i - 1]
+        values[ra] = wrap_angle(beta[1:] - beta[0])
+        values[rd] = dist[1:]
+        cols = 2 * i[:, None] + np.arange(2)
+        jac[ra[:, None], cols] = normal[1:]
         jac[ra, 2:4] = -normal[0]
-        jac[ra, 0:2] = normal[0] - normal[i - 1]
-        jac[rd, 2 * i:2 * i + 2], jac[rd, 0:2] = unit[i - 1], -unit[i - 1]
+        jac[ra, 0:2] = normal[0] - normal[1:]
+        jac[rd[:, None], cols] = unit[1:]
+        jac[rd, 0:2] = -unit[1:]
     return values, jac
 
 
@@ -129,16 +144,19 @@ def recast(ranges: F64, bearings: F64, r_old: F64) -> Recast:
     m = len(ranges)
     if m < 2 or bearings.shape != (m,):
         raise ValueError(f"ranges and bearings must be (m,) with m >= 2, got {ranges.shape} and {bearings.shape}")
-    if r_old.shape != (2 * m, 2 * m) or not np.all(np.linalg.eigvalsh(0.5 * (r_old + r_old.T)) > 0):
+    if r_old.shape != (2 * m, 2 * m) or not _positive_definite(r_old):
         raise ValueError(f"r_old must be a positive definite ({2 * m}, {2 * m}) matrix")
     points, d_points = to_points(ranges, bearings)
     z_rob, j_rob = robot_invariants(points)
     z_map, j_map = map_invariants(points)
     j_points = np.vstack([j_rob, j_map])  # dz_new / d(points)
-    jacobian = np.zeros((2 * m, 2 * m))
-    for k in range(m):  # chain rule through eq. (4), block-diagonal in the features
-        jacobian[:, 2 * k:2 * k + 2] = j_points[:, 2 * k:2 * k + 2] @ d_points[k]
-    r_new = jacobian @ r_old @ jacobian.T
+    # chain rule through eq. (4), block-diagonal in the features
+    jacobian = np.einsum("rkj,kji->rki", j_points.reshape(2 * m, m, 2), d_points).reshape(2 * m, 2 * m)
+    diag = np.diagonal(r_old)
+    if np.count_nonzero(r_old) == np.count_nonzero(diag):  # eq. (2): a diagonal R_old
+        r_new = (jacobian * diag) @ jacobian.T
+    else:
+        r_new = jacobian @ r_old @ jacobian.T
     return Recast(z_rob=z_rob, z_map=z_map, r_new=0.5 * (r_new + r_new.T), jacobian=jacobian)
 
 

@@ -7,13 +7,19 @@ features near the robot. Both come from sparse linear solves with I:
 - the estimate solves ``I x = i`` (eq. 6), warm-started from the previous estimate, which is
   always a good initial guess because one update changes I and i on a few features only;
 - covariance column j solves ``I c = e_j``, so the joint covariance of k features costs 2k
-  solves, never an inverse.
+  solves, never an inverse (:mod:`algorithms.dslam.covariance`, for a full recomputation).
 
 Solvers: preconditioned conjugate gradients with a 2x2 block-Jacobi preconditioner (several
 right-hand sides in lock-step, one sparse product per iteration), a local block solve on the
 neighbourhood of the updated features, and a direct sparse LU (SuperLU) as the fallback.
 Convergence is measured by the block-Jacobi error estimate ``max_f |I_ff^-1 r_f|``, in metres
 for the state (m^2 for covariance columns): the size of the correction each feature still needs.
+
+The local recovery keeps the residual ``r = i - I x`` and each feature's error estimate up to
+date incrementally, with the set of features whose estimate exceeds the tolerance; an update
+(eq. 10) changes r on its own features only, and a local solve on a region O changes it on O
+and on O's neighbours only. Deciding that the whole state is within tolerance is then O(1):
+the set is empty. Nothing in a local recovery touches all N features.
 
 References
 ----------
@@ -23,18 +29,21 @@ References
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
+import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
-from algorithms.dslam.information import InformationMatrix, dofs
+from algorithms.dslam.information import InformationMatrix, _grown, dofs
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
-LOCAL_MAX_FEATURES = 64  # largest local solve (a dense 128 x 128 Cholesky)
+LOCAL_MAX_FEATURES = 160  # largest local solve (a dense 320 x 320 Cholesky)
+COARSE_CELL_M = 10.0  # side of the square cells whose rigid motions span the coarse space
 
 
 def invert_blocks(blocks: F64) -> F64:
@@ -54,6 +63,11 @@ def apply_blocks(inv_blocks: F64, r: F64) -> F64:
     return np.einsum("nij,njk->nik", inv_blocks, r.reshape(n, 2, -1)).reshape(r.shape)
 
 
+def block_errors(inv_blocks: F64, r: F64) -> F64:
+    """Per feature, the block-Jacobi error estimate ``max |I_ff^-1 r_f|`` (n,) of r (2n,)."""
+    return np.max(np.abs(apply_blocks(inv_blocks, r).reshape(-1, 2)), axis=1) if len(r) else np.zeros(0)
+
+
 def error_estimate(inv_blocks: F64, r: F64) -> F64:
     """Block-Jacobi error estimate per column: max over features of |D_f^-1 r_f| (scalar or (k,))."""
     e = apply_blocks(inv_blocks, r)
@@ -70,17 +84,23 @@ class SolveResult:
 
 
 def pcg(info: InformationMatrix, b: F64, x0: F64, inv_blocks: F64, tol: float | F64,
-        maxiter: int) -> SolveResult:
-    """Block-Jacobi preconditioned CG on ``I x = b`` from ``x0``; columns of b iterate in lock-step.
+        maxiter: int, precondition: Callable[[F64], F64] | None = None) -> SolveResult:
+    """Preconditioned CG on ``I x = b`` from ``x0``; columns of b iterate in lock-step.
 
-    A column stops when its error estimate (module docstring) is at most ``tol`` (scalar or (k,)).
+    The preconditioner is block-Jacobi (``inv_blocks``) unless ``precondition`` (R (2N, k) ->
+    M^-1 R) is given. A column stops when its preconditioned residual, the error estimate of
+    the module docstring, is at most ``tol`` (scalar or (k,)) for every entry.
     """
     single = b.ndim == 1
     B = b[:, None] if single else b
     X = (x0[:, None] if single else x0).copy()
     tol_arr = np.broadcast_to(np.asarray(tol, dtype=np.float64), (B.shape[1],))
+
+    def apply(r: F64) -> F64:
+        return apply_blocks(inv_blocks, r) if precondition is None else precondition(r)
+
     R = B - info.matvec(X)
-    Z = apply_blocks(inv_blocks, R)
+    Z = apply(R)
     active = np.max(np.abs(Z), axis=0) > tol_arr if len(Z) else np.zeros(B.shape[1], bool)
     P = Z.copy()
     rz = np.einsum("ij,ij->j", R, Z)
@@ -93,7 +113,7 @@ def pcg(info: InformationMatrix, b: F64, x0: F64, inv_blocks: F64, tol: float | 
         alpha = np.where(pap > 0, rz[cols] / np.where(pap > 0, pap, 1.0), 0.0)
         X[:, cols] += P[:, cols] * alpha
         R[:, cols] -= Ap * alpha
-        Zc = apply_blocks(inv_blocks, R[:, cols])
+        Zc = apply(R[:, cols])
         rz_new = np.einsum("ij,ij->j", R[:, cols], Zc)
         beta = np.where(rz[cols] > 0, rz_new / np.where(rz[cols] > 0, rz[cols], 1.0), 0.0)
         P[:, cols] = Zc + P[:, cols] * beta
@@ -102,6 +122,51 @@ def pcg(info: InformationMatrix, b: F64, x0: F64, inv_blocks: F64, tol: float | 
         active[cols[done]] = False
     x = X[:, 0] if single else X
     return SolveResult(x=x, iterations=it, converged=not active.any())
+
+
+def coarse_space(x: F64, cell_m: float) -> sp.csr_matrix:
+    """The prolongation P (2N, 3C): translations and a rotation of the features of each square cell.
+
+    Features are grouped by the cell of side ``cell_m`` holding their estimate ``x`` (2N,); each
+    group moves rigidly in the plane (x, y and a rotation about its centroid, lever arms scaled
+    by ``1 / cell_m``). A group of one feature has no rotation column.
+    """
+    pts = x.reshape(-1, 2)
+    n = len(pts)
+    _, agg = np.unique(np.floor(pts / cell_m).astype(np.int64), axis=0, return_inverse=True)
+    agg = agg.reshape(-1)
+    c = int(agg.max()) + 1 if n else 0
+    counts = np.bincount(agg, minlength=c)
+    sums = np.stack([np.bincount(agg, pts[:, 0], c), np.bincount(agg, pts[:, 1], c)], -1)
+    cent = sums / np.maximum(counts, 1)[:, None]
+    lever = (pts - cent[agg]) / cell_m
+    rot = np.cumsum(counts >= 2) - 1  # rotation column of each group with two features or more
+    f = np.arange(n)
+    has_rot = counts[agg] >= 2
+    rows = np.concatenate([2 * f, 2 * f + 1, 2 * f[has_rot], 2 * f[has_rot] + 1])
+    cols = np.concatenate([2 * agg, 2 * agg + 1, 2 * c + rot[agg[has_rot]], 2 * c + rot[agg[has_rot]]])
+    vals = np.concatenate([np.ones(2 * n), -lever[has_rot, 1], lever[has_rot, 0]])
+    return sp.csr_matrix((vals, (rows, cols)), shape=(2 * n, 2 * c + int(np.sum(counts >= 2))))
+
+
+class TwoLevel:
+    """The additive two-level preconditioner ``M^-1 = D^-1 + P (P^T I P)^-1 P^T`` (D: the 2x2 diagonal blocks).
+
+    Block-Jacobi alone leaves the smooth, map-wide part of the error (rigid motions of whole
+    neighbourhoods) to hundreds of iterations; the coarse space of :func:`coarse_space` holds
+    exactly those motions, so PCG converges in a few tens of iterations whatever N. Memory:
+    P has 3 entries per dof, and the coarse matrix is about N / 10 dofs.
+    """
+
+    def __init__(self, info: InformationMatrix, inv_blocks: F64, x: F64, cell_m: float = COARSE_CELL_M) -> None:
+        self.inv_blocks = inv_blocks
+        self.p = coarse_space(x, cell_m)
+        self.pt = self.p.T.tocsr()
+        coarse = (self.pt @ (info.csr() @ self.p)).tocsc()
+        self.lu = spla.splu(0.5 * (coarse + coarse.T), permc_spec="MMD_AT_PLUS_A")
+
+    def __call__(self, r: F64) -> F64:
+        return apply_blocks(self.inv_blocks, r) + self.p @ np.asarray(self.lu.solve(np.asarray(self.pt @ r)))
 
 
 def factor(info: InformationMatrix) -> spla.SuperLU:
@@ -131,23 +196,6 @@ def neighbourhood(info: InformationMatrix, features: list[int], hops: int) -> li
     return sorted(region)
 
 
-def local_solve(info: InformationMatrix, x: F64, r: F64, region: list[int]) -> None:
-    """Solve ``I_OO d = r_O`` on the features ``region`` (O), then ``x_O += d`` and ``r -= I[:, O] d``.
-
-    ``x`` and ``r`` are updated in place. Exact on O; the residual moves to O's neighbours.
-    """
-    idx = dofs(region)
-    rows, cols, vals = info.row_entries(idx)
-    local = np.full(len(x), -1, dtype=np.int64)
-    local[idx] = np.arange(len(idx))
-    inside = local[cols] >= 0
-    block = np.zeros((len(idx), len(idx)))
-    np.add.at(block, (rows[inside], local[cols[inside]]), vals[inside])
-    delta = sla.cho_solve(sla.cho_factor(0.5 * (block + block.T)), r[idx])
-    x[idx] += delta
-    np.add.at(r, cols, -vals * delta[rows])  # I is symmetric: column O of I is row O transposed
-
-
 @dataclass(frozen=True, slots=True)
 class RecoveryReport:
     """How one recovery went: the method, PCG iterations, features in the local solve, final error estimate (m)."""
@@ -161,13 +209,21 @@ class RecoveryReport:
 class Recovery:
     """The recovered state ``x`` (2N,) of an information matrix, kept with its residual ``r = i - I x``.
 
-    Modes: ``"pcg"`` solves the whole system by warm-started PCG after every update, falling back
-    to a direct solve when PCG does not converge and after a loop closure ([1]_ section 3.3);
-    ``"local"`` first solves exactly on the updated features and their neighbours (up to
-    ``max_hops`` links away and LOCAL_MAX_FEATURES features) and accepts the result when the
-    error estimate of the whole state is at most ``local_tol_m``, with a global PCG every
-    ``global_every`` updates and whenever the local solve is not enough (a direct solve after a
-    loop closure); ``"direct"`` always solves directly (reference).
+    Modes: ``"pcg"`` solves the whole system by warm-started block-Jacobi PCG after every
+    update, falling back to a direct solve when PCG does not converge and after a loop closure
+    ([1]_ section 3.3); ``"direct"`` always solves directly (reference); ``"local"``:
+
+    - per update, an exact solve on the updated features together with every feature whose
+      error estimate exceeds ``local_tol_m`` (those are always next to an earlier local solve),
+      then on that region grown by the features it left above the tolerance and their
+      neighbours, up to ``max_hops`` times and LOCAL_MAX_FEATURES features. This keeps the
+      geometry near the robot exact, but not the smooth, map-wide part of the correction (a
+      slight rotation or shift of the whole neighbourhood relative to I^-1 i), which the
+      block-Jacobi estimate does not see;
+    - every ``global_every`` updates (when positive), and when the local solve is not enough,
+      a global solve: PCG warm-started from the current x with the two-level preconditioner
+      of :class:`TwoLevel`, which converges in a few tens of iterations whatever N (O(N) each);
+      a direct solve after a loop closure or when PCG does not converge.
     """
 
     def __init__(self, info: InformationMatrix, mode: str, tol_m: float, local_tol_m: float, max_hops: int,
@@ -175,43 +231,146 @@ class Recovery:
         self.info = info
         self.mode, self.tol_m, self.local_tol_m = mode, tol_m, local_tol_m
         self.max_hops, self.maxiter, self.global_every = max_hops, maxiter, global_every
-        self.x = np.zeros(0)
-        self.r = np.zeros(0)
-        self.inv_blocks = np.zeros((0, 2, 2))
+        self.n = 0
+        self._x = np.zeros(64)
+        self._r = np.zeros(64)
+        self._inv = np.zeros((32, 2, 2))
+        self._err = np.zeros(32)  # per feature: block-Jacobi error estimate of r
+        self._local = np.full(32, -1, dtype=np.int64)  # scratch: feature -> position in the region
+        self.dirty: set[int] = set()  # features whose error estimate exceeds local_tol_m
+        self.hop_growth = True
+        self.changed: list[int] | None = []  # features the last recovery moved (None: possibly all)
+        self._last_err = 0.0  # largest error estimate the last local solve left on O's neighbours
         self._since_global = 0
+        self.factorizations = 0
+
+    @property
+    def x(self) -> F64:
+        """The recovered state (2N,) (a view)."""
+        return self._x[: 2 * self.n]
+
+    @property
+    def r(self) -> F64:
+        """The residual ``i - I x`` (2N,) (a view)."""
+        return self._r[: 2 * self.n]
+
+    @property
+    def inv_blocks(self) -> F64:
+        """Inverses of the diagonal blocks of I (N, 2, 2) (a view): the block-Jacobi preconditioner."""
+        return self._inv[: self.n]
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the state arrays: O(N)."""
+        return self._x.nbytes + self._r.nbytes + self._inv.nbytes + self._err.nbytes + self._local.nbytes
 
     def grow(self, positions: F64) -> None:
         """Append features (k, 2) at these initial estimates (their residual is 0: I and i are 0 there)."""
-        self.x = np.concatenate([self.x, positions.reshape(-1)])
-        self.r = np.concatenate([self.r, np.zeros(positions.size)])
-        self.inv_blocks = np.concatenate([self.inv_blocks, np.zeros((len(positions), 2, 2))])
+        k = len(positions)
+        n = self.n + k
+        self._x, self._r = _grown(self._x, 2 * n), _grown(self._r, 2 * n)
+        self._inv, self._err = _grown(self._inv, n), _grown(self._err, n)
+        if len(self._local) < n:
+            self._local = np.concatenate([self._local, np.full(max(n, len(self._local)), -1, dtype=np.int64)])
+        self._x[2 * self.n:2 * n] = np.asarray(positions, dtype=np.float64).reshape(-1)
+        self.n = n
+
+    def set_state(self, x: F64) -> None:
+        """Take ``x`` (2N,) as the estimate: recompute the residual, the error estimates and the set (O(N))."""
+        self._x[: 2 * self.n] = x
+        self._r[: 2 * self.n] = self.info.vector - self.info.matvec(np.array(x))
+        self._inv[: self.n] = invert_blocks(self.info.diagonal_blocks())
+        err = block_errors(self.inv_blocks, self.r)
+        self._err[: self.n] = err
+        self.dirty = set(np.flatnonzero(err > self.local_tol_m).tolist())
+        self.changed = None
+        self._since_global = 0
+
+    def _track(self, features: I64) -> float:
+        """Refresh the error estimate of ``features`` and their membership of the set above tolerance.
+
+        Returns the largest of their error estimates.
+        """
+        r = self._r.reshape(-1, 2)[features]
+        err = np.max(np.abs(np.einsum("nij,nj->ni", self._inv[features], r)), axis=1)
+        self._err[features] = err
+        above = err > self.local_tol_m
+        fl = features.tolist()
+        self.dirty.update(f for f, a in zip(fl, above.tolist(), strict=True) if a)
+        self.dirty.difference_update(f for f, a in zip(fl, above.tolist(), strict=True) if not a)
+        return float(err.max()) if len(err) else 0.0
 
     def record(self, features: I64, d_matrix: F64, d_vector: F64) -> None:
         """Account for ``info.add(features, d_matrix, d_vector)``, which must already have been applied."""
         idx = dofs(features)
-        self.r[idx] += d_vector - d_matrix @ self.x[idx]
-        self.inv_blocks[features] = invert_blocks(self.info.diagonal_blocks(features))
+        self._r[idx] += d_vector - d_matrix @ self._x[idx]
+        self._inv[features] = invert_blocks(self.info.diagonal_blocks(features))
+        self._track(np.asarray(features, dtype=np.int64))
 
     def error(self) -> float:
-        """Block-Jacobi estimate of the largest remaining correction of any feature (m)."""
-        return float(error_estimate(self.inv_blocks, self.r)) if len(self.r) else 0.0
+        """Block-Jacobi estimate of the largest remaining correction of any feature (m); O(N)."""
+        return float(self._err[: self.n].max()) if self.n else 0.0
 
-    def _set(self, x: F64) -> None:
-        self.x = x
-        self.r = self.info.vector - self.info.matvec(x)
-        self._since_global = 0
+    def local_solve(self, region: list[int]) -> None:
+        """Solve ``I_OO d = r_O`` on the features ``region`` (O), then ``x_O += d`` and ``r -= I[:, O] d``.
+
+        Exact on O (r_O becomes 0); the residual moves to O's neighbours. O(blocks of O's rows).
+        """
+        k = len(region)
+        feats = np.asarray(region, dtype=np.int64)
+        pos, cols, vals = self.info.row_blocks(region)
+        self._local[feats] = np.arange(k)
+        lq = self._local[cols]
+        self._local[feats] = -1
+        inside = lq >= 0
+        block = np.zeros((k, k, 2, 2))
+        block[pos[inside], lq[inside]] = vals[inside]
+        a = block.transpose(0, 2, 1, 3).reshape(2 * k, 2 * k)
+        idx = dofs(feats)
+        chol = sla.cho_factor(0.5 * (a + a.T), check_finite=False)
+        delta = sla.cho_solve(chol, self._r[idx], check_finite=False)
+        self._x[idx] += delta
+        self._r[idx] = 0.0
+        out = ~inside
+        if out.any():
+            g = cols[out]
+            d = delta.reshape(-1, 2)[pos[out]]
+            push = np.einsum("nji,nj->ni", vals[out], d)  # I_gf d_f = (I_fg)^T d_f
+            r2 = self._r.reshape(-1, 2)
+            np.subtract.at(r2, g, push)
+            self._last_err = self._track(np.unique(g))
+        else:
+            self._last_err = 0.0
+        self._err[feats] = 0.0
+        self.dirty.difference_update(region)
 
     def solve_direct(self) -> RecoveryReport:
         """x = I^-1 i by sparse LU."""
-        self._set(direct(self.info, np.array(self.info.vector)))
+        if self.n == 0:
+            return RecoveryReport("none", 0, 0, 0.0)
+        self.factorizations += 1
+        self.set_state(direct(self.info, np.array(self.info.vector)))
         return RecoveryReport("direct", 0, 0, self.error())
 
     def _solve_pcg(self) -> RecoveryReport:
-        result = pcg(self.info, np.array(self.info.vector), self.x, self.inv_blocks, self.tol_m, self.maxiter)
+        result = pcg(self.info, np.array(self.info.vector), np.array(self.x), self.inv_blocks, self.tol_m,
+                     self.maxiter)
         if not result.converged:
             self.solve_direct()
             return RecoveryReport("direct", result.iterations, 0, self.error())
-        self._set(result.x)
+        self.set_state(result.x)
+        return RecoveryReport("pcg", result.iterations, 0, self.error())
+
+    def _solve_global(self, loop_closure: bool) -> RecoveryReport:
+        """Warm-started two-level PCG (:class:`TwoLevel`); a direct solve after a loop closure or if it fails."""
+        if loop_closure:
+            return self.solve_direct()
+        result = pcg(self.info, np.array(self.info.vector), np.array(self.x), self.inv_blocks, self.tol_m,
+                     self.maxiter, TwoLevel(self.info, self.inv_blocks, self.x))
+        if not result.converged:
+            self.solve_direct()
+            return RecoveryReport("direct", result.iterations, 0, self.error())
+        self.set_state(result.x)
         return RecoveryReport("pcg", result.iterations, 0, self.error())
 
     def solve(self, touched: list[int], loop_closure: bool) -> RecoveryReport:
@@ -219,16 +378,23 @@ class Recovery:
         self._since_global += 1
         if self.mode == "direct" or (loop_closure and self.mode == "pcg"):
             return self.solve_direct()
-        if self.mode == "pcg" or self._since_global >= self.global_every:
+        if self.mode == "pcg":
             return self._solve_pcg()
-        region: list[int] = []
-        for hops in range(1, self.max_hops + 1):
-            grown = neighbourhood(self.info, touched, hops)
-            if len(grown) == len(region) or len(grown) > LOCAL_MAX_FEATURES:
-                break  # nothing new, or a region too large for a dense solve: PCG instead
-            region = grown
-            local_solve(self.info, self.x, self.r, region)
-            err = self.error()
-            if err <= self.local_tol_m:
-                return RecoveryReport("local", 0, len(region), err)
-        return self.solve_direct() if loop_closure else self._solve_pcg()
+        if 0 < self.global_every <= self._since_global:
+            return self._solve_global(False)
+        region = set(touched) | self.dirty
+        solved: set[int] = set()
+        for _ in range(self.max_hops):
+            if len(region) > LOCAL_MAX_FEATURES:
+                break  # a region too large for a dense solve: PCG instead
+            self.local_solve(sorted(region))
+            solved |= region
+            if not self.dirty:
+                self.changed = sorted(solved)
+                return RecoveryReport("local", 0, len(region), self._last_err)
+            grow = set(self.dirty)
+            if self.hop_growth:
+                for f in self.dirty:
+                    grow |= self.info.neighbours[f]
+            region |= grow
+        return self._solve_global(loop_closure)

@@ -1,8 +1,9 @@
 """Spectral building blocks of iFMI registration: windows, spectra, the magnitude high-pass,
-log-polar resampling, the phase-only matched filter (POMF), subpixel peaks and the peak
-statistics of section II-B of [1]_.
+log-polar resampling, the phase-only matched filter (POMF), its bands, subpixel peaks and the
+peak statistics of section II-B of [1]_.
 
-All arrays are float32/complex64 for speed; statistics are accumulated in float64.
+All arrays are float32/complex64 for speed (real FFTs through OpenCV's packed DFT, about twice
+as fast as pocketfft here); statistics are accumulated in float64.
 Image axes are (row, column) = (y, x), x to the right and y down, as in OpenCV.
 
 References
@@ -13,17 +14,25 @@ References
    scale-invariant image registration", IEEE TIP 5(8), 1996 (the magnitude high-pass).
 .. [3] H. Foroosh, J. B. Zerubia, M. Berthod, "Extension of phase correlation to subpixel
    registration", IEEE TIP 11(3), 2002 (the sinc-peak subpixel estimate).
+.. [4] K. Takita, T. Aoki, Y. Sasaki, T. Higuchi, K. Kobayashi, "High-accuracy subpixel image
+   registration based on phase-only correlation", IEICE Trans. Fundamentals E86-A(8), 2003
+   (band-limited phase-only correlation).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
-import scipy.fft as sfft
 from numpy.typing import NDArray
+
+from algorithms.ifmi.fft import irfft2, rfft2
+
+__all__ = ["irfft2", "rfft2"]  # re-exported: the spectra of this module are theirs
 
 F32 = NDArray[np.float32]
 C64 = NDArray[np.complex64]
@@ -45,15 +54,14 @@ def tukey_window(shape: tuple[int, int], alpha: float = 0.5) -> F32:
     return np.where(r <= flat, 1.0, taper).astype(np.float32)
 
 
-def highpass(shape: tuple[int, int]) -> F32:
-    """Reddy-Chatterji high-pass ``(1 - X)(2 - X)``, ``X = cos(pi fx) cos(pi fy)`` [2]_, on the rfft grid.
+def highpass(radius_cycles: F64) -> F32:
+    """Reddy-Chatterji high-pass ``(1 - X)(2 - X)`` [2]_ with ``X = cos(pi r)``, r in cycles per pixel.
 
-    Shape ``(H, W // 2 + 1)``, rows in fftshifted order (zero frequency at row ``H // 2``).
+    The radial form of ``X = cos(pi fx) cos(pi fy)`` (equal on the axes): it does not prefer the
+    image axes, and on the log-polar grid it is one weight per radius column, applied for free
+    with the radius taper.
     """
-    h, w = shape
-    fy = np.fft.fftshift(np.fft.fftfreq(h))
-    fx = np.fft.rfftfreq(w)
-    x = np.cos(np.pi * fy)[:, None] * np.cos(np.pi * fx)[None, :]
+    x = np.cos(np.pi * np.asarray(radius_cycles, dtype=np.float64))
     return ((1.0 - x) * (2.0 - x)).astype(np.float32)
 
 
@@ -69,12 +77,13 @@ class LogPolarMap:
 
     map_x: F32  # (n_angle, n_radius) column in the rfft magnitude
     map_y: F32  # (n_angle, n_radius) row in the row-fftshifted rfft magnitude
+    radius_cycles: F64  # (n_radius,) r_j, cycles per pixel
     deg_per_bin: float
     log_step: float  # ln(scale) per radius bin
 
 
 def log_polar_map(shape: tuple[int, int], n_angle: int, n_radius: int, r_min_cycles: float) -> LogPolarMap:
-    """Maps for :func:`cv2.remap` from the fftshifted rfft magnitude to a log-polar descriptor.
+    """Maps for :func:`cv2.remap` from the row-fftshifted rfft magnitude to a log-polar descriptor.
 
     Frequencies are in cycles per pixel on both axes, so non-square images resample correctly.
     ``r_min_cycles`` is the lowest radius, in cycles per image (of the smaller side).
@@ -87,14 +96,15 @@ def log_polar_map(shape: tuple[int, int], n_angle: int, n_radius: int, r_min_cyc
     r = r_min * np.exp(log_step * np.arange(n_radius))
     fx = np.cos(phi)[:, None] * r[None, :]
     fy = np.sin(phi)[:, None] * r[None, :]
-    return LogPolarMap((fx * w).astype(np.float32), (fy * h + h // 2).astype(np.float32),
-                       180.0 / n_angle, log_step)
+    return LogPolarMap((fx * w).astype(np.float32), (fy * h + h // 2).astype(np.float32), r, 180.0 / n_angle,
+                       log_step)
 
 
-def spectrum(image: F32, window: F32) -> C64:
-    """rfft2 of the windowed, mean-free image (step 1 of the POMF)."""
+def spectrum(image: NDArray[Any], window: F32) -> C64:
+    """rfft2 of the windowed, mean-free float32 image (step 1 of the POMF)."""
     mean = cv2.mean(image)[0]
-    return sfft.rfft2(cv2.multiply(cv2.subtract(image, mean, dtype=cv2.CV_32F), window), workers=1)
+    centred = cv2.subtract(image, mean, dtype=cv2.CV_32F)  # type: ignore[call-overload]
+    return rfft2(np.asarray(cv2.multiply(centred, window), dtype=np.float32))
 
 
 def phase_only(spec: C64) -> C64:
@@ -109,18 +119,27 @@ def phase_only(spec: C64) -> C64:
     return spec * mag.astype(np.complex64)
 
 
-def magnitude_descriptor(spec: C64, hp: F32, lp: LogPolarMap, radius_window: F32) -> C64:
-    """Steps 2-4 and the phase of the FMI descriptor's spectrum: |F|, high-pass, log-polar, rfft2.
+def log_polar_magnitude(spec: C64, lp: LogPolarMap) -> F32:
+    """Steps 2-4: the magnitude of an rfft2 resampled on the log-polar grid, (n_angle, n_radius).
 
-    Returns the phase-only rfft2 of the mean-free log-polar descriptor, tapered along the
-    (non-cyclic) radius axis, ready for the rotation/scale POMF (step 5).
+    (An fftshift and a constant border remap 4x faster than ``BORDER_WRAP`` on the unshifted rows.)
     """
     mag = np.fft.fftshift(np.abs(spec), axes=0)
-    mag *= hp
-    desc = cv2.remap(mag, lp.map_x, lp.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    return np.asarray(cv2.remap(mag, lp.map_x, lp.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                                borderValue=0.0), dtype=np.float32)
+
+
+def descriptor_phase(polar: F32, radius_weight: F32, radius_window: F32) -> C64:
+    """The phase of the FMI descriptor's spectrum from the first ``radius_window.shape[1]`` radius columns.
+
+    ``radius_weight`` (1, n) is the high-pass at each radius (:func:`highpass`), ``radius_window``
+    (1, n) a taper along the (non-cyclic) radius axis. Returns the phase-only rfft2 of the
+    high-passed, mean-free, tapered descriptor, ready for the rotation/scale POMF (step 5).
+    """
+    desc = polar[:, : radius_window.shape[1]] * radius_weight
     desc -= np.float32(cv2.mean(desc)[0])
     desc *= radius_window
-    return phase_only(sfft.rfft2(desc, workers=1))
+    return phase_only(rfft2(desc))
 
 
 def cross_phase(phase_a: C64, phase_b: C64) -> C64:
@@ -133,15 +152,73 @@ def pomf(cross: C64, shape: tuple[int, int]) -> F32:
 
     A Dirac at ``t`` when ``b(x) = a(x - t)`` (eq. 2); by Parseval its squares sum to ~1.
     """
-    return sfft.irfft2(cross, s=shape, workers=1)
+    return irfft2(cross, shape)
 
 
-def shift_spectrum(spec: C64, shape: tuple[int, int], dy: float, dx: float) -> C64:
-    """The rfft2 of the image shifted by ``(dy, dx)`` (cyclically, with subpixel exactness)."""
+def low_band(spec: C64, shape: tuple[int, int], factor: int) -> C64:
+    """The part of an (H, W) rfft half-plane that is the rfft half-plane of a ``factor`` times coarser grid.
+
+    Its inverse (:func:`irfft2` at ``(H // factor, W // factor)``) is the band-limited POMF sampled
+    every ``factor`` pixels: the same Dirac, a ``factor``-th of the size, at a ``factor**2``-th of the cost.
+    """
     h, w = shape
-    ky = np.fft.fftfreq(h).astype(np.float32)[:, None]
-    kx = np.fft.rfftfreq(w).astype(np.float32)[None, :]
-    return spec * np.exp(np.complex64(-2j * np.pi) * (ky * np.float32(dy) + kx * np.float32(dx)))
+    hc, wc = h // factor, w // factor
+    pos, cols = hc // 2 + 1, wc // 2 + 1
+    neg = hc - pos
+    return np.concatenate([spec[:pos, :cols], spec[h - neg:, :cols]]) if neg else spec[:pos, :cols].copy()
+
+
+MIN_BAND_SIDE = 48  # cells per side of the coarsest band's POMF: a random K-neighbourhood stays far below eq. 13's 0.2
+
+
+def bands(shape: tuple[int, int]) -> tuple[int, ...]:
+    """The band factors 1, 2, 4, ... whose POMF keeps at least :data:`MIN_BAND_SIDE` cells per side."""
+    out, b = [1], 2
+    while min(shape) // b >= MIN_BAND_SIDE:
+        out.append(b)
+        b *= 2
+    return tuple(out)
+
+
+def band_peak(cross: C64, shape: tuple[int, int], k: int, min_pnr: float, full: Peak | None = None,
+              surface: F32 | None = None, refine: bool = True) -> tuple[Peak, int, F32]:
+    """The POMF's Dirac in the finest band where eq. (13) reaches ``min_pnr``, else in the band where it is largest.
+
+    Eqs. (11)-(13) read the Dirac's share of the whole POMF, and the phase-only spectrum gives
+    every frequency the same weight: where a band holds only noise (sensor noise, blur, the
+    low texture of mud) its frequencies add their energy everywhere and the share falls,
+    although the peak is where it belongs. The POMF of the lower frequencies alone (the
+    band-limited phase-only correlation of Takita et al. [4]_, :func:`low_band`, sampled every
+    ``b`` pixels) still holds the Dirac at the same place; a band keeps at least
+    :data:`MIN_BAND_SIDE` cells per side, so chance alignments stay far below the threshold
+    (non-overlapping pairs: 100 % rejected). Returns the peak in pixels of the full grid (its
+    location refined on the band's trigonometric interpolant, :func:`refine_peak`, unless
+    ``refine`` is False; the covariance of eq. (10) scaled by ``b**2``), the band ``b`` and its
+    surface.
+    """
+    if full is None or surface is None:
+        surface = pomf(cross, shape)
+        full = find_peak(surface, k)
+    best, best_b, best_surface = full, 1, surface
+    for b in bands(shape)[1:]:
+        if best.pnr >= min_pnr:
+            break
+        sub_shape = (shape[0] // b, shape[1] // b)
+        sub_cross = low_band(cross, shape, b)
+        sub = pomf(sub_cross, sub_shape)
+        peak = find_peak(sub, k, cross=sub_cross if refine else None)
+        if peak.pnr > best.pnr:
+            (crr, crc), (_, ccc) = peak.cov
+            best = Peak(b * peak.row, b * peak.col, ((b * b * crr, b * b * crc), (b * b * crc, b * b * ccc)), peak.s,
+                        peak.pnr, peak.value)
+            best_b, best_surface = b, sub
+    return best, best_b, best_surface
+
+
+def _parabola_offset(c_minus: float, c0: float, c_plus: float) -> float:
+    """Vertex of the parabola through three samples: the start of :func:`refine_peak` (~0.06 bin on FMI peaks)."""
+    d = c_minus - 2.0 * c0 + c_plus
+    return float(min(0.5, max(-0.5, 0.5 * (c_minus - c_plus) / d))) if d < 0 else 0.0
 
 
 def _sinc_offset(c_minus: float, c0: float, c_plus: float) -> float:
@@ -153,38 +230,48 @@ def _sinc_offset(c_minus: float, c0: float, c_plus: float) -> float:
     return float(min(0.5, max(-0.5, d)))
 
 
+@functools.lru_cache(maxsize=16)
+def _trig_axes(shape: tuple[int, int]) -> tuple[F64, NDArray[np.complex128], F64]:
+    """Angular frequencies of an (H, W) rfft half-plane and the column weights of its real interpolant."""
+    h, w = shape
+    weights = np.full(w // 2 + 1, 2.0)
+    weights[0] = 1.0
+    if w % 2 == 0:
+        weights[-1] = 1.0
+    fy = np.asarray(2.0 * np.pi * np.fft.fftfreq(h), dtype=np.float64)
+    return fy, np.asarray(2j * np.pi * np.fft.rfftfreq(w), dtype=np.complex128), weights
+
+
 def refine_peak(cross: C64, shape: tuple[int, int], row: float, col: float, iterations: int = 3
                 ) -> tuple[float, float]:
     """Subpixel maximum of the POMF near ``(row, col)``: Newton steps on its trigonometric interpolant.
 
     The POMF is a trigonometric polynomial, ``v(y, x) = (1/N) Re sum_k c_k R_k exp(2 pi i (f_y y + f_x x))``
     over the rfft half-plane (``c_k`` = 2 for columns that stand for a conjugate pair); its value,
-    gradient and Hessian at any off-grid point cost three matrix-vector products (the
+    gradient and Hessian at any off-grid point cost one (6, H) x (H, 2 W') product (the
     matrix-multiply DFT of upsampled-DFT registration, evaluated only where needed). Steps are
     clipped to half a bin and stop when the Hessian is not negative definite, so the estimate
-    never leaves the peak found on the grid.
+    never leaves the peak found on the grid. From a start within ~0.1 bin (the parabolic
+    estimate of :func:`find_peak`) one step leaves < 0.01 bin (Newton converges quadratically).
     """
-    h, w = shape
-    fy = 2.0 * np.pi * np.fft.fftfreq(h)
-    fx = 2j * np.pi * np.fft.rfftfreq(w)
-    weights = np.full(fx.shape, 2.0)
-    weights[0] = 1.0
-    if w % 2 == 0:
-        weights[-1] = 1.0
-    # Real arithmetic without BLAS: a threaded BLAS matrix-vector product took ms on a busy machine.
-    re, im = np.ascontiguousarray(cross.real), np.ascontiguousarray(cross.imag)
+    h, _ = shape
+    fy, fx, weights = _trig_axes(shape)
+    # Real arithmetic in one einsum, without BLAS: a threaded BLAS product of this size took
+    # milliseconds on a busy machine (OpenBLAS threads above ~2.6e5 multiply-adds).
+    half = cross.shape[1]
+    re_im = np.concatenate([cross.real, cross.imag], axis=1)  # (H, 2 W'): [Re | Im]
+    e = np.empty((6, h), np.float32)
     y, x = float(row), float(col)
     for _ in range(iterations):
         c, s = np.cos(fy * y), np.sin(fy * y)
+        fc, fs = fy * c, fy * s
         # Rows of (ey, i fy ey, -fy^2 ey) split into real and imaginary parts, ey = exp(i fy y).
-        er = np.stack([c, -fy * s, -fy * fy * c]).astype(np.float32)
-        ei = np.stack([s, fy * c, -fy * fy * s]).astype(np.float32)
-        a = (np.einsum("ki,ij->kj", er, re) - np.einsum("ki,ij->kj", ei, im)
-             + 1j * (np.einsum("ki,ij->kj", er, im) + np.einsum("ki,ij->kj", ei, re)))
+        e[0], e[1], e[2], e[3], e[4], e[5] = c, -fs, -fy * fc, s, fc, -fy * fs
+        prod = np.einsum("ki,ij->kj", e, re_im)
+        a = (prod[:3, :half] - prod[3:, half:]) + 1j * (prod[:3, half:] + prod[3:, :half])
         ex = np.exp(fx * x) * weights
-        a0, a1, a2 = a[0], a[1], a[2]
-        gy, gx = np.sum(a1 * ex).real, np.sum(a0 * ex * fx).real
-        hyy, hxx, hxy = np.sum(a2 * ex).real, np.sum(a0 * ex * fx * fx).real, np.sum(a1 * ex * fx).real
+        g = (a @ np.stack([ex, ex * fx, ex * fx * fx]).T).real  # g[i, j] = sum a_i ex fx^j
+        gy, gx, hyy, hxx, hxy = g[1, 0], g[0, 1], g[2, 0], g[0, 2], g[1, 1]
         det = hyy * hxx - hxy * hxy
         if not (hyy < 0.0 and det > 0.0):
             break
@@ -192,11 +279,11 @@ def refine_peak(cross: C64, shape: tuple[int, int], row: float, col: float, iter
         sx = -(-hxy * gy + hyy * gx) / det
         y += min(0.5, max(-0.5, sy))
         x += min(0.5, max(-0.5, sx))
-        if abs(sy) < 1e-3 and abs(sx) < 1e-3:
+        if abs(sy) < 0.1 and abs(sx) < 0.1:  # quadratic convergence: what is left is < 0.01 bin
             break
     if abs(y - row) > 1.0 or abs(x - col) > 1.0:
         return row, col
-    return y, x
+    return float(y), float(x)
 
 
 @dataclass(frozen=True, slots=True)
@@ -226,7 +313,9 @@ def find_peak(surface: F32, k: int, col_limit: int | None = None, cross: C64 | N
     col_limit : search only columns with |shift| <= col_limit (the log-radius range of the
         allowed scales); None searches everything.
     cross : the normalized cross spectrum the surface came from; when given, the subpixel
-        location is refined by :func:`refine_peak` (else the sinc estimate of [3]_ is kept).
+        location is the parabolic estimate refined by :func:`refine_peak` (the rotation/scale
+        peak, smeared by the resampling); else the sinc estimate of [3]_, exact for the
+        Dirichlet peak of a translation.
 
     Notes
     -----
@@ -236,40 +325,45 @@ def find_peak(surface: F32, k: int, col_limit: int | None = None, cross: C64 | N
     a perfect match at a half-pixel shift keeps ~0.16 of the energy per cell, which eq. (12)
     would read as a failure. The covariance of eq. (10) uses the neighbourhood's intensities
     renormalized to a PMF, centered at the subpixel peak, plus 1/12 bin^2 on the diagonal
-    (a PMF cell spreads its mass uniformly over one bin: Sheppard's correction).
+    (a PMF cell spreads its mass uniformly over one bin: Sheppard's correction). On
+    low-texture or noisy images the K-neighbourhood is not what fails (K = 5 holds a clean
+    peak's energy): the frequencies that hold only noise spread their energy over the whole
+    surface; :func:`band_peak` reads eqs. (11)-(13) in a lower band then.
     """
     rows, cols = surface.shape
     if col_limit is None or 2 * col_limit + 1 >= cols:
-        idx = int(np.argmax(surface))
-        r0, c0 = divmod(idx, cols)
+        c0, r0 = cv2.minMaxLoc(surface)[3]
     else:
         sub = np.concatenate([surface[:, : col_limit + 1], surface[:, cols - col_limit:]], axis=1)
-        r0, cc = divmod(int(np.argmax(sub)), sub.shape[1])
+        cc, r0 = cv2.minMaxLoc(sub)[3]
         c0 = cc if cc <= col_limit else cols - (sub.shape[1] - cc)
     half = k // 2
-    ri = (np.arange(r0 - half, r0 + half + 1)) % rows
-    ci = (np.arange(c0 - half, c0 + half + 1)) % cols
-    patch = surface[np.ix_(ri, ci)].astype(np.float64)
-    centre = patch[half, half]
-    dr = _sinc_offset(patch[half - 1, half], centre, patch[half + 1, half])
-    dc = _sinc_offset(patch[half, half - 1], centre, patch[half, half + 1])
-    if cross is not None:
-        y, x = refine_peak(cross, surface.shape, r0 + dr, c0 + dc)  # type: ignore[arg-type]
+    if half <= r0 < rows - half and half <= c0 < cols - half:
+        patch = surface[r0 - half:r0 + half + 1, c0 - half:c0 + half + 1].astype(np.float64)
+    else:  # the neighbourhood wraps around the cyclic surface
+        ri = np.arange(r0 - half, r0 + half + 1) % rows
+        patch = surface[ri].take(np.arange(c0 - half, c0 + half + 1), axis=1, mode="wrap").astype(np.float64)
+    centre = float(patch[half, half])
+    if cross is None:
+        dr = _sinc_offset(patch[half - 1, half], centre, patch[half + 1, half])
+        dc = _sinc_offset(patch[half, half - 1], centre, patch[half, half + 1])
+    else:
+        dr = _parabola_offset(patch[half - 1, half], centre, patch[half + 1, half])
+        dc = _parabola_offset(patch[half, half - 1], centre, patch[half, half + 1])
+        y, x = refine_peak(cross, (rows, cols), r0 + dr, c0 + dc)
         dr, dc = y - r0, x - c0
     energy = patch * patch
-    flat = surface.ravel()
-    total = float(np.einsum("i,i->", flat, flat, dtype=np.float64))
+    total = float(cv2.norm(surface, cv2.NORM_L2SQR))  # accumulated in float64
     local = float(energy.sum())
     s = min(local / total, 1.0 - 1e-12) if total > 0 else 0.0
     p = energy / local if local > 0 else np.full_like(energy, 1.0 / energy.size)
     off = np.arange(-half, half + 1, dtype=np.float64)
-    yr = off[:, None] - dr
-    xc = off[None, :] - dc
-    crr = float((p * yr * yr).sum()) + 1.0 / 12.0
-    ccc = float((p * xc * xc).sum()) + 1.0 / 12.0
-    crc = float((p * yr * xc).sum())
+    yr, xc = off - dr, off - dc
+    crr = float(p.sum(axis=1) @ (yr * yr)) + 1.0 / 12.0
+    ccc = float(p.sum(axis=0) @ (xc * xc)) + 1.0 / 12.0
+    crc = float(yr @ p @ xc)
     row = r0 + dr
     col = c0 + dc
     row = row - rows if row > rows / 2 else row
     col = col - cols if col > cols / 2 else col
-    return Peak(row, col, ((crr, crc), (crc, ccc)), s, s / (1.0 - s), float(centre))
+    return Peak(row, col, ((crr, crc), (crc, ccc)), s, s / (1.0 - s), centre)

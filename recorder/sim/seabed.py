@@ -33,7 +33,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Final
 
@@ -71,19 +71,26 @@ class SeabedSimConfig:
     legs by ``1 - leg_spacing``.
     """
 
-    texture: str = ""  # "" procedural; else an image file, or a folder of frames to tile
-    image_px: int = 256
-    metres_per_pixel: float = 0.01
-    legs: int = 4
-    leg_length_m: float = 8.0
-    leg_spacing: float = 0.35
-    image_spacing: float = 0.3
-    heading_wobble_deg: float = 4.0
-    scale_amplitude: float = 0.06
-    vignetting: float = 0.5
-    noise_sigma: float = 2.0
-    odom_sigma: float = 0.03  # relative (per unit of distance moved), and the same in rad per rad
-    frame_rate_hz: float = 1.0
+    texture: str = field(default="", metadata={"help": "seabed texture: empty for a procedural one made from the "
+                                                        "seed, else an image file or a folder of frames to tile"})
+    image_px: int = field(default=256, metadata={"help": "side of the square camera image, pixels"})
+    metres_per_pixel: float = field(default=0.01, metadata={"help": "seabed metres per image pixel at the nominal "
+                                                                     "altitude"})
+    legs: int = field(default=4, metadata={"help": "number of survey legs (parallel lines joined by U-turns)"})
+    leg_length_m: float = field(default=8.0, metadata={"help": "length of a leg, metres"})
+    leg_spacing: float = field(default=0.35, metadata={"help": "distance between legs, in image footprints "
+                                                                "(adjacent legs overlap by 1 - this)"})
+    image_spacing: float = field(default=0.3, metadata={"help": "distance between consecutive images, in image "
+                                                                 "footprints (they overlap by 1 - this)"})
+    heading_wobble_deg: float = field(default=4.0, metadata={"help": "largest heading deviation along a leg, "
+                                                                      "degrees"})
+    scale_amplitude: float = field(default=0.06, metadata={"help": "altitude change as an image scale amplitude "
+                                                                    "(0.06: scales 0.94 to 1.06)"})
+    vignetting: float = field(default=0.5, metadata={"help": "strength of the lamp's uneven light, 0 (none) to 1"})
+    noise_sigma: float = field(default=2.0, metadata={"help": "Gaussian sensor noise, grey levels"})
+    odom_sigma: float = field(default=0.03, metadata={"help": "odometry noise, relative to the distance moved (and "
+                                                               "radians per radian turned)"})
+    frame_rate_hz: float = field(default=1.0, metadata={"help": "images per second"})
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):

@@ -67,7 +67,7 @@ class DSlamPipeline(LandmarkSlamPipeline):
 
     def observed_covariances(self, features: list[int]) -> np.ndarray | None:
         cov = self.filter.covariance
-        return cov.marginals(features) if cov.has(features) else None
+        return cov.marginals(features) if cov.known(features) else None
 
     def draw_scan(self, result: Any, world_xy: np.ndarray) -> None:
         obs = self.ctx.observer

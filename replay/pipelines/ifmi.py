@@ -3,14 +3,24 @@
 Per image: a node; the registration of the previous image onto it (sequential mode: each
 image's spectra are computed once); loop-closure candidates, the earlier nodes whose current
 estimate lies within ``loop_radius`` image footprints, registered and accepted by PNR
-(section III-B). Edge information is the inverse of the registration covariance (eq. 10),
-propagated into the node frame. At the end the scales (altitude) are solved in the log, the
-planar graph is optimized with the pose-graph back end, and the squared Mahalanobis sum over
-all edges is reported before and after, with mosaics from both sets of poses.
+(section III-B) and, beyond the paper, only when consistent with the current estimate
+(``loop_gate_deg``, ``loop_gate_footprints``: the mud of the Skerki frames gives PNR-accepted
+matches of the lamp's pattern at 90 or 180 degrees). A rejected consecutive registration
+becomes an almost free edge along the previous motion (a survey flies steadily), so the graph
+stays connected and the loops decide. Edge information is the inverse of the registration
+covariance (eq. 10), propagated into the node frame. At the end the scales (altitude) are
+solved in the log, the planar graph is optimized with the pose-graph back end, and the
+squared Mahalanobis sum over all edges is reported before and after, with mosaics from both
+sets of poses.
 
-Illumination: each image goes through a homomorphic high-pass before registration (the
-lamp's pattern multiplies the scene), so no per-dataset setting is needed for the Skerki
-frames, whose fixed hot spot otherwise locks phase correlation at (0, 0).
+Illumination, with no per-dataset setting: each image goes through a homomorphic high-pass
+(the lamp's light multiplies the scene). That alone leaves the frames' fixed pattern (the
+Skerki camera's vertical stripes, the rim of the hot spot) to lock the full-band POMF at
+(0, 0); the registration reads the PNR in the finest band where the Dirac is clear
+(:func:`algorithms.ifmi.spectral.band_peak`), below those frequencies. Subtracting the
+sequence's mean image, as the data's README suggests, put a ghost of every frame into every
+frame and lowered the accepted consecutive Skerki pairs from 48 to 45 of 56 (the mean of all
+frames) or 36 (a running mean).
 
 Units: metres when the recording states ``metres_per_pixel`` (sim-seabed) or the config does;
 otherwise pixels of the first image. Pixel metrics divide by it.
@@ -38,6 +48,17 @@ WEAK_SIGMA = 1e3  # a rejected consecutive registration keeps the graph connecte
 
 
 @dataclass(frozen=True, slots=True)
+class _Edge:
+    """A registration of image i (reference) onto image j, and whether it enters the graph as a measurement."""
+
+    i: int
+    j: int
+    reg: Registration
+    ok: bool  # PNR accepted (and, for a loop closure, consistent with the estimate)
+    prior: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rejected consecutive pair: the assumed motion
+
+
+@dataclass(frozen=True, slots=True)
 class IfmiPipelineConfig:
     """Parameters of the ``ifmi`` pipeline."""
 
@@ -47,6 +68,8 @@ class IfmiPipelineConfig:
     min_gap: int = 3  # loop candidates are at least this many images back
     metres_per_pixel: float = 0.0  # 0: from the recording's metadata, else 1 (pixel units)
     mosaic_max_px: int = 1600
+    loop_gate_deg: float = 30.0  # a loop closure further than this from the estimated relative heading is rejected
+    loop_gate_footprints: float = 0.5  # ... or further than this many footprints from the estimated offset
 
     def __post_init__(self) -> None:
         if not self.min_pnr >= 0:
@@ -57,6 +80,8 @@ class IfmiPipelineConfig:
             raise ValueError("max_candidates must be >= 0 and min_gap >= 2")
         if not self.metres_per_pixel >= 0 or self.mosaic_max_px < 64:
             raise ValueError("metres_per_pixel must be >= 0 and mosaic_max_px >= 64")
+        if not (self.loop_gate_deg > 0 and self.loop_gate_footprints > 0):
+            raise ValueError("loop_gate_deg and loop_gate_footprints must be > 0")
 
 
 @register
@@ -93,7 +118,8 @@ class IfmiPipeline(Pipeline):
         self.stamps: list[int] = []
         self.poses: list[np.ndarray] = []  # current estimate (dead reckoning through registrations)
         self.log_scale: list[float] = []
-        self.edges: list[tuple[int, int, Registration]] = []
+        self.edges: list[_Edge] = []
+        self.motion = np.zeros(3)  # the last accepted consecutive motion (constant-velocity prior)
         self.pnrs: list[float] = []
         self.tried = 0
         self.t_gt: list[int] = []
@@ -122,31 +148,36 @@ class IfmiPipeline(Pipeline):
             self.log_scale.append(0.0)
             return
         reg = register_prepared(self.prepared[k - 1], self.prepared[k], self.reg_config, obs)
-        self._count(reg, k - 1, k)
         if reg.status is Status.OK:
             z, _ = edge_from_registration(reg, self.mpp * math.exp(-(self.log_scale[-1] + math.log(reg.scale))))
-            self.poses.append(se2.compose(self.poses[-1], z))
+            self._count(reg, k - 1, k, True)
+            self.motion = z
             self.log_scale.append(self.log_scale[-1] + math.log(reg.scale))
         else:
-            self.poses.append(self.poses[-1].copy())
+            # Keep moving as before (a survey flies steadily); the edge is almost free, loops decide.
+            z = self.motion
+            self._count(reg, k - 1, k, False, (float(z[0]), float(z[1]), float(z[2])))
             self.log_scale.append(self.log_scale[-1])
+        self.poses.append(se2.compose(self.poses[-1], z))
         self._loop_candidates(k)
         obs.log("world/graph/estimate/nodes", Points(np.array(self.poses)[:, :2], radius=self._radius()))
 
-    def _count(self, reg: Registration, i: int, j: int) -> None:
+    def _count(self, reg: Registration, i: int, j: int, ok: bool, prior: tuple[float, float, float] | None = None,
+               why: str = "") -> None:
         self.tried += 1
         self.pnrs.append(reg.pnr)
-        ok = reg.status is Status.OK
-        if ok or j == i + 1:
-            self.edges.append((i, j, reg))
-        self.ctx.observer.log("ifmi/decision", Text(f"{i}->{j}: PNR {reg.pnr:.3f} {'accepted' if ok else 'rejected'} "
-                                                    f"({reg.status.value}), angle {reg.angle_deg:.2f} deg, scale "
-                                                    f"{reg.scale:.4f}, shift {reg.shift_px[0]:.2f}, "
-                                                    f"{reg.shift_px[1]:.2f} px", "INFO" if ok else "WARN"))
+        if ok or prior is not None:
+            self.edges.append(_Edge(i, j, reg, ok, prior or (0.0, 0.0, 0.0)))
+        why = why or reg.status.value
+        self.ctx.observer.log("ifmi/decision", Text(f"{i}->{j}: PNR {reg.pnr:.3f} (band {reg.band}) "
+                                                    f"{'accepted' if ok else 'rejected'} ({why}), angle "
+                                                    f"{reg.angle_deg:.2f} deg, scale {reg.scale:.4f}, shift "
+                                                    f"{reg.shift_px[0]:.2f}, {reg.shift_px[1]:.2f} px",
+                                                    "INFO" if ok else "WARN"))
 
     def _footprint(self) -> float:
         h, w = self.images[0].shape
-        return self.mpp * min(h, w)
+        return float(self.mpp * min(h, w))
 
     def _radius(self) -> float:
         return 0.02 * self._footprint()
@@ -159,25 +190,35 @@ class IfmiPipeline(Pipeline):
         near = np.flatnonzero(d <= self.config.loop_radius * self._footprint())
         for i in near[np.argsort(d[near], kind="stable")][: self.config.max_candidates]:
             reg = register_prepared(self.prepared[int(i)], self.prepared[k], self.reg_config)
-            self._count(reg, int(i), k)
+            ok, why = reg.status is Status.OK, ""
+            if ok:
+                # Section III-B accepts by PNR alone; low-texture frames (Skerki) also give PNR-accepted
+                # matches of the lamp's pattern at 90 or 180 degrees, which no loop can be: a gate on the
+                # current estimate (loose: it has drifted) keeps them out of the graph.
+                z, _ = edge_from_registration(reg, self.mpp * math.exp(-self.log_scale[k]))
+                dz = z - se2.between(self.poses[int(i)], self.poses[k])
+                off = math.hypot(dz[0], dz[1]) / self._footprint()
+                turn = abs(math.degrees(float(se2.wrap_angle(dz[2]))))
+                if turn > self.config.loop_gate_deg or off > self.config.loop_gate_footprints:
+                    ok, why = False, f"inconsistent with the estimate: {turn:.0f} deg, {off:.2f} footprints off"
+            self._count(reg, int(i), k, ok, why=why)
 
     def _graph(self) -> tuple[PoseGraph, np.ndarray]:
         """The planar graph at the dead-reckoned poses, and each node's metres per pixel."""
         n = len(self.images)
-        ii = np.array([e[0] for e in self.edges], np.int64)
-        jj = np.array([e[1] for e in self.edges], np.int64)
-        ok = np.array([e[2].status is Status.OK for e in self.edges])
-        ratio = np.array([math.log(e[2].scale) for e in self.edges])
-        var = np.array([e[2].scale_var / e[2].scale**2 if ok[k] else 1e6 for k, e in enumerate(self.edges)])
+        ii = np.array([e.i for e in self.edges], np.int64)
+        jj = np.array([e.j for e in self.edges], np.int64)
+        ratio = np.array([math.log(e.reg.scale) if e.ok else 0.0 for e in self.edges])
+        var = np.array([e.reg.scale_var / e.reg.scale**2 if e.ok else 1e6 for e in self.edges])
         res = self.mpp * np.exp(-solve_log_scales(n, ii, jj, ratio, var))
         z, info = [], []
-        for (_, j, reg), good in zip(self.edges, ok, strict=True):
-            if good:
-                zk, cov = edge_from_registration(reg, float(res[j]))
+        for e in self.edges:
+            if e.ok:
+                zk, cov = edge_from_registration(e.reg, float(res[e.j]))
                 info.append(np.linalg.inv(cov))
             else:
-                zk, info_k = np.zeros(3), np.diag([WEAK_SIGMA**-2, WEAK_SIGMA**-2, 1e-4])
-                info.append(info_k)
+                zk = np.array(e.prior)
+                info.append(np.diag([WEAK_SIGMA**-2, WEAK_SIGMA**-2, 1e-4]))
             z.append(zk)
         graph = PoseGraph(np.array(self.poses), ii, jj, np.array(z).reshape(-1, 3), np.array(info).reshape(-1, 3, 3))
         return graph, res
@@ -185,10 +226,10 @@ class IfmiPipeline(Pipeline):
     def finish(self) -> dict[str, float]:
         obs = self.ctx.observer
         n = len(self.images)
-        accepted = [e for e in self.edges if e[2].status is Status.OK]
+        accepted = [e for e in self.edges if e.ok]
         metrics: dict[str, float] = {"images": float(n), "registrations": float(self.tried),
                                      "registrations_accepted": float(len(accepted)),
-                                     "loop_closures": float(sum(1 for i, j, _ in accepted if j != i + 1))}
+                                     "loop_closures": float(sum(1 for e in accepted if e.j != e.i + 1))}
         if self.pnrs:
             metrics["pnr_median"] = float(np.median(self.pnrs))
         if n < 2 or not self.edges:
@@ -225,8 +266,8 @@ class IfmiPipeline(Pipeline):
         obs.log(f"world/graph/{tag}/conflicts/projected", Points(proj[bad, :2], radius=self._radius()))
         obs.log(f"ifmi/conflicts_{tag}", Scalar(float(bad.sum())))
 
-    def _scores(self, before: np.ndarray, after: np.ndarray, accepted: list[tuple[int, int, Registration]],
-                res: np.ndarray) -> dict[str, float]:
+    def _scores(self, before: np.ndarray, after: np.ndarray, accepted: list[_Edge], res: np.ndarray
+                ) -> dict[str, float]:
         if len(self.gt) < 2:
             return {}
         t_gt = np.asarray(self.t_gt, np.int64)
@@ -240,9 +281,10 @@ class IfmiPipeline(Pipeline):
         ate, scale = _aligned_rmse(after[inside], truth[inside])
         out = {"ate_rmse_px_initial": ate0 / self.mpp, "ate_rmse_px": ate / self.mpp}
         rot, trans = [], []
-        for i, j, reg in accepted:
+        for e in accepted:
+            i, j = e.i, e.j
             if inside[i] and inside[j]:
-                z, _ = edge_from_registration(reg, float(res[j]))
+                z, _ = edge_from_registration(e.reg, float(res[j]))
                 true = se2.between(truth[i], truth[j])
                 rot.append(abs(math.degrees(float(se2.wrap_angle(z[2] - true[2])))))
                 trans.append(math.hypot(scale * z[0] - true[0], scale * z[1] - true[1]) / self.mpp)

@@ -149,8 +149,7 @@ def test_recovery_matches_a_direct_solve() -> None:
     np.testing.assert_allclose(direct(info, b), exact, atol=1e-10)
     rec = Recovery(info, "local", 1e-10, 1e-6, 3, 500, 1000)
     rec.grow(np.zeros((60, 2)))
-    rec.r = b.copy()
-    rec.inv_blocks = inv_blocks
+    rec.set_state(np.zeros(120))  # residual b
     report = rec.solve(list(range(60)), loop_closure=False)
     assert report.method in ("local", "pcg")
     np.testing.assert_allclose(rec.x, exact, atol=1e-6)
@@ -224,3 +223,52 @@ def test_filter_bad_input_and_statuses() -> None:
     assert both.status is ScanStatus.MAPPED and both.anchors is not None and len(both.new_features) == 2
     np.testing.assert_allclose(slam.estimates(), POINTS, atol=1e-6)
     np.testing.assert_allclose(both.pose, [0.5, 0.0, 0.0], atol=1e-6)
+
+
+def _recast_factor(info: InformationMatrix, feats: list[int], seed: int) -> tuple[F64, F64, F64]:
+    """A recast-shaped factor on ``feats`` (eq. 8's Jacobian at random points, a full SPD R_map), added to ``info``."""
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(-4, 4, size=(len(feats), 2))
+    _, jac = map_invariants(pts)
+    a = rng.normal(size=(len(jac), len(jac)))
+    r_map = 0.01 * (a @ a.T / len(jac) + np.eye(len(jac)))
+    d_matrix = jac.T @ np.linalg.solve(r_map, jac)
+    info.add(np.array(feats), 0.5 * (d_matrix + d_matrix.T), np.zeros(2 * len(feats)))
+    return pts, jac, r_map
+
+
+def test_vicinity_covariance_form_of_eq10_is_exact() -> None:
+    """Kalman form of eq. (10) on V, and eq. (9) joins of new features: equal to blocks of the new I^-1."""
+    info, _ = random_information(30, 4)
+    v = [3, 4, 5, 9, 10, 11, 16]
+    cache = CovarianceCache()
+    cache.replace(v, np.linalg.inv(info.csc().toarray())[np.ix_(dofs(v), dofs(v))])
+    _, jac, r_map = _recast_factor(info, [4, 10, 5, 16], 5)  # anchors 4 and 10 first
+    cache.recast_update([4, 10, 5, 16], [], jac, r_map)
+    exact = np.linalg.inv(info.csc().toarray())
+    np.testing.assert_allclose(cache.block(v), exact[np.ix_(dofs(v), dofs(v))], atol=1e-10)
+    new = info.add_features(2).tolist()  # no information yet: eq. (9) places them from the anchors
+    _, jac, r_map = _recast_factor(info, [10, 9, 3] + new, 6)
+    cache.recast_update([10, 9, 3], new, jac, r_map)
+    exact = np.linalg.inv(info.csc().toarray())
+    joint = v + new
+    np.testing.assert_allclose(cache.block(joint), exact[np.ix_(dofs(joint), dofs(joint))], atol=1e-10)
+    cache.drop([3, 16])
+    assert not cache.has([3]) and cache.known([3, 16])
+    np.testing.assert_allclose(cache.marginals([3, 4]), [exact[np.ix_(dofs([f]), dofs([f]))] for f in (3, 4)],
+                               atol=1e-10)
+
+
+def test_a_mapped_feature_joining_the_vicinity_gets_an_upper_bound() -> None:
+    """A mapped feature outside V joins through eq. (9) without its own history: never below the exact block."""
+    info, _ = random_information(30, 7)
+    v = [12, 13, 18, 19]
+    cache = CovarianceCache()
+    cache.replace(v, np.linalg.inv(info.csc().toarray())[np.ix_(dofs(v), dofs(v))])
+    _, jac, r_map = _recast_factor(info, [13, 18, 12, 25, 7], 8)  # 25 and 7 are mapped but not in V
+    cache.recast_update([13, 18, 12], [25, 7], jac, r_map)
+    joint = v + [25, 7]
+    exact = np.linalg.inv(info.csc().toarray())[np.ix_(dofs(joint), dofs(joint))]
+    bound = cache.block(joint)
+    assert np.linalg.eigvalsh(bound - exact).min() >= -1e-10
+    assert np.linalg.eigvalsh(bound - exact).max() > 1e-6  # and it is a bound, not the exact block

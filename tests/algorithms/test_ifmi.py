@@ -8,8 +8,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import scipy.fft
 
-from algorithms.ifmi import IfmiConfig, SequentialRegistrar, Status, affine, register
+from algorithms.ifmi import (
+    IfmiConfig,
+    SequentialRegistrar,
+    Status,
+    affine,
+    prepare,
+    register,
+    register_prepared,
+    spectral,
+)
+from algorithms.ifmi.mapping import flatten_illumination
 from algorithms.observe import Image, Scalar
 from recorder.sim.seabed import procedural_texture
 from replay.observer import MemoryObserver
@@ -68,15 +79,28 @@ def test_known_scales(texture: np.ndarray, scale: float) -> None:
     assert status is Status.OK and ds < 0.1 and dt < 0.2
 
 
-@pytest.mark.parametrize("angle", [180.0, -180.0, 179.7, -0.3])
+@pytest.mark.parametrize("angle", [180.0, -180.0, 179.7, -0.3, 90.3])
 def test_180_degree_ambiguity(texture: np.ndarray, angle: float) -> None:
     """A half turn is told from no turn (the translation stage decides), and 180 wraps to -180.
 
-    Within a degree of 0 or 180 the rotation estimate is pulled toward the bin at zero (a known
-    bias, below 0.25 deg), so the bound here is on the disambiguation, not the fine angle.
+    Near a multiple of 90 degrees the pixel grid's imprint pulled the estimate onto it (up to
+    0.22 deg); the estimate redone with the reference turned away from the grid is within 0.08.
     """
     da, _, dt, status, _ = errors(texture, angle, 1.0, 12.0, 6.0)
-    assert status is Status.OK and da < 0.25 and dt < 0.3
+    assert status is Status.OK and da < 0.08 and dt < 0.3
+
+
+def test_no_pull_toward_the_grid(texture: np.ndarray) -> None:
+    """Small rotations about 0, 90 and 180 degrees: no systematic pull toward the multiple of 90."""
+    pulls = []
+    for angle in (-0.3, 0.2, 90.3, 179.7):
+        for at in [(300, 200), (100, 600), (600, 100)]:
+            ref = texture[at[0]:at[0] + N, at[1]:at[1] + N]
+            err = (register(ref, warp(ref, angle, 1.0, 12.0, 6.0)).angle_deg - angle + 180.0) % 360.0 - 180.0
+            near = (angle + 45.0) % 90.0 - 45.0  # signed distance to the grid angle
+            pulls.append(-math.copysign(1.0, near) * err)
+            assert abs(err) < 0.1
+    assert float(np.mean(pulls)) < 0.05  # it was 0.13
 
 
 def test_known_answer_batch(texture: np.ndarray) -> None:
@@ -165,6 +189,8 @@ def test_bad_input_names_the_argument(texture: np.ndarray) -> None:
         register(np.zeros((64, 64, 3)), a)
     with pytest.raises(ValueError, match="at least 32x32"):
         register(a[:16, :16], a[:16, :16])
+    with pytest.raises(ValueError, match="for their roles"):
+        register_prepared(prepare(a), prepare(a, moving=False))
 
 
 def test_config_validation() -> None:
@@ -174,3 +200,90 @@ def test_config_validation() -> None:
                           ({"window_alpha": 2.0}, "window_alpha"), ({"r_min_cycles": 0.0}, "r_min_cycles")]:
         with pytest.raises(ValueError, match=match):
             IfmiConfig(**kwargs)
+
+
+@pytest.mark.parametrize("shape", [(64, 64), (63, 64), (64, 63), (33, 35)])
+def test_opencv_packed_fft_matches_scipy(shape: tuple[int, int]) -> None:
+    """rfft2/irfft2 through OpenCV's packed real DFT equal scipy's, for even and odd sizes."""
+    rng = np.random.default_rng(0)
+    a, b = rng.standard_normal((2, *shape)).astype(np.float32)
+    fa = spectral.rfft2(a)
+    np.testing.assert_allclose(fa, scipy.fft.rfft2(a), atol=1e-3)
+    cross = spectral.rfft2(b) * np.conj(fa)
+    np.testing.assert_allclose(spectral.irfft2(cross, shape), scipy.fft.irfft2(cross, s=shape), atol=1e-4)
+
+
+def perturbed(texture: np.ndarray, rng: np.random.Generator, noise: float, blur: float
+              ) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+    """A random similarity pair with sensor noise on both images and a blur on the moving one; the true shift."""
+    y, x = (int(v) for v in rng.integers(0, 1024 - N, 2))
+    angle, scale = rng.uniform(-180, 180), math.exp(rng.uniform(math.log(0.8), math.log(1.25)))
+    dx, dy = rng.uniform(-0.2, 0.2, 2) * N
+    a = cv2.getRotationMatrix2D(((N - 1) / 2, (N - 1) / 2), angle, scale)
+    a[:, 2] += (dx, dy)
+    a[:, 2] -= a[:, :2] @ np.array([x, y], float)  # render the moving image from the texture around the crop
+    mov = cv2.warpAffine(texture, a, (N, N)).astype(np.float32)
+    if blur:
+        mov = cv2.GaussianBlur(mov, (0, 0), blur)
+    ref = texture[y:y + N, x:x + N].astype(np.float32)
+    ref += rng.normal(0, noise, ref.shape).astype(np.float32)
+    mov += rng.normal(0, noise, mov.shape).astype(np.float32)
+    return ref, mov, (dx, dy)
+
+
+def test_translation_covariance_is_conservative(texture: np.ndarray) -> None:
+    """NEES of the translation against the eq. (10) covariance on noisy, blurred pairs: far below 2.
+
+    The paper's heuristic measures the width of the POMF peak (about half a pixel), not the
+    error of its subpixel location (a few hundredths): it is not calibrated but conservative,
+    by one to two orders of magnitude (benchmarks/registration.py --nees). The bounds are loose
+    on purpose: all within the chi2(2) 95 % bound, mean NEES between 1e-4 and 0.5.
+    """
+    rng = np.random.default_rng(11)
+    nees = []
+    for noise, blur in [(0.0, 0.0), (3.0, 0.0), (0.0, 1.0), (3.0, 1.0)] * 3:
+        ref, mov, (dx, dy) = perturbed(texture, rng, noise, blur)
+        r = register(ref, mov)
+        assert r.status is Status.OK
+        e = np.array([r.shift_px[0] - dx, r.shift_px[1] - dy])
+        nees.append(float(e @ np.linalg.solve(r.covariance[:2, :2], e)))
+    assert max(nees) < 5.991 and 1e-4 < float(np.mean(nees)) < 0.5
+
+
+def test_noisy_blurred_pairs_are_accepted_in_a_lower_band(texture: np.ndarray) -> None:
+    """Noise over a blurred image leaves the full-band PNR below 0.2; a lower band holds the Dirac, rightly placed."""
+    rng = np.random.default_rng(12)
+    bands = []
+    for _ in range(4):
+        ref, mov, (dx, dy) = perturbed(texture, rng, 4.0, 1.0)
+        r = register(ref, mov)
+        assert r.status is Status.OK and math.hypot(r.shift_px[0] - dx, r.shift_px[1] - dy) < 0.5
+        bands.append(r.band)
+    assert max(bands) > 1
+
+
+def test_non_overlapping_noisy_pairs_are_rejected(texture: np.ndarray) -> None:
+    """The lower bands do not let chance peaks through: different places stay below the threshold."""
+    rng = np.random.default_rng(13)
+    for _ in range(6):
+        y1, x1 = rng.integers(0, 1024 - N, 2)
+        y2, x2 = (int(y1) + N + 20) % (1024 - N), (int(x1) + N + 20) % (1024 - N)
+        a = texture[y1:y1 + N, x1:x1 + N].astype(np.float32) + rng.normal(0, 6.0, (N, N)).astype(np.float32)
+        b = texture[y2:y2 + N, x2:x2 + N].astype(np.float32) + rng.normal(0, 6.0, (N, N)).astype(np.float32)
+        assert register(a, cv2.GaussianBlur(b, (0, 0), 1.5)).status is Status.AMBIGUOUS
+
+
+def test_skerki_sequence_consecutive_pairs(shared_data: Path) -> None:
+    """Real consecutive Skerki frames (lamp hot spot, mud): most pairs accepted, all accepted ones plausible.
+
+    The vehicle flies along the image's vertical axis, 110 to 145 px per frame (the data README's
+    phase correlation after mean-image subtraction gives a median of 127 px), with little turn.
+    """
+    frames = sorted((shared_data / "skerki-underwater-seq0658-0714").glob("*.png"))[:21]
+    seq = SequentialRegistrar()
+    regs = [seq.step(flatten_illumination(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))) for f in frames]
+    ok = [r for r in regs if r is not None and r.status is Status.OK]
+    assert len(ok) >= 17  # of 20
+    for r in ok:
+        dx, dy = r.shift_px
+        assert abs(r.angle_deg) < 5.0 and 90.0 < math.hypot(dx, dy) < 160.0 and abs(dy) > 3 * abs(dx)
