@@ -35,6 +35,7 @@ bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[dev,bench]"
 	$(BIN)/python benchmarks/replay_throughput.py
 	$(BIN)/python benchmarks/posegraph.py --data $(DATA)
+	$(BIN)/python benchmarks/registration.py
 
 # Optional: CHOLMOD (SuiteSparse) for the pose-graph solver; without it SciPy's SuperLU is used.
 cholmod: $(STAMP)
