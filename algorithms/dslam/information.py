@@ -31,7 +31,10 @@ I64 = NDArray[np.int64]
 def dofs(features: I64 | list[int]) -> I64:
     """The 2k state indices (x, y interleaved) of k features."""
     f = np.asarray(features, dtype=np.int64)
-    return np.stack([2 * f, 2 * f + 1], -1).reshape(-1)
+    out = np.empty(2 * len(f), dtype=np.int64)
+    out[0::2] = 2 * f
+    out[1::2] = out[0::2] + 1
+    return out
 
 
 def _grown(a: NDArray, size: int) -> NDArray:  # type: ignore[type-arg]

@@ -28,7 +28,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
@@ -36,6 +35,7 @@ from algorithms.common import rangebearing
 from algorithms.common.se2 import wrap_angle
 
 F64 = NDArray[np.float64]
+STEP_TOLERANCE = 1e-9  # Gauss-Newton stops when no pose component moves more than this (m, rad)
 
 
 class PoseStatus(enum.Enum):
@@ -96,8 +96,8 @@ def measurement_pose(ranges: F64, bearings: F64, r_loc: F64, landmarks: F64,
     idx = np.arange(m)
     h_f = np.zeros((2 * m, 2 * m))
     info = np.zeros((3, 3))
-    a = np.zeros((2 * m, 3))  # L^-1 H_X, with S = L L^T
-    e = np.zeros(2 * m)  # L^-1 nu
+    g = np.zeros(3)  # H_X^T S^-1 nu
+    nu_w_nu = 0.0
     it = 0
     for it in range(1, max_iterations + 1):
         zp, hp, hl = rangebearing.predict(pose, landmarks)
@@ -105,28 +105,25 @@ def measurement_pose(ranges: F64, bearings: F64, r_loc: F64, landmarks: F64,
         nu[1::2] = wrap_angle(nu[1::2])
         h_f.reshape(m, 2, m, 2)[idx, :, idx, :] = hl  # block-diagonal dz/dX_f
         s = r_loc + h_f @ landmark_cov @ h_f.T
+        h_x = hp.reshape(2 * m, 3)
         try:
-            chol = np.linalg.cholesky(0.5 * (s + s.T))
+            w = np.linalg.solve(0.5 * (s + s.T), np.column_stack([h_x, nu]))  # S^-1 [H_X, nu]
+            info = h_x.T @ w[:, :3]
+            g = h_x.T @ w[:, 3]
+            step = np.linalg.solve(info, g)
         except np.linalg.LinAlgError:
             return MeasurementPose(PoseStatus.DEGENERATE, nan, np.full((3, 3), np.nan), math.nan, it)
-        a = sla.solve_triangular(chol, hp.reshape(2 * m, 3), lower=True, check_finite=False)
-        e = sla.solve_triangular(chol, nu, lower=True, check_finite=False)
-        info = a.T @ a
-        try:
-            step = np.linalg.solve(info, a.T @ e)
-        except np.linalg.LinAlgError:
-            return MeasurementPose(PoseStatus.DEGENERATE, nan, np.full((3, 3), np.nan), math.nan, it)
+        nu_w_nu = float(nu @ w[:, 3])
         pose = pose + step
         pose[2] = float(wrap_angle(pose[2]))
-        if np.max(np.abs(step)) < 1e-10:
+        if np.max(np.abs(step)) < STEP_TOLERANCE:
             break
     eig = np.linalg.eigvalsh(info)
     if not eig[0] > 1e-12 * eig[-1]:
         return MeasurementPose(PoseStatus.DEGENERATE, nan, np.full((3, 3), np.nan), math.nan, it)
-    resid = e - a @ np.linalg.solve(info, a.T @ e)  # whitened residual at the last linearisation
-    stat = float(resid @ resid)
     cov = np.linalg.inv(info)
     cov = 0.5 * (cov + cov.T)
+    stat = nu_w_nu - float(g @ cov @ g)  # residual (nu - H d)^T S^-1 (nu - H d) at the last linearisation
     dof = 2 * m - 3
     status = PoseStatus.OK if stat <= chi2_quantile(gate_probability, dof) else PoseStatus.INCONSISTENT
     return MeasurementPose(status, pose, cov, stat, it)

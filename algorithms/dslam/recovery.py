@@ -52,7 +52,9 @@ def invert_blocks(blocks: F64) -> F64:
     det = a * d - b * c
     ok = np.abs(det) > 1e-300
     inv_det = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-    return np.stack([np.stack([d, -b], -1), np.stack([-c, a], -1)], -2) * inv_det[:, None, None]
+    out = np.empty(blocks.shape)
+    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = d * inv_det, -b * inv_det, -c * inv_det, a * inv_det
+    return out
 
 
 def apply_blocks(inv_blocks: F64, r: F64) -> F64:

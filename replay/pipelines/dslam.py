@@ -31,7 +31,7 @@ class DSlamPipelineConfig(LandmarkSlamConfig):
     ci_criterion: Literal["det", "trace"] = "det"
     recovery: Literal["local", "pcg", "direct"] = "local"
     global_every_scans: int = 100
-    covariance_refresh_scans: int = 200
+    covariance_refresh_scans: int = 0  # 0: exact recomputation only when a scan sees < 2 vicinity features
     loop_closure_gap_scans: int = 300
     info_every_scans: int = 100  # links and sparsity image interval
 
