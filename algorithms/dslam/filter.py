@@ -73,14 +73,14 @@ class DSlamConfig:
     localization_gate_probability: float = 0.9999  # localization; also gates measurement vs prediction
     map_gate_probability: float = 0.9999  # a recast update whose z_map innovation fails this gate is skipped
     recovery: Literal["local", "pcg", "direct"] = "local"  # recovery.Recovery
-    recovery_tol_m: float = 1e-5
-    local_tol_m: float = 1e-3
-    local_max_hops: int = 20
+    recovery_tol_m: float = 1e-5  # PCG stops when no feature's error estimate exceeds this
+    local_tol_m: float = 1e-3  # a local recovery is accepted when no feature's error estimate exceeds this
+    local_max_hops: int = 20  # growth rounds of the local region
     pcg_max_iterations: int = 1000
-    global_every_scans: int = 100  # a global solve every this many updates in local recovery (0: only when needed)
+    global_every_scans: int = 100  # a global two-level PCG every this many updates (0: only when needed)
     covariance_rtol: float = 1e-4  # covariance
     covariance_refresh_scans: int = 0  # exact recomputation of the vicinity covariance (0: only when needed)
-    vicinity_margin_m: float = 2.0  # the vicinity is the largest range seen so far plus this margin
+    vicinity_margin_m: float = 2.0  # V keeps features within the largest range seen so far plus this margin
     loop_closure_gap_scans: int = 300  # a mapped feature unseen for this long closes a loop
 
     def __post_init__(self) -> None:
@@ -336,7 +336,7 @@ class DSlam:
             created = self._add_features(lm, new, features)
             touched = created
             self._apply(created, d_matrix, d_vector)
-            cov.insert(created, np.linalg.inv(d_matrix))
+            cov.insert(created, np.asarray(np.linalg.inv(d_matrix), dtype=np.float64))
         elif len(old) >= 2 and not self._map_outlier(r, b, r_old, features, old, new):
             status = ScanStatus.MAPPED
             assert self._recast is not None

@@ -104,6 +104,5 @@ def choose_anchors(points: F64, traces: F64) -> tuple[int, int]:
     d2 = np.sum((points[:, None, :] - points[None, :, :]) ** 2, axis=-1)
     score = (traces[:, None] + traces[None, :]) / np.maximum(d2, 1e-12)
     score[np.tril_indices(m)] = np.inf
-    a, b = np.unravel_index(int(np.argmin(score)), score.shape)
-    a, b = int(a), int(b)
+    a, b = divmod(int(np.argmin(score)), m)
     return (a, b) if traces[a] <= traces[b] else (b, a)

@@ -9,9 +9,11 @@ features near the robot. Both come from sparse linear solves with I:
 - covariance column j solves ``I c = e_j``, so the joint covariance of k features costs 2k
   solves, never an inverse (:mod:`algorithms.dslam.covariance`, for a full recomputation).
 
-Solvers: preconditioned conjugate gradients with a 2x2 block-Jacobi preconditioner (several
-right-hand sides in lock-step, one sparse product per iteration), a local block solve on the
-neighbourhood of the updated features, and a direct sparse LU (SuperLU) as the fallback.
+Solvers: preconditioned conjugate gradients (several right-hand sides in lock-step, one sparse
+product per iteration) with a 2x2 block-Jacobi preconditioner or a two-level one
+(:class:`TwoLevel`: block-Jacobi plus the rigid motions of square cells of features), a local
+block solve on the neighbourhood of the updated features, and a direct sparse LU (SuperLU) as
+the fallback.
 Convergence is measured by the block-Jacobi error estimate ``max_f |I_ff^-1 r_f|``, in metres
 for the state (m^2 for covariance columns): the size of the correction each feature still needs.
 

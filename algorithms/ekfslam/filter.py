@@ -50,6 +50,20 @@ I64 = NDArray[np.int64]
 ROW_CHUNK = 1024  # rows of P updated per matrix product: bounds the temporary memory
 
 
+def symmetrise(p: F64, tile: int = 512) -> None:
+    """``p[:] = (p + p^T) / 2`` in place, tile by tile (no full-size temporary, cache-friendly transposes)."""
+    n = len(p)
+    for i0 in range(0, n, tile):
+        i1 = min(n, i0 + tile)
+        d = p[i0:i1, i0:i1]
+        d[...] = 0.5 * (d + d.T)
+        for j0 in range(i1, n, tile):
+            j1 = min(n, j0 + tile)
+            upper = 0.5 * (p[i0:i1, j0:j1] + p[j0:j1, i0:i1].T)
+            p[i0:i1, j0:j1] = upper
+            p[j0:j1, i0:i1] = upper.T
+
+
 @dataclass(frozen=True, slots=True)
 class EkfSlamConfig:
     """Parameters shared with D-SLAM (same meaning, same defaults)."""
@@ -277,7 +291,7 @@ class EkfSlam:
         self._x[2] = wrap_angle(self._x[2])
         for i0 in range(0, self.dim, ROW_CHUNK):
             p[i0:i0 + ROW_CHUNK] -= gain[i0:i0 + ROW_CHUNK] @ pht.T  # P -= K S K^T = K (P H^T)^T
-        p[:] = 0.5 * (p + p.T)
+        symmetrise(p)
         return float(nu @ sla.cho_solve(chol, nu))
 
     def _tentative(self, r: F64, b: F64, obs: list[int], r_cov: F64) -> tuple[list[int], I64]:

@@ -140,3 +140,31 @@ def test_runs_are_deterministic() -> None:
     _, b, rb = run_dslam(4, n=150)
     assert np.array_equal(a.estimates(), b.estimates())
     assert all(np.array_equal(x.pose, y.pose) and x.anchors == y.anchors for x, y in zip(ra, rb, strict=True))
+
+
+def test_a_local_step_never_touches_the_whole_map(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Scans recovered locally use no global product of I (O(N)); the grid finds the same features as a scan of all."""
+    from algorithms.dslam.information import InformationMatrix
+
+    calls = [0]
+    original = InformationMatrix.csr
+
+    def counted(self: InformationMatrix):  # type: ignore[no-untyped-def]
+        calls[0] += 1
+        return original(self)
+
+    monkeypatch.setattr(InformationMatrix, "csr", counted)
+    _, steps = landmark_world(5, 200)
+    slam = DSlam(DSlamConfig(odometry_noise=NOISE, association="unknown"))
+    local = 0
+    for s in steps:
+        slam.predict(s.increment)
+        before = calls[0]
+        res = slam.observe(s.ranges, s.bearings, None, SIGMA_R, SIGMA_B)
+        if res.recovery is not None and res.recovery.method == "local" and res.covariance is None:
+            local += 1
+            assert calls[0] == before
+        centre = res.pose[:2]
+        brute = np.flatnonzero(np.hypot(*(slam.estimates() - centre).T) <= 6.0).tolist()
+        assert slam.within(centre, 6.0) == brute
+    assert local > 100
