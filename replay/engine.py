@@ -31,6 +31,7 @@ class ReplayStats:
     step_durations_s: np.ndarray | None  # only with log_timings; one per message, in replay order
     step_times_ns: np.ndarray | None  # the log_time of each of those messages
     timings: dict[str, float] = field(default_factory=dict)  # the pipeline's own (Pipeline.timings), seconds
+    artifacts: dict[str, bytes] = field(default_factory=dict)  # files for the run directory (Pipeline.artifacts)
 
 
 def check_topics(reader: RecordingReader, pipeline: type[Pipeline]) -> list[str]:
@@ -107,7 +108,8 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
     if unknown:
         raise RuntimeError(f"pipeline {pipeline_cls.name} returned metrics without a spec: {sorted(unknown)}")
     return ReplayStats(metrics, n, np.asarray(durations) if log_timings else None,
-                       np.asarray(times, np.int64) if log_timings else None, pipeline.timings())
+                       np.asarray(times, np.int64) if log_timings else None, pipeline.timings(),
+                       pipeline.artifacts())
 
 
 def text_logger(observer: ReplayObserver, lines: list[str]) -> Callable[[str], None]:

@@ -92,6 +92,14 @@ class Pipeline(ABC):
         """Wall-clock timings of the pipeline's own (seconds), for manifest.json only; none by default."""
         return {}
 
+    def artifacts(self) -> dict[str, bytes]:
+        """Extra files for the run directory, by file name (called after ``finish``; none by default).
+
+        Names are plain file names (``[A-Za-z0-9._-]``, not one of the run's own files); each is
+        written atomically and listed with its sha256 in ``manifest.json`` under ``artifacts``.
+        """
+        return {}
+
     @classmethod
     def blueprint(cls) -> rrb.Blueprint:
         """The Rerun layout a run of this pipeline opens into."""

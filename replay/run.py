@@ -13,6 +13,7 @@ import hashlib
 import json
 import os
 import platform
+import re
 import resource
 import time
 import traceback
@@ -74,6 +75,21 @@ def library_versions() -> dict[str, str]:
         except metadata.PackageNotFoundError:
             out[name] = "not installed"
     return out
+
+
+RUN_FILES = frozenset({"run.rrd", "metrics.json", "manifest.json", "log.txt"})
+ARTIFACT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
+
+
+def write_artifacts(out_dir: Path, artifacts: Mapping[str, bytes]) -> dict[str, dict[str, Any]]:
+    """Write a pipeline's extra files atomically; their names, sizes and sha256 for the manifest."""
+    listed: dict[str, dict[str, Any]] = {}
+    for name, data in sorted(artifacts.items()):
+        if not ARTIFACT_NAME.fullmatch(name) or name in RUN_FILES or name.endswith(".partial"):
+            raise ValueError(f"pipeline artifact name {name!r} is not a plain file name of its own")
+        atomic_write(out_dir / name, data)
+        listed[name] = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+    return listed
 
 
 def prepare_run_dir(out_dir: Path) -> None:
@@ -143,6 +159,7 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
         observer = None
         os.replace(rrd_tmp, rrd)
         doc = metrics_mod.format_metrics(pipeline, values, pipeline_cls.metrics)
+        manifest["artifacts"] = write_artifacts(out_dir, stats.artifacts)
         atomic_write(out_dir / "metrics.json", metrics_mod.dumps(doc))
         timings["write_s"] = time.perf_counter() - tic
         manifest["status"] = "succeeded"
