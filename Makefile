@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 DATA   ?= ../shared/data
 ARGS   ?=
 
-.PHONY: venv demo serve test lint bench cholmod clean
+.PHONY: venv demo serve test test-ray lint bench cholmod clean
 
 venv: $(STAMP)
 
@@ -26,7 +26,13 @@ serve: $(STAMP)
 	$(BIN)/slamreplay serve --data-dir . $(ARGS)
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -n 2 -q $(ARGS)
+	$(BIN)/python -m pytest -n 2 -q -m "not ray" $(ARGS)
+
+# The Ray executor against a local Ray instance: installs the ray extra (about 20 s, 290 MB), then about
+# a minute of tests, most of it Ray's start-up; apart from `make test` so that it needs no Ray. CI runs both.
+test-ray: $(STAMP)
+	$(BIN)/python -m pip install --quiet -e ".[dev,ray]"
+	$(BIN)/python -m pytest -q -m ray tests/api/test_ray_executor.py $(ARGS)
 
 lint: $(STAMP)
 	$(BIN)/ruff check recorder replay algorithms api tests benchmarks

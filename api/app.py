@@ -99,7 +99,10 @@ UPLOAD_BODY = {"requestBody": {"required": True, "description": "the .mcap file,
 
 
 @router.post("/recordings", status_code=201, tags=["recordings"], openapi_extra=UPLOAD_BODY,
-             responses={200: {"model": RecordingOut, "description": "the same file was stored before"}})
+             responses={201: {"description": "stored as a new recording"},
+                        200: {"model": RecordingOut, "description": "the same file (same sha256) was stored before: "
+                                                                   "the same body, with the stored recording's id; "
+                                                                   "nothing new is stored"}})
 async def upload_recording(request: Request, response: Response, recordings: RecordingsDep,
                            filename: Annotated[str | None, Query(max_length=255, description="a label")] = None,
                            recover: Annotated[bool, Query(description="salvage a damaged file at once")] = False,
@@ -217,8 +220,12 @@ def diff_rrd(a: JobQuery, b: JobQuery, jobs: JobsDep) -> FileResponse:
 
 
 def make_executor(settings: Settings) -> Executor:
-    """The executor named by the settings."""
-    return LocalExecutor(settings.workers)
+    """The executor named by the settings (``ray``: ImportError with the install command when Ray is missing)."""
+    if settings.executor == "ray":
+        from api.ray_executor import RayExecutor
+
+        return RayExecutor(settings.workers, settings.job_limits, address=settings.ray_address)
+    return LocalExecutor(settings.workers, settings.job_limits)
 
 
 def create_app(settings: Settings | None = None, executor: Executor | None = None) -> FastAPI:

@@ -120,6 +120,19 @@ def cmd_record_sim_seabed(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_record_sim_corridor(args: argparse.Namespace) -> int:
+    from recorder.sim.corridor import CorridorConfig, simulate_corridor
+
+    config = _collect_sim_config(args, CorridorConfig)
+    with progress_bar("simulating", args.quiet) as update:
+        summary = simulate_corridor(Path(args.out), config, seed=args.seed, progress=update)
+    if not args.quiet:
+        _eprint(f"wrote {args.out}: {summary.messages:,} messages, {summary.images:,} images, {summary.poses:,} poses, "
+                f"{summary.path_length_m:.1f} m driven in {summary.duration_s:.0f} s, odometry off by "
+                f"{summary.odom_final_error_m:.2f} m at the end")
+    return EXIT_OK
+
+
 def cmd_record_images(args: argparse.Namespace) -> int:
     from recorder.importers.images import import_images
 
@@ -241,6 +254,24 @@ def cmd_run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_navigate(args: argparse.Namespace) -> int:
+    from replay.navigate import navigate
+
+    with progress_bar("navigating", args.quiet) as update:
+        s = navigate(args.map, args.world, args.goal, Path(args.out), start=args.start, seed=args.seed,
+                     visual_correction=not args.no_visual_correction, through_walls=args.through_walls,
+                     progress=update)
+    if not args.quiet:
+        how = "goal reached" if s.reached else ("stopped at a wall" if s.collided and not args.through_walls
+                                                else "time limit, goal not reached")
+        _eprint(f"wrote {args.out}: {s.messages:,} messages; route of {len(s.route)} nodes ({s.route_length_m:.1f} m), "
+                f"{how} after {s.duration_s:.1f} s, {s.goal_distance_m:.2f} m from the goal node; {s.images} images, "
+                f"{s.loop_closures} loop closures, {s.visual_corrections} visual corrections; true cross-track "
+                f"error mean {s.cross_track_mean_m:.3f} m, max {s.cross_track_max_m:.3f} m")
+        _eprint(f"replay it with: slamreplay run {args.out} --pipeline topometric-nav --out RUN_DIR")
+    return EXIT_OK
+
+
 def cmd_diff(args: argparse.Namespace) -> int:
     from replay.diff import diff_runs, format_table, parse_tolerances, write_comparison_rrd
 
@@ -270,7 +301,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from api.settings import Settings
 
     try:
-        settings = Settings.from_env(data_dir=args.data_dir, workers=args.workers, executor=args.executor)
+        settings = Settings.from_env(data_dir=args.data_dir, workers=args.workers, executor=args.executor,
+                                     ray_address=args.ray_address, storage_url=args.storage_url,
+                                     job_memory_mib=args.job_memory_mib, job_timeout_s=args.job_timeout_s)
     except ValidationError as err:
         problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'settings'}: {e['msg']}" for e in err.errors())
         raise CliError(f"invalid setting (from SLAMREPLAY_* or the options): {problems}") from None
@@ -279,7 +312,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
     auth = "bearer token required" if settings.token else "no token (set SLAMREPLAY_TOKEN to require one)"
     _eprint(f"slamreplay serve: http://{args.host}:{args.port} over {settings.data_dir.resolve()} "
             f"({settings.workers} {settings.executor} worker(s), {auth})")
-    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level=args.log_level)
+    try:
+        app = create_app(settings)
+    except ImportError as err:  # --executor ray without the extra: the message has the install command
+        raise CliError(str(err)) from None
+    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
     return EXIT_OK
 
 
@@ -321,6 +358,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     _sim_options(sea, SeabedSimConfig)
     sea.set_defaults(func=cmd_record_sim_seabed)
+    cor = rsub.add_parser("sim-corridor", parents=[quiet],
+                          help="forward camera driven round an indoor floor plan with loops: images, odometry",
+                          description="Simulate a wheeled robot teleoperated round corridors and rooms whose walls "
+                                      "carry photo textures, and record forward-camera images, drifting wheel "
+                                      "odometry and ground truth.")
+    cor.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
+    cor.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    from recorder.sim.corridor import CorridorConfig
+
+    _sim_options(cor, CorridorConfig)
+    cor.set_defaults(func=cmd_record_sim_corridor)
     ims = rsub.add_parser("images", parents=[quiet], help="import a folder of frames (no navigation)",
                           description="Record the images of DIR, ordered by the frame counter in their names, as "
                                       "/camera/image (mono8, PNG).")
@@ -369,6 +417,30 @@ def build_parser() -> argparse.ArgumentParser:
                      help="also log per-step wall-clock durations to run.rrd (timings/step_ms)")
     run.set_defaults(func=cmd_run)
 
+    nv = sub.add_parser("navigate", parents=[quiet],
+                        help="drive a topo-metric map's route in the simulator, closed loop, and record it",
+                        description="Navigation mode of the topo-metric map (Battesti et al. 2011, section IV): "
+                                    "Dijkstra from --start to --goal, qualitative visual localization, path "
+                                    "following, with the sim-corridor world in the loop (the robot moves by the "
+                                    "commands, the camera renders from the true pose, odometry drifts). Records "
+                                    "ground truth, odometry, images, localizations and commands to --out; replay "
+                                    "it with `slamreplay run OUT --pipeline topometric-nav`.")
+    nv.add_argument("--map", required=True, metavar="RUN_DIR",
+                    help="a `topometric` run directory (its map.npz) or a map file")
+    nv.add_argument("--world", required=True,
+                    help="a sim-corridor recording (its metadata names the world) or a world JSON file "
+                         '{"config": {...}, "seed": N}')
+    nv.add_argument("--goal", required=True, type=int, metavar="NODE", help="goal: a location index of the map")
+    nv.add_argument("--start", type=int, default=0, metavar="NODE",
+                    help="start location index; the robot starts at its pose (default: 0)")
+    nv.add_argument("--out", required=True, metavar="FILE.mcap", help="the recording to write (must not exist)")
+    nv.add_argument("--seed", type=int, default=0, help="seed of the odometry, RANSAC and image noise (default: 0)")
+    nv.add_argument("--no-visual-correction", action="store_true",
+                    help="drive on odometry only (loop closures are still detected and recorded)")
+    nv.add_argument("--through-walls", action="store_true",
+                    help="keep driving through walls instead of stopping at the first contact")
+    nv.set_defaults(func=cmd_navigate)
+
     df = sub.add_parser("diff", help="compare two runs: what changed, and which metrics got worse",
                         description="Compare RUN_B against RUN_A. Exit 0 when no metric got worse beyond its "
                                     "tolerance, 1 when one did, 2 on bad input.")
@@ -395,8 +467,19 @@ def build_parser() -> argparse.ArgumentParser:
                      help="holds recordings/ and runs/ (default: SLAMREPLAY_DATA_DIR, else the current directory)")
     srv.add_argument("--workers", type=int, default=None,
                      help="jobs running at once, each in its own process (default: SLAMREPLAY_WORKERS, else 2)")
-    srv.add_argument("--executor", choices=["local"], default=None,
-                     help="where jobs run: local worker processes (default: SLAMREPLAY_EXECUTOR, else local)")
+    srv.add_argument("--executor", choices=["local", "ray"], default=None,
+                     help="where jobs run: local worker processes, or Ray tasks (slamreplay[ray]) "
+                          "(default: SLAMREPLAY_EXECUTOR, else local)")
+    srv.add_argument("--ray-address", default=None, metavar="ADDR",
+                     help="Ray cluster to join, e.g. ray://head:10001 or auto (default: SLAMREPLAY_RAY_ADDRESS, "
+                          "else a local Ray instance)")
+    srv.add_argument("--storage-url", default=None, metavar="URL",
+                     help="where workers read recordings and write runs, e.g. s3://bucket/slam or a shared "
+                          "file:// path (default: SLAMREPLAY_STORAGE_URL, else the data directory)")
+    srv.add_argument("--job-memory-mib", type=int, default=None, metavar="MIB",
+                     help="memory limit of each job's process (default: SLAMREPLAY_JOB_MEMORY_MIB, else none)")
+    srv.add_argument("--job-timeout-s", type=float, default=None, metavar="S",
+                     help="wall-time limit of each job (default: SLAMREPLAY_JOB_TIMEOUT_S, else none)")
     srv.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"],
                      help="uvicorn log level (default: info)")
     srv.set_defaults(func=cmd_serve)

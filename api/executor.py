@@ -8,6 +8,13 @@ crash, a kill, an out-of-memory kill) fails only the job it was running, with th
 recorded, and is replaced for the next job. Workers write their progress to the job store
 themselves, run at a lower CPU priority than the server, ignore Ctrl-C (the server decides
 when they stop) and exit when the server process is gone.
+
+Both executors run the same job function, ``run_task``, under the same ``Watchdog``
+(``api.limits``): a job past its memory or wall-time limit fails alone with that limit in
+its error. ``LocalExecutor`` also watches each worker from outside and kills one that stays
+past a limit (a job stuck in native code), and replaces a worker after a limit failure so
+that the next job starts with a fresh process. ``RayExecutor`` (``api.ray_executor``) runs
+the job as a Ray task.
 """
 
 from __future__ import annotations
@@ -15,15 +22,16 @@ from __future__ import annotations
 import multiprocessing
 import os
 import queue
-import shutil
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
-from pathlib import Path
 from typing import Any, Literal, Protocol
+
+from api.limits import GRACE_S, JobLimitExceeded, JobLimits, Watchdog, rss_mib
 
 OutcomeStatus = Literal["succeeded", "failed", "cancelled", "interrupted"]
 PROGRESS_INTERVAL_S = 0.25
@@ -32,7 +40,10 @@ WORKER_NICENESS = 10  # replays yield the CPU to the server process, so status r
 
 @dataclass(frozen=True, slots=True)
 class Task:
-    """One job, by file location: replay ``recording`` through ``pipeline`` into ``run_dir``."""
+    """One job, by location: replay ``recording`` through ``pipeline`` into ``run_dir``.
+
+    ``recording`` and ``run_dir`` are local paths or URLs (``api.storage``).
+    """
 
     job_id: str
     recording: str
@@ -40,7 +51,7 @@ class Task:
     config: dict[str, Any]
     seed: int
     run_dir: str
-    db_path: str  # where the worker reports progress
+    db_path: str  # where a local worker reports progress
 
 
 @dataclass(frozen=True, slots=True)
@@ -49,6 +60,10 @@ class Outcome:
 
     status: OutcomeStatus
     error: str | None = None
+
+
+Report = Callable[[float], None]  # progress of the running job, 0..1
+Job = Callable[[Task, Report | None], Outcome]  # what a worker runs: ``run_task``, or a stand-in in tests
 
 
 class Executor(Protocol):
@@ -81,15 +96,21 @@ def _watch_parent(parent_pid: int) -> None:
         time.sleep(0.5)
 
 
-def run_task(task: Task) -> Outcome:
-    """Run one task in this process (the body of a worker; also usable directly)."""
+def run_task(task: Task, report: Report | None = None) -> Outcome:
+    """Run one task in this process (the body of a worker; also usable directly).
+
+    The recording is staged to a local file when it is remote and the run directory is
+    uploaded when it is (``api.storage``). ``report`` receives progress; by default it is
+    written to the job store at ``task.db_path``.
+    """
+    from api.storage import StorageError, staged_recording, staged_run_dir
     from api.store import set_progress
     from replay.errors import ReplayError
     from replay.run import run_recording
 
-    run_dir = Path(task.run_dir)
-    if run_dir.exists():
-        shutil.rmtree(run_dir)  # left by an attempt that a server stop interrupted
+    if report is None:
+        def report(fraction: float) -> None:
+            set_progress(task.db_path, task.job_id, fraction)
     last = 0.0
 
     def progress(done: int, total: int) -> None:
@@ -97,19 +118,36 @@ def run_task(task: Task) -> Outcome:
         now = time.monotonic()
         if total > 0 and (now - last >= PROGRESS_INTERVAL_S or done >= total):
             last = now
-            set_progress(task.db_path, task.job_id, done / total)
+            report(done / total)
 
     try:
-        run_recording(task.recording, task.pipeline, run_dir, seed=task.seed, config=task.config,
-                      progress=progress, run_id=task.job_id)
+        with staged_recording(task.recording) as recording, staged_run_dir(task.run_dir) as run_dir:
+            run_recording(recording, task.pipeline, run_dir, seed=task.seed, config=task.config,
+                          progress=progress, run_id=task.job_id)
     except ReplayError as err:
         return Outcome("failed", str(err))
+    except StorageError as err:
+        return Outcome("failed", f"storage: {err}")
     except Exception as err:  # noqa: BLE001 -- any other error is this job's failure, not the worker's
         return Outcome("failed", f"internal error: {type(err).__name__}: {err}")
     return Outcome("succeeded")
 
 
-def _worker_main(conn: Connection, parent_pid: int) -> None:
+def run_limited(job: Job, task: Task, limits: JobLimits, report: Report | None = None,
+                on_exceeded: Callable[[str], None] | None = None) -> Outcome:
+    """``job(task, report)`` under a ``Watchdog``: past a limit, a failed outcome naming it."""
+    dog = Watchdog(limits, on_exceeded)
+    try:
+        with dog:
+            outcome = job(task, report)
+    except JobLimitExceeded:
+        pass  # delivered just after the block ended; dog.error says which limit
+    if dog.error is not None:
+        return Outcome("failed", dog.error)
+    return outcome
+
+
+def _worker_main(conn: Connection, parent_pid: int, job: Job, limits: JobLimits) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.nice(WORKER_NICENESS)
     threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
@@ -121,7 +159,10 @@ def _worker_main(conn: Connection, parent_pid: int) -> None:
             task = conn.recv()
         except (EOFError, OSError):
             return
-        conn.send(run_task(task))
+        outcome = run_limited(job, task, limits)
+        conn.send(outcome)
+        if limits.is_limit_error(outcome.error):
+            return  # memory the job held may not all go back to the system: the next job gets a fresh process
 
 
 # ---------------------------------------------------------------------------------------
@@ -160,23 +201,29 @@ class _Worker:
                 self.proc.kill()
                 self.proc.join(2.0)
 
-    def replace(self, ctx: Any, parent_pid: int) -> None:
+    def replace(self, ctx: Any, parent_pid: int, job: Job, limits: JobLimits) -> None:
         """Start a fresh process in place of this one (which is stopped first)."""
         self.stop()
         if self.conn is not None:
             self.conn.close()
         parent, child = ctx.Pipe()
-        proc = ctx.Process(target=_worker_main, args=(child, parent_pid), daemon=True, name="slamreplay-worker")
+        proc = ctx.Process(target=_worker_main, args=(child, parent_pid, job, limits), daemon=True,
+                           name="slamreplay-worker")
         proc.start()
         child.close()
         self.proc, self.conn = proc, parent
 
 
 class LocalExecutor:
-    """``workers`` spawned processes, each running one job at a time and replaced when it dies."""
+    """``workers`` spawned processes, each running one job at a time and replaced when it dies.
 
-    def __init__(self, workers: int) -> None:
+    ``job`` is what workers run (``run_task``; a module-level function, as it is pickled).
+    """
+
+    def __init__(self, workers: int, limits: JobLimits | None = None, job: Job = run_task) -> None:
         self.slots = workers
+        self.limits = limits or JobLimits()
+        self._job = job
         self._ctx = multiprocessing.get_context("spawn")
         self._workers = [_Worker() for _ in range(workers)]
         self._idle: queue.Queue[_Worker] = queue.Queue()
@@ -187,7 +234,7 @@ class LocalExecutor:
     def start(self) -> None:
         with self._lock:
             for worker in self._workers:
-                worker.replace(self._ctx, os.getpid())
+                worker.replace(self._ctx, os.getpid(), self._job, self.limits)
                 self._idle.put(worker)
 
     def worker_pids(self) -> dict[str, int]:
@@ -205,16 +252,19 @@ class LocalExecutor:
                 if task.job_id in self._cancelled:
                     return Outcome("cancelled", "cancelled by request")
                 if not worker.alive():
-                    worker.replace(self._ctx, os.getpid())
+                    worker.replace(self._ctx, os.getpid(), self._job, self.limits)
                 worker.job_id = task.job_id
                 proc, conn = worker.proc, worker.conn
             if proc is None or conn is None:
                 raise RuntimeError("worker slot has no process")  # replace() always sets both
+            killed_for: str | None = None
             try:
                 conn.send(task)
-                wait([conn, proc.sentinel])
-                if conn.poll():
+                killed_for = self._wait(conn, proc)
+                if killed_for is None and conn.poll():
                     result: Outcome = conn.recv()
+                    if self.limits.is_limit_error(result.error):
+                        proc.join(GRACE_S)  # the worker exits after a limit failure; replaced below
                     return result
             except (EOFError, OSError, BrokenPipeError):
                 pass
@@ -225,14 +275,38 @@ class LocalExecutor:
                     return Outcome("interrupted", "the server is shutting down")
                 if task.job_id in self._cancelled:
                     return Outcome("cancelled", "cancelled by request")
-            return Outcome("failed", f"{describe_exit(exitcode)} while running this job")
+            error = killed_for or self.limits.exit_error(exitcode)
+            return Outcome("failed", error or f"{describe_exit(exitcode)} while running this job")
         finally:
             with self._lock:
                 worker.job_id = None
                 self._cancelled.discard(task.job_id)
                 if not self._closed and not worker.alive():
-                    worker.replace(self._ctx, os.getpid())
+                    worker.replace(self._ctx, os.getpid(), self._job, self.limits)
             self._idle.put(worker)
+
+    def _wait(self, conn: Connection, proc: BaseProcess) -> str | None:
+        """Wait for the worker's answer or its end; kill it when it stays past a limit ``GRACE_S`` longer
+        than its own watchdog allows (stuck in native code), and return that limit's error."""
+        limits = self.limits
+        if not limits.any():
+            wait([conn, proc.sentinel])
+            return None
+        started, over_since = time.monotonic(), None
+        while not wait([conn, proc.sentinel], timeout=0.1):
+            now = time.monotonic()
+            if limits.wall_s is not None and now - started > limits.wall_s + GRACE_S:
+                proc.kill()
+                return limits.wall_error()
+            rss = rss_mib(proc.pid) if limits.memory_mib is not None and proc.pid is not None else None
+            if rss is not None and limits.memory_mib is not None and rss > limits.memory_mib:
+                over_since = over_since if over_since is not None else now
+                if now - over_since > GRACE_S:
+                    proc.kill()
+                    return limits.memory_error()
+            else:
+                over_since = None
+        return None
 
     def cancel(self, job_id: str) -> None:
         with self._lock:

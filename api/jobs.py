@@ -5,6 +5,10 @@ through the executor (blocking that thread, never the event loop) and records th
 Submitting only inserts a row and wakes the threads, so queued jobs survive a restart: at
 start-up, jobs left running by the previous server are re-queued once, then everything
 queued runs.
+
+With a storage URL (``Settings.storage_url``) tasks name locations there instead of the
+data directory: the recording is copied there before its first job, and the run directory
+is copied back into ``runs/`` when the job ends, so every route reads local files.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+from api import storage
 from api.errors import ConflictError, NotFoundError
 from api.executor import Executor, Outcome, Task
 from api.settings import Settings
@@ -78,11 +83,14 @@ class JobService:
                 continue
             try:
                 outcome = self.executor.run(self.task_of(job))
+            except storage.StorageError as err:
+                outcome = Outcome("failed", f"storage: {err}")
             except Exception as err:  # the executor itself failed (e.g. no process could start): fail this job
                 log.exception("executor failed on job %s", job.id)
                 outcome = Outcome("failed", f"the executor could not run this job: {type(err).__name__}: {err}")
             if outcome.status == "interrupted":
                 continue  # left running on purpose: the next start re-queues it
+            outcome = self._collect(job.id, outcome)
             for attempt in range(3):
                 try:
                     self.store.finish_job(job.id, outcome.status, outcome.error)
@@ -91,8 +99,27 @@ class JobService:
                     log.exception("could not record the end of job %s (try %d)", job.id, attempt + 1)
 
     def task_of(self, job: JobRow) -> Task:
-        return Task(job.id, str(self.recording_path(job.recording_id)), job.pipeline, job.config, job.seed,
-                    str(self.run_dir(job.id)), str(self.settings.db_path))
+        """The task of ``job``; with a storage URL, its recording is copied there first (once)."""
+        recording, run_dir = str(self.recording_path(job.recording_id)), str(self.run_dir(job.id))
+        base = self.settings.storage_url
+        if base is not None:
+            remote = storage.join(base, "recordings", f"{job.recording_id}.mcap")
+            if not storage.exists(remote):
+                storage.put_file(Path(recording), remote)
+            recording, run_dir = remote, storage.join(base, "runs", job.id)
+        return Task(job.id, recording, job.pipeline, job.config, job.seed, run_dir, str(self.settings.db_path))
+
+    def _collect(self, job_id: str, outcome: Outcome) -> Outcome:
+        """With a storage URL, copy the run directory back into ``runs/`` (what it has, however the job ended)."""
+        if self.settings.storage_url is None:
+            return outcome
+        try:
+            storage.get_dir(storage.join(self.settings.storage_url, "runs", job_id), self.run_dir(job_id))
+        except storage.StorageError as err:
+            log.warning("job %s: could not copy its run back from storage: %s", job_id, err)
+            if outcome.status == "succeeded":
+                return Outcome("failed", f"the run ended but could not be copied back from storage: {err}")
+        return outcome
 
     # -- locations ---------------------------------------------------------------------------
 

@@ -7,7 +7,16 @@
 | ``SLAMREPLAY_TOKEN`` | unset | when set, every route but ``/healthz`` needs ``Authorization: Bearer <token>`` |
 | ``SLAMREPLAY_WORKERS`` | ``2`` | worker processes, i.e. jobs running at once |
 | ``SLAMREPLAY_MAX_UPLOAD_BYTES`` | 2 GiB | larger uploads are refused with 413 |
-| ``SLAMREPLAY_EXECUTOR`` | ``local`` | where jobs run: ``local`` (spawned worker processes) |
+| ``SLAMREPLAY_EXECUTOR`` | ``local`` | where jobs run: ``local`` (spawned worker processes) or ``ray`` |
+| | | (Ray tasks; ``pip install slamreplay[ray]``) |
+| ``SLAMREPLAY_RAY_ADDRESS`` | unset | the Ray cluster to join (``ray://host:10001``, ``auto``); unset: start a |
+| | | local Ray instance with ``workers`` CPUs |
+| ``SLAMREPLAY_STORAGE_URL`` | unset | where workers find recordings and write runs (``s3://bucket/prefix``, |
+| | | ``file:///shared/slam``): recordings are copied there, runs copied back to |
+| | | ``runs/`` when they end; unset: workers use ``recordings/`` and ``runs/`` in place |
+| ``SLAMREPLAY_JOB_MEMORY_MIB`` | unset | resident memory limit of a job's process (its imports included, about |
+| | | 200 MiB); a job past it fails with "job exceeded its memory limit of N MiB" |
+| ``SLAMREPLAY_JOB_TIMEOUT_S`` | unset | wall-time limit of a job, from its start in a worker |
 """
 
 from __future__ import annotations
@@ -20,8 +29,11 @@ from typing import Any, Literal
 from fastapi import Request
 from pydantic import BaseModel, ConfigDict, Field
 
+from api.limits import JobLimits
+
 ENV_PREFIX = "SLAMREPLAY_"
-ENV_FIELDS = ("data_dir", "token", "workers", "max_upload_bytes", "executor")
+ENV_FIELDS = ("data_dir", "token", "workers", "max_upload_bytes", "executor", "ray_address", "storage_url",
+              "job_memory_mib", "job_timeout_s")
 
 
 class Settings(BaseModel):
@@ -33,7 +45,11 @@ class Settings(BaseModel):
     token: str | None = Field(default=None, min_length=1, repr=False)
     workers: int = Field(default=2, ge=1, le=64)
     max_upload_bytes: int = Field(default=2 << 30, ge=1)
-    executor: Literal["local"] = "local"
+    executor: Literal["local", "ray"] = "local"
+    ray_address: str | None = Field(default=None, min_length=1)
+    storage_url: str | None = Field(default=None, min_length=1)
+    job_memory_mib: int | None = Field(default=None, ge=64)
+    job_timeout_s: float | None = Field(default=None, gt=0)
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None, **overrides: Any) -> Settings:
@@ -49,6 +65,10 @@ class Settings(BaseModel):
                 values[name] = raw
         values.update({k: v for k, v in overrides.items() if v is not None})
         return cls(**values)
+
+    @property
+    def job_limits(self) -> JobLimits:
+        return JobLimits(self.job_memory_mib, self.job_timeout_s)
 
     @property
     def recordings_dir(self) -> Path:

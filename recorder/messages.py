@@ -22,6 +22,8 @@ TOPIC_RANGE_BEARING: Final = "/landmarks/range_bearing"
 TOPIC_GROUND_TRUTH_LANDMARKS: Final = "/ground_truth/landmarks"
 TOPIC_CAMERA_IMAGE: Final = "/camera/image"
 TOPIC_CAMERA_CALIBRATION: Final = "/camera/calibration"
+TOPIC_CMD_VEL: Final = "/cmd_vel"
+TOPIC_NAV_LOCALIZATION: Final = "/nav/localization"
 
 ImageEncoding = Literal["mono8", "rgb8"]
 ImageCompression = Literal["raw", "png", "jpeg"]
@@ -228,7 +230,57 @@ class CameraCalibration:
         object.__setattr__(self, "D", D)
 
 
-Message = OdometryPose | GroundTruthPose | RangeBearingScan | LandmarkMap | CameraImage | CameraCalibration
+@dataclass(frozen=True, slots=True)
+class VelocityCommand:
+    """A planar velocity command to the robot base: forward speed and yaw rate (counter-clockwise)."""
+
+    stamp_ns: int
+    linear_mps: float
+    angular_radps: float
+
+    def __post_init__(self) -> None:
+        _check_stamp(self.stamp_ns)
+        _check_finite(linear_mps=self.linear_mps, angular_radps=self.angular_radps)
+        object.__setattr__(self, "stamp_ns", int(self.stamp_ns))
+        object.__setattr__(self, "linear_mps", float(self.linear_mps))
+        object.__setattr__(self, "angular_radps", float(self.angular_radps))
+
+
+@dataclass(frozen=True, slots=True)
+class NavLocalization:
+    """A navigation-mode localization after one image (topo-metric map, ``map`` frame).
+
+    The estimated pose after the image; the matched map node (-1: no loop closure), the
+    image x-translation in pixels and the heading deviation it gave; ``corrected`` when the
+    match moved the estimate (visual correction on).
+    """
+
+    stamp_ns: int
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    node: int
+    x_translation_px: float
+    heading_deviation_rad: float
+    corrected: bool
+
+    FRAME_ID: ClassVar[str] = "map"
+
+    def __post_init__(self) -> None:
+        _check_stamp(self.stamp_ns)
+        _check_finite(x_m=self.x_m, y_m=self.y_m, yaw_rad=self.yaw_rad, x_translation_px=self.x_translation_px,
+                      heading_deviation_rad=self.heading_deviation_rad)
+        if not isinstance(self.node, (int, np.integer)) or isinstance(self.node, bool) or self.node < -1:
+            raise ValueError(f"node must be a node index >= 0, or -1 for none, got {self.node!r}")
+        object.__setattr__(self, "stamp_ns", int(self.stamp_ns))
+        object.__setattr__(self, "node", int(self.node))
+        object.__setattr__(self, "corrected", bool(self.corrected))
+        for name in ("x_m", "y_m", "yaw_rad", "x_translation_px", "heading_deviation_rad"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+
+
+Message = (OdometryPose | GroundTruthPose | RangeBearingScan | LandmarkMap | CameraImage | CameraCalibration
+           | VelocityCommand | NavLocalization)
 
 
 def assert_msg_equal(a: Message, b: Message, *, atol: float = 0.0) -> None:
@@ -258,4 +310,6 @@ TOPIC_TYPES: Final[dict[str, type]] = {
     TOPIC_GROUND_TRUTH_LANDMARKS: LandmarkMap,
     TOPIC_CAMERA_IMAGE: CameraImage,
     TOPIC_CAMERA_CALIBRATION: CameraCalibration,
+    TOPIC_CMD_VEL: VelocityCommand,
+    TOPIC_NAV_LOCALIZATION: NavLocalization,
 }

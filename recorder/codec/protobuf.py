@@ -8,6 +8,8 @@
 | LandmarkMap        | slamreplay.LandmarkMap (frame ``world``)           |
 | CameraImage        | foxglove.CompressedImage (png/jpeg) or RawImage   |
 | CameraCalibration  | foxglove.CameraCalibration                         |
+| VelocityCommand    | slamreplay.VelocityCommand                         |
+| NavLocalization    | slamreplay.NavLocalization (frame ``map``)         |
 
 Planar poses are stored in 3D with z = 0 and the heading as a quaternion about +z.
 """
@@ -26,7 +28,12 @@ from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame as PoseInFrame
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage as RawImageProto
 from mcap_protobuf.schema import build_file_descriptor_set
 
-from recorder.codec.schemas import LandmarkMapProto, RangeBearingScanProto
+from recorder.codec.schemas import (
+    LandmarkMapProto,
+    NavLocalizationProto,
+    RangeBearingScanProto,
+    VelocityCommandProto,
+)
 from recorder.errors import CodecError
 from recorder.messages import (
     CameraCalibration,
@@ -34,9 +41,11 @@ from recorder.messages import (
     GroundTruthPose,
     LandmarkMap,
     Message,
+    NavLocalization,
     OdometryPose,
     PlanarPose,
     RangeBearingScan,
+    VelocityCommand,
 )
 
 PNG_LEVEL = 1  # fast; PNG is lossless at every level
@@ -53,6 +62,10 @@ def _proto_class(msg: Message) -> Any:
         return RawImageProto if msg.compression == "raw" else CompressedImageProto
     if isinstance(msg, CameraCalibration):
         return CameraCalibrationProto
+    if isinstance(msg, VelocityCommand):
+        return VelocityCommandProto
+    if isinstance(msg, NavLocalization):
+        return NavLocalizationProto
     raise CodecError(f"no schema for message type {type(msg).__name__}")
 
 
@@ -64,7 +77,7 @@ def schema_name(msg: Message) -> str:
 @cache
 def _schema_data(full_name: str) -> bytes:
     classes = (PoseInFrameProto, RangeBearingScanProto, LandmarkMapProto, RawImageProto,
-               CompressedImageProto, CameraCalibrationProto)
+               CompressedImageProto, CameraCalibrationProto, VelocityCommandProto, NavLocalizationProto)
     cls = next(c for c in classes if c.DESCRIPTOR.full_name == full_name)
     return bytes(build_file_descriptor_set(cls).SerializeToString())
 
@@ -122,6 +135,12 @@ def _to_proto(msg: Message) -> Any:
             distortion_model=msg.distortion_model, D=msg.D.tolist(), K=K.ravel().tolist(),
             R=np.eye(3).ravel().tolist(), P=P.ravel().tolist(),
         )
+    if isinstance(msg, VelocityCommand):
+        return VelocityCommandProto(frame_id="base_link", linear=msg.linear_mps, angular=msg.angular_radps)
+    if isinstance(msg, NavLocalization):
+        return NavLocalizationProto(frame_id=NavLocalization.FRAME_ID, x=msg.x_m, y=msg.y_m, yaw=msg.yaw_rad,
+                                    node=msg.node, x_translation=msg.x_translation_px,
+                                    heading_deviation=msg.heading_deviation_rad, corrected=msg.corrected)
     raise CodecError(f"no schema for message type {type(msg).__name__}")
 
 
@@ -192,6 +211,11 @@ def from_proto(kind: type, proto: Any, log_time_ns: int) -> Message:
     if kind is CameraCalibration and name == "foxglove.CameraCalibration":
         return CameraCalibration(stamp, proto.width, proto.height, np.array(proto.K).reshape(3, 3),
                                  np.array(proto.D), proto.distortion_model or "plumb_bob", proto.frame_id or "camera")
+    if kind is VelocityCommand and name == "slamreplay.VelocityCommand":
+        return VelocityCommand(stamp, proto.linear, proto.angular)
+    if kind is NavLocalization and name == "slamreplay.NavLocalization":
+        return NavLocalization(stamp, proto.x, proto.y, proto.yaw, proto.node, proto.x_translation,
+                               proto.heading_deviation, proto.corrected)
     raise CodecError(f"schema {name} cannot be read as {kind.__name__}")
 
 
@@ -204,4 +228,6 @@ READABLE_SCHEMAS: dict[type, tuple[str, ...]] = {
     CameraImage: ("foxglove.CompressedImage", "foxglove.RawImage", "sensor_msgs/msg/Image",
                   "sensor_msgs/msg/CompressedImage"),
     CameraCalibration: ("foxglove.CameraCalibration",),
+    VelocityCommand: ("slamreplay.VelocityCommand",),
+    NavLocalization: ("slamreplay.NavLocalization",),
 }

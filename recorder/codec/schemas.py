@@ -13,6 +13,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory, ti
 
 PACKAGE = "slamreplay"
 FILE_NAME = "slamreplay/landmarks.proto"
+NAV_FILE_NAME = "slamreplay/navigation.proto"
 
 _F = descriptor_pb2.FieldDescriptorProto
 
@@ -34,6 +35,43 @@ _LANDMARK_MAP_FIELDS = [
     ("y", 5, _F.TYPE_DOUBLE, _F.LABEL_REPEATED, None),  # metres
 ]
 
+# Navigation (topo-metric navigation mode): a velocity command (foxglove has no Twist) and the
+# localization after each image.
+_VELOCITY_COMMAND_FIELDS = [
+    ("timestamp", 1, _F.TYPE_MESSAGE, _F.LABEL_OPTIONAL, ".google.protobuf.Timestamp"),
+    ("frame_id", 2, _F.TYPE_STRING, _F.LABEL_OPTIONAL, None),
+    ("linear", 3, _F.TYPE_DOUBLE, _F.LABEL_OPTIONAL, None),  # m/s, forward (+x of base_link)
+    ("angular", 4, _F.TYPE_DOUBLE, _F.LABEL_OPTIONAL, None),  # rad/s, counter-clockwise about +z
+]
+_NAV_LOCALIZATION_FIELDS = [
+    ("timestamp", 1, _F.TYPE_MESSAGE, _F.LABEL_OPTIONAL, ".google.protobuf.Timestamp"),
+    ("frame_id", 2, _F.TYPE_STRING, _F.LABEL_OPTIONAL, None),
+    ("x", 3, _F.TYPE_DOUBLE, _F.LABEL_OPTIONAL, None),  # metres
+    ("y", 4, _F.TYPE_DOUBLE, _F.LABEL_OPTIONAL, None),  # metres
+    ("yaw", 5, _F.TYPE_DOUBLE, _F.LABEL_OPTIONAL, None),  # radians, CCW from +x
+    ("node", 6, _F.TYPE_INT64, _F.LABEL_OPTIONAL, None),  # matched map node, -1 = none
+    ("x_translation", 7, _F.TYPE_DOUBLE, _F.LABEL_OPTIONAL, None),  # pixels
+    ("heading_deviation", 8, _F.TYPE_DOUBLE, _F.LABEL_OPTIONAL, None),  # radians
+    ("corrected", 9, _F.TYPE_BOOL, _F.LABEL_OPTIONAL, None),
+]
+
+
+def _add_messages(fdp: descriptor_pb2.FileDescriptorProto, messages: list[tuple[str, list[Any]]]) -> None:
+    for msg_name, msg_fields in messages:
+        msg = fdp.message_type.add(name=msg_name)
+        for name, number, ftype, label, type_name in msg_fields:
+            field = msg.field.add(name=name, number=number, type=ftype, label=label, json_name=name)
+            if type_name:
+                field.type_name = type_name
+
+
+def _nav_file_descriptor() -> descriptor_pb2.FileDescriptorProto:
+    fdp = descriptor_pb2.FileDescriptorProto(
+        name=NAV_FILE_NAME, package=PACKAGE, syntax="proto3", dependency=["google/protobuf/timestamp.proto"]
+    )
+    _add_messages(fdp, [("VelocityCommand", _VELOCITY_COMMAND_FIELDS), ("NavLocalization", _NAV_LOCALIZATION_FIELDS)])
+    return fdp
+
 
 def _file_descriptor() -> descriptor_pb2.FileDescriptorProto:
     fdp = descriptor_pb2.FileDescriptorProto(
@@ -54,12 +92,15 @@ def _build_classes() -> dict[str, Any]:
     timestamp_pb2.DESCRIPTOR.CopyToProto(ts)
     pool.Add(ts)
     pool.Add(_file_descriptor())
+    pool.Add(_nav_file_descriptor())
     return {
         name: message_factory.GetMessageClass(pool.FindMessageTypeByName(f"{PACKAGE}.{name}"))
-        for name in ("RangeBearingScan", "LandmarkMap")
+        for name in ("RangeBearingScan", "LandmarkMap", "VelocityCommand", "NavLocalization")
     }
 
 
 _CLASSES = _build_classes()
 RangeBearingScanProto: Any = _CLASSES["RangeBearingScan"]
 LandmarkMapProto: Any = _CLASSES["LandmarkMap"]
+VelocityCommandProto: Any = _CLASSES["VelocityCommand"]
+NavLocalizationProto: Any = _CLASSES["NavLocalization"]

@@ -1,5 +1,5 @@
 """Built-in pipelines; importing this package registers them."""
 
-from replay.pipelines import dslam, ekfslam, ifmi, odometry
+from replay.pipelines import dslam, ekfslam, ifmi, odometry, topometric, topometric_nav
 
-__all__ = ["dslam", "ekfslam", "ifmi", "odometry"]
+__all__ = ["dslam", "ekfslam", "ifmi", "odometry", "topometric", "topometric_nav"]

@@ -126,13 +126,16 @@ def test_upload_answers_topics_counts_and_span(client: TestClient, recording: Pa
 
 
 def test_same_file_twice_is_one_recording(tmp_path: Path) -> None:
-    """Uploading the same bytes again answers 200 with the same id, and one recording is stored."""
+    """201 for a new file; the same bytes again answer 200 with the same body (as documented), one recording stored."""
     data = write_tiny_recording(tmp_path / "a.mcap").read_bytes()
     c = TestClient(create_app(Settings(data_dir=tmp_path), executor=InlineExecutor()))
     first, second = upload(c, data, filename="a.mcap"), upload(c, data, filename="b.mcap")
     assert (first.status_code, second.status_code) == (201, 200)
-    assert first.json()["id"] == second.json()["id"] and len(c.get("/recordings").json()) == 1
+    assert first.json() == second.json() and len(c.get("/recordings").json()) == 1  # the first label stays
     assert len(list((tmp_path / "recordings").glob("*.mcap"))) == 1
+    documented = c.get("/openapi.json").json()["paths"]["/recordings"]["post"]["responses"]
+    assert documented["201"]["description"] == "stored as a new recording"
+    assert documented["200"]["description"].startswith("the same file (same sha256) was stored before")
 
 
 def test_download_gives_back_the_bytes(client: TestClient, recording: Path) -> None:

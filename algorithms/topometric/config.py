@@ -1,0 +1,88 @@
+"""Configuration of topo-metric mapping (and, with the translation threshold off, navigation)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+from algorithms.topometric.bayes import FilterConfig
+from algorithms.topometric.features import FeatureConfig
+from algorithms.topometric.validation import ValidationConfig
+from algorithms.topometric.vocabulary import VocabularyConfig
+
+
+@dataclass(frozen=True, slots=True)
+class MapperConfig:
+    """Attributes
+    ----------
+    sample_distance_m, sample_angle_deg : an image is taken after this much odometry (paper: 50 cm, 10 deg).
+    recent_images : locations seen in the last this many taken images are no loop-closure hypotheses
+        (they look like the current image; Angeli et al. exclude them the same way).
+    candidate_threshold : posterior above which a location is a potential loop closure.
+    max_candidates : most probable candidates validated per image.
+    odometry_sigma_xy_m_per_m, odometry_sigma_theta_rad_per_m, odometry_sigma_theta_rad_per_rad,
+    odometry_sigma_floor : standard deviations of an odometry edge, growing with its length and turn.
+    loop_sigma_xy_m, loop_sigma_theta_deg : added to a loop edge (the two images are "very close").
+    relax_iterations : Gauss-Newton iterations per relaxation.
+    gate_m, gate_m_per_m, gate_deg, gate_deg_per_m : beyond the paper, a location is a hypothesis only
+        within ``gate_m + gate_m_per_m * d`` metres and ``gate_deg + gate_deg_per_m * d`` degrees of the
+        current odometry estimate, d the distance driven since the last loop closure (a generous bound
+        on the drift). Places that look alike (repeated posters, twin corridors) pass the paper's
+        geometric test perfectly; odometry can still tell them apart. Inactive without odometry.
+    """
+
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    vocabulary: VocabularyConfig = field(default_factory=VocabularyConfig)
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    validation: ValidationConfig = field(default_factory=ValidationConfig)
+    sample_distance_m: float = 0.5
+    sample_angle_deg: float = 10.0
+    recent_images: int = 10
+    candidate_threshold: float = 0.1
+    max_candidates: int = 3
+    odometry_sigma_xy_m_per_m: float = 0.05
+    odometry_sigma_theta_rad_per_m: float = 0.02
+    odometry_sigma_theta_rad_per_rad: float = 0.05
+    odometry_sigma_floor: float = 0.01
+    loop_sigma_xy_m: float = 0.2
+    loop_sigma_theta_deg: float = 3.0
+    relax_iterations: int = 10
+    gate_m: float = 2.0
+    gate_m_per_m: float = 0.1
+    gate_deg: float = 30.0
+    gate_deg_per_m: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not (self.sample_distance_m > 0 and self.sample_angle_deg > 0):
+            raise ValueError("sample_distance_m and sample_angle_deg must be > 0")
+        if self.recent_images < 0 or self.max_candidates < 1 or self.relax_iterations < 1:
+            raise ValueError("recent_images must be >= 0, max_candidates and relax_iterations >= 1")
+        if not 0.0 < self.candidate_threshold <= 1.0:
+            raise ValueError(f"candidate_threshold must be in (0, 1], got {self.candidate_threshold}")
+        sig = (self.odometry_sigma_xy_m_per_m, self.odometry_sigma_theta_rad_per_m,
+               self.odometry_sigma_theta_rad_per_rad, self.loop_sigma_xy_m, self.loop_sigma_theta_deg)
+        if not (all(s >= 0 for s in sig) and self.odometry_sigma_floor > 0):
+            raise ValueError("odometry and loop sigmas must be >= 0, odometry_sigma_floor > 0")
+        if not (self.gate_m > 0 and self.gate_m_per_m >= 0 and self.gate_deg > 0 and self.gate_deg_per_m >= 0):
+            raise ValueError("gate_m and gate_deg must be > 0, gate_m_per_m and gate_deg_per_m >= 0")
+
+
+def mapper_config_from_dict(values: dict[str, Any]) -> MapperConfig:
+    """Rebuild a MapperConfig from ``dataclasses.asdict`` output; ValueError naming a bad key."""
+    nested = {"features": FeatureConfig, "vocabulary": VocabularyConfig, "filter": FilterConfig,
+              "validation": ValidationConfig}
+    known = {f.name for f in fields(MapperConfig)}
+    kwargs: dict[str, Any] = {}
+    for key, value in values.items():
+        if key not in known:
+            raise ValueError(f"config: unknown key {key!r}")
+        if key in nested:
+            if not isinstance(value, dict):
+                raise ValueError(f"config: {key} must be a mapping, got {type(value).__name__}")
+            sub = {f.name for f in fields(nested[key])}
+            bad = sorted(set(value) - sub)
+            if bad:
+                raise ValueError(f"config: unknown key {key}.{bad[0]}")
+            value = nested[key](**value)
+        kwargs[key] = value
+    return MapperConfig(**kwargs)

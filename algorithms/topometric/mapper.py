@@ -1,0 +1,305 @@
+"""Incremental topo-metric mapping: locations linked by odometry, closed by visual loop closures.
+
+Section III-A of Battesti, Bazeille, Filliat (ECMR 2011) [1]_: an image is taken each time the robot
+has moved 50 cm or turned 10 degrees; each image either adds a location, linked to the previous one
+by the relative odometry, or, when a loop closure is detected and validated, *updates* the matched
+location (its words gain the image's) and adds a loop edge to it, after which the graph is relaxed
+[2]_. Detection is two-level: the Bayes filter over locations (:mod:`.bayes`) proposes the locations
+whose posterior exceeds ``candidate_threshold``; each is validated by the 2D motion of
+:mod:`.validation`, and among the accepted ones the one with the smallest translation wins
+(section III-A). A loop edge says "the robot is at the matched location": its measurement is the
+odometry since the previous image (from the previous location), its covariance that odometry's
+plus ``loop_sigma_*`` (how far apart two images passing the thresholds can be).
+
+The relaxation uses the project's pose-graph back end (Gauss-Newton, incremental; [2]_ used TORO)
+without robust kernel: validated loop closures are trusted (the paper's first concern is that none is
+false), and a kernel would also down-weight the odometry edges that leave a re-visited location.
+
+References
+----------
+.. [1] E. Battesti, S. Bazeille, D. Filliat, "Qualitative localization using vision and odometry for
+   path following in topo-metric maps", ECMR 2011, section III.
+.. [2] S. Bazeille, D. Filliat, "Incremental topo-metric SLAM using vision and robot odometry", ICRA 2011.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from algorithms.common import se2
+from algorithms.common.posegraph import OptimizerConfig, chi2
+from algorithms.common.posegraph_incremental import IncrementalConfig, IncrementalOptimizer
+from algorithms.common.robust import Kernel
+from algorithms.topometric.bayes import FilterStep, LocationFilter
+from algorithms.topometric.config import MapperConfig
+from algorithms.topometric.features import FeatureExtractor, Features
+from algorithms.topometric.topomap import TopoMap
+from algorithms.topometric.validation import Validation, validate
+from algorithms.topometric.vocabulary import Vocabulary
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+class StepStatus(enum.Enum):
+    """What the mapper did with one (image, odometry) pair."""
+
+    SKIPPED = "skipped"  # not enough motion since the last image taken
+    NO_FEATURES = "no_features"  # taken but blank / featureless: no location, no match
+    NEW_LOCATION = "new_location"
+    LOOP_CLOSURE = "loop_closure"
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Candidate:
+    """A potential loop closure: location, its posterior, and its validation."""
+
+    location: int
+    probability: float
+    validation: Validation
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Relaxation:
+    """The location graph around one relaxation: poses (n, 3) before and after, chi2 before and after."""
+
+    poses_before: F64
+    poses_after: F64
+    chi2_before: float
+    chi2_after: float
+    iterations: int
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class MapperStep:
+    """Result of :meth:`TopoMetricMapper.step`.
+
+    Attributes
+    ----------
+    status : StepStatus.
+    image_index : index among taken images (-1 when skipped).
+    location : location of the image (new or matched; -1 when skipped or featureless).
+    features : keypoints of the image (working resolution), None when skipped.
+    filter : prior, likelihood and posterior over the locations before this image (+ "new").
+    candidates : validated candidates, most probable first.
+    accepted : the accepted loop closure, if any.
+    relaxation : the relaxation it triggered, if any.
+    durations_s : seconds of features, bow, filter, validation, relaxation (only with a clock).
+    """
+
+    status: StepStatus
+    image_index: int = -1
+    location: int = -1
+    features: Features | None = None
+    filter: FilterStep | None = None
+    candidates: tuple[Candidate, ...] = ()
+    accepted: Candidate | None = None
+    relaxation: Relaxation | None = None
+    durations_s: dict[str, float] = field(default_factory=dict)
+
+
+class TopoMetricMapper:
+    """Mapping mode: incremental dictionary, new locations, loop closures, relaxation.
+
+    Parameters
+    ----------
+    cfg : MapperConfig
+    rng : the generator of the RANSAC samples (seeded by the caller).
+    first_pose : (3,) map-frame pose of the first location.
+    clock : optional seconds counter (e.g. ``time.perf_counter``) to fill ``durations_s``; the
+        algorithm never reads a clock of its own.
+    """
+
+    def __init__(self, cfg: MapperConfig, rng: np.random.Generator, first_pose: ArrayLike = (0.0, 0.0, 0.0),
+                 clock: Callable[[], float] | None = None) -> None:
+        self.cfg = cfg
+        self.rng = rng
+        self.clock = clock
+        self.extractor = FeatureExtractor(cfg.features)
+        self.vocabulary = Vocabulary(cfg.vocabulary)
+        self.filter = LocationFilter(cfg.filter)
+        self._first_pose = np.asarray(first_pose, np.float64).reshape(3)
+        opt = OptimizerConfig(method="gn", max_iterations=cfg.relax_iterations, kernel=Kernel.NONE, rel_tol=1e-6)
+        self._graph = IncrementalOptimizer(IncrementalConfig(optimizer=opt), self._first_pose)
+        self._features: list[Features] = []
+        self._n_images: list[int] = []
+        self._last_seen: list[int] = []
+        self._loop: list[bool] = []
+        self._metric: bool | None = None
+        self._sampled: F64 | None = None  # odometry at the last image taken
+        self._processed: F64 | None = None  # odometry at the last image with features
+        self._prev_location = -1
+        self._taken = 0
+        self._since_loop = 0.0  # metres driven since the last loop closure (for the gate)
+
+    # -- state ------------------------------------------------------------------------
+    @property
+    def n_locations(self) -> int:
+        return len(self._features)
+
+    @property
+    def poses(self) -> F64:
+        """(n, 3) current (relaxed) location poses in the map frame."""
+        return self._graph.poses[: self.n_locations] if self.n_locations else np.zeros((0, 3))
+
+    def edges(self) -> tuple[I64, I64, NDArray[np.bool_]]:
+        """Edge endpoints (i, j) and whether each is a loop edge."""
+        g = self._graph.graph
+        return g.i.copy(), g.j.copy(), np.array(self._loop, bool)
+
+    def topomap_features(self, location: int) -> Features:
+        """Keypoints of a location's reference image (the one candidates are validated against)."""
+        return self._features[location]
+
+    def topomap(self) -> TopoMap:
+        """The map for navigation (a snapshot; the mapper may go on)."""
+        g = self._graph.graph
+        hists = [self.vocabulary.location_histogram(k) for k in range(self.n_locations)]
+        return TopoMap.build(self.cfg, self.poses, g.i, g.j, g.measurements, g.information,
+                             np.array(self._loop, bool), self._features, hists, self.vocabulary.words,
+                             np.array(self._n_images, np.int64))
+
+    # -- one step ---------------------------------------------------------------------
+    def step(self, image: NDArray[np.generic], odom_pose: ArrayLike | None) -> MapperStep:
+        """Process one image with the cumulative odometry pose at its time (None: no odometry).
+
+        Without odometry every image is taken, edges carry no metric information and the graph is
+        never relaxed; the filter uses its graph-neighbourhood model. The choice is fixed by the
+        first call.
+        """
+        metric = odom_pose is not None
+        if self._metric is None:
+            self._metric = metric
+        elif self._metric != metric:
+            raise ValueError("odom_pose: give it at every step or at none")
+        odom = None if odom_pose is None else np.asarray(odom_pose, np.float64).reshape(3)
+        if odom is not None and not self._take(odom):
+            return MapperStep(StepStatus.SKIPPED)
+        self._sampled = odom
+        k = self._taken
+        self._taken += 1
+        dur: dict[str, float] = {}
+        tic = self._tic()
+        feats = self.extractor.extract(image)
+        tic = self._toc(dur, "features", tic)
+        if len(feats) == 0:
+            return MapperStep(StepStatus.NO_FEATURES, k, -1, feats, durations_s=dur)
+        words, counts = Vocabulary.histogram(self.vocabulary.quantize(feats.descriptors, learn=True))
+        scores = self.vocabulary.scores(words, counts)
+        tic = self._toc(dur, "bow", tic)
+        n = self.n_locations
+        eligible = np.array(self._last_seen, np.int64) < k - self.cfg.recent_images
+        motion = None
+        if odom is not None and self._processed is not None:
+            motion = se2.between(self._processed, odom)
+        elif odom is not None:
+            motion = np.zeros(3)
+        if motion is not None and n:
+            eligible &= self._gate(motion)
+        g = self._graph.graph
+        fstep = self.filter.step(self.poses, motion, scores, eligible.reshape(n), (g.i, g.j))
+        tic = self._toc(dur, "filter", tic)
+        cands, best = self._validate(feats, fstep.posterior, eligible)
+        tic = self._toc(dur, "validation", tic)
+        post = fstep.posterior.copy()
+        relax = None
+        if best is not None:
+            loc = best.location
+            self.vocabulary.update_location(loc, words, counts)
+            self._n_images[loc] += 1
+            self._last_seen[loc] = k
+            post[loc] += post[n]
+            post[n] = 0.0
+            relax = self._add_edge(loc, motion, loop=True)
+            status = StepStatus.LOOP_CLOSURE
+        else:
+            loc = self.vocabulary.add_location(words, counts)
+            self._features.append(feats)
+            self._n_images.append(1)
+            self._last_seen.append(k)
+            post = np.r_[post[:n], post[n], 0.0]
+            if loc > 0:
+                self._add_edge(loc, motion, loop=False)
+            status = StepStatus.NEW_LOCATION
+        self._toc(dur, "relaxation", tic)
+        self.filter.commit(post)
+        self._prev_location = loc
+        self._processed = odom
+        if best is not None:
+            self._since_loop = 0.0
+        elif motion is not None:
+            self._since_loop += math.hypot(motion[0], motion[1])
+        return MapperStep(status, k, loc, feats, fstep, cands, best, relax, dur)
+
+    def _gate(self, motion: F64) -> NDArray[np.bool_]:
+        """Locations within the drift bound of the current odometry estimate (MapperConfig gate_*)."""
+        c = self.cfg
+        here = se2.compose(self.poses[self._prev_location], motion)
+        d = self._since_loop + math.hypot(motion[0], motion[1])
+        dist = np.hypot(*(self.poses[:, :2] - here[:2]).T)
+        turn = np.degrees(np.abs(se2.wrap_angle(self.poses[:, 2] - here[2])))
+        return (dist <= c.gate_m + c.gate_m_per_m * d) & (turn <= c.gate_deg + c.gate_deg_per_m * d)
+
+    def _take(self, odom: F64) -> bool:
+        if self._sampled is None:
+            return True
+        d = se2.between(self._sampled, odom)
+        return bool(math.hypot(d[0], d[1]) >= self.cfg.sample_distance_m
+                    or abs(math.degrees(float(d[2]))) >= self.cfg.sample_angle_deg)
+
+    def _validate(self, feats: Features, posterior: F64, eligible: NDArray[np.bool_]
+                  ) -> tuple[tuple[Candidate, ...], Candidate | None]:
+        n = self.n_locations
+        p = posterior[:n]
+        idx = np.flatnonzero(eligible & (p >= self.cfg.candidate_threshold))
+        idx = idx[np.argsort(-p[idx], kind="stable")][: self.cfg.max_candidates]
+        w, h = self.cfg.features.width, self.cfg.features.height
+        centre = ((w - 1) / 2.0, (h - 1) / 2.0)
+        cands = tuple(Candidate(int(i), float(p[i]), validate(self._features[i], feats, self.cfg.validation,
+                                                               self.rng, centre)) for i in idx)
+        ok = [c for c in cands if c.validation.accepted]
+        best = min(ok, key=lambda c: c.validation.motion.translation_px if c.validation.motion else 0.0,
+                   default=None)
+        return cands, best
+
+    def _information(self, z: F64, loop: bool) -> F64:
+        c = self.cfg
+        dist, turn = math.hypot(z[0], z[1]), abs(float(z[2]))
+        sxy = c.odometry_sigma_floor + c.odometry_sigma_xy_m_per_m * dist
+        sth = (c.odometry_sigma_floor + c.odometry_sigma_theta_rad_per_m * dist
+               + c.odometry_sigma_theta_rad_per_rad * turn)
+        var = np.array([sxy**2, sxy**2, sth**2])
+        if loop:
+            var += [c.loop_sigma_xy_m**2, c.loop_sigma_xy_m**2, math.radians(c.loop_sigma_theta_deg) ** 2]
+        if not self._metric:
+            var = np.full(3, 1e6)  # no odometry: the edge only records adjacency
+        return np.diag(1.0 / var)
+
+    def _add_edge(self, loc: int, motion: F64 | None, loop: bool) -> Relaxation | None:
+        prev = self._prev_location
+        if prev < 0 or prev == loc:
+            return None
+        z = np.zeros(3) if motion is None else motion
+        before = self.poses
+        res = self._graph.step([prev], [loc], z[None, :], self._information(z, loop)[None])
+        self._loop.append(loop)
+        if not loop or not self._metric:
+            return None
+        g_before = self._graph.graph.with_poses(before)
+        return Relaxation(before, self.poses, chi2(g_before), res.chi2, res.iterations)
+
+    def _tic(self) -> float:
+        return self.clock() if self.clock is not None else 0.0
+
+    def _toc(self, dur: dict[str, float], name: str, tic: float) -> float:
+        if self.clock is None:
+            return 0.0
+        now = self.clock()
+        dur[name] = now - tic
+        return now

@@ -1,0 +1,288 @@
+"""Pipeline ``topometric``: visual topo-metric mapping (Battesti, Bazeille, Filliat, ECMR 2011, section III).
+
+Each ``/camera/image`` goes to :class:`~algorithms.topometric.TopoMetricMapper` with the latest
+``/odom`` pose; the mapper takes an image every 50 cm or 10 degrees of odometry, adds a location or
+closes a loop, and relaxes the graph at each loop closure. Logged: each taken image with its
+keypoints (``camera/image``), each candidate as the map image beside the current one with inlier
+and outlier matches and its 2D motion (``camera/candidate``), the filter's posterior over locations
+(``topo/posterior``, plus ``metrics/posterior_*``), the graph (``world/graph/current``) and around
+each relaxation ``world/graph/before`` and ``world/graph/after``, and the decisions as text
+(``topo/log``). The map goes to ``map.npz`` (:mod:`replay.topomap_io`).
+
+Truth for precision and recall (only with ``/ground_truth/pose``): two images show the *same place*
+when their true positions are within ``same_place_m`` and their headings within ``same_place_deg``
+(defaults 1 m and 20 degrees). A loop closure is correct when the current image and the matched
+location's reference image are the same place. An image *should* close a loop when it is the same
+place as an earlier taken image (with keypoints) outside the mapper's ``recent_images`` window;
+recall is the share of those that did.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+import rerun.blueprint as rrb
+
+from algorithms.common import se2
+from algorithms.observe import Image, LineStrips, Points, Scalar, Segments, Text
+from algorithms.topometric import Candidate, MapperConfig, MapperStep, StepStatus, TopoMetricMapper
+from recorder.messages import (
+    TOPIC_CAMERA_IMAGE,
+    TOPIC_GROUND_TRUTH_POSE,
+    TOPIC_ODOM,
+    CameraImage,
+    GroundTruthPose,
+    OdometryPose,
+)
+from replay.pipeline import MetricSpec, Pipeline, ReplayContext, register
+from replay.reader import Envelope
+from replay.topomap_io import save_map
+
+STAGES = ("features", "bow", "filter", "validation", "relaxation")
+
+
+@dataclass(frozen=True, slots=True)
+class TopometricConfig:
+    """Parameters of the ``topometric`` pipeline (the rest are :class:`MapperConfig` defaults)."""
+
+    sample_distance_m: float = 0.5  # paper III-A
+    sample_angle_deg: float = 10.0  # paper III-A
+    candidate_threshold: float = 0.1
+    recent_images: int = 10
+    history: int = 3  # time steps merged with max in the prediction (paper III-B)
+    word_radius_bits: int = 48
+    min_inliers: int = 12
+    max_translation_px: float = 40.0
+    max_rotation_deg: float = 8.0
+    max_scale: float = 1.07
+    same_place_m: float = 1.0  # truth rule for precision / recall
+    same_place_deg: float = 20.0
+
+    def __post_init__(self) -> None:
+        if not (self.same_place_m > 0 and self.same_place_deg > 0):
+            raise ValueError("same_place_m and same_place_deg must be > 0")
+        self.mapper()  # validates the rest
+
+    def mapper(self) -> MapperConfig:
+        base = MapperConfig()
+        return replace(base, sample_distance_m=self.sample_distance_m, sample_angle_deg=self.sample_angle_deg,
+                       candidate_threshold=self.candidate_threshold, recent_images=self.recent_images,
+                       filter=replace(base.filter, history=self.history),
+                       vocabulary=replace(base.vocabulary, word_radius_bits=self.word_radius_bits),
+                       validation=replace(base.validation, min_inliers=self.min_inliers,
+                                          max_translation_px=self.max_translation_px,
+                                          max_rotation_deg=self.max_rotation_deg, max_scale=self.max_scale))
+
+
+@register
+class TopometricPipeline(Pipeline):
+    name = "topometric"
+    summary = "topo-metric visual mapping: STAR+BRIEF bag of words, Bayes filter, 2-point RANSAC, relaxation"
+    required_topics = (TOPIC_CAMERA_IMAGE, TOPIC_ODOM)
+    optional_topics = (TOPIC_GROUND_TRUTH_POSE,)
+    start_topic = TOPIC_ODOM
+    Config = TopometricConfig
+    metrics = {
+        "images": MetricSpec("none", "", "images taken (every sample_distance_m or sample_angle_deg)"),
+        "locations": MetricSpec("none", "", "locations (graph nodes)"),
+        "loop_closures": MetricSpec("none", "", "accepted loop closures"),
+        "loop_closure_precision": MetricSpec("higher", "", "correct / accepted loop closures (truth rule in the "
+                                             "module docstring)", 1e-9),
+        "loop_closure_recall": MetricSpec("higher", "", "images that closed a loop / images that should have", 1e-9),
+        "trajectory_ate_rmse_m": MetricSpec("lower", "m", "RMS position error of the relaxed locations", 1e-9),
+        "odometry_ate_rmse_m": MetricSpec("lower", "m", "RMS position error of odometry at the same images", 1e-9),
+    }
+
+    def __init__(self, config: TopometricConfig, ctx: ReplayContext) -> None:
+        super().__init__(config, ctx)
+        self.start = ctx.T_world_start if ctx.T_world_start is not None else np.zeros(3)
+        self.mapper = TopoMetricMapper(config.mapper(), ctx.rng, self.start, clock=time.perf_counter)
+        self.odom0: np.ndarray | None = None
+        self.odom: np.ndarray | None = None
+        self.gray: list[np.ndarray] = []  # reference image of each location (for the candidate view)
+        self.taken_t: list[int] = []  # stamps of images taken with features
+        self.taken_odom: list[np.ndarray] = []
+        self.taken_loc: list[int] = []
+        self.taken_loop: list[bool] = []
+        self.created_t: list[int] = []
+        self.durations: dict[str, list[float]] = {k: [] for k in (*STAGES, "image")}
+        self.t_gt: list[int] = []
+        self.gt: list[np.ndarray] = []
+        self.relaxations = 0
+
+    def step(self, env: Envelope) -> None:
+        msg = env.msg
+        if isinstance(msg, GroundTruthPose):
+            self.t_gt.append(env.log_time_ns)
+            self.gt.append(msg.xy_yaw)
+        elif isinstance(msg, OdometryPose):
+            if self.odom0 is None:
+                self.odom0 = msg.xy_yaw
+            self.odom = se2.compose(self.start, se2.between(self.odom0, msg.xy_yaw))
+        elif isinstance(msg, CameraImage) and self.odom is not None:
+            tic = time.perf_counter()
+            res = self.mapper.step(msg.pixels, self.odom)
+            if res.status is not StepStatus.SKIPPED:
+                self.durations["image"].append(time.perf_counter() - tic)
+                for k in STAGES:
+                    self.durations[k].append(res.durations_s.get(k, 0.0))
+                self._log(env, res)
+
+    # -- logging ----------------------------------------------------------------------
+    def _log(self, env: Envelope, res: MapperStep) -> None:
+        obs = self.ctx.observer
+        gray = self.mapper.extractor.prepare(env.msg.pixels)  # type: ignore[union-attr]
+        obs.log("camera/image", Image(gray))
+        if res.features is not None:
+            obs.log("camera/image/keypoints", Points(res.features.xy, radius=2.0))
+        if res.status is StepStatus.NO_FEATURES:
+            obs.log("topo/log", Text(f"image {res.image_index}: no keypoints (blank or featureless): no location",
+                                     "WARN"))
+            return
+        if res.status is StepStatus.NEW_LOCATION:
+            self.gray.append(gray)
+            self.created_t.append(env.log_time_ns)
+        self.taken_t.append(env.log_time_ns)
+        assert self.odom is not None
+        self.taken_odom.append(self.odom)
+        self.taken_loc.append(res.location)
+        self.taken_loop.append(res.status is StepStatus.LOOP_CLOSURE)
+        if res.filter is not None:
+            post = res.filter.posterior
+            n = len(post) - 1
+            obs.log("topo/posterior", LineStrips((np.stack([np.arange(n + 1, dtype=float), post], axis=1),)))
+            obs.log("metrics/posterior_new", Scalar(float(post[n])))
+            obs.log("metrics/posterior_max_location", Scalar(float(post[:n].max()) if n else 0.0))
+        for c in res.candidates:
+            self._log_candidate(gray, res, c)
+        if res.accepted is not None:
+            m = res.accepted.validation.motion
+            assert m is not None
+            obs.log("topo/log", Text(
+                f"image {res.image_index}: LOOP CLOSURE with location {res.location} "
+                f"(p={res.accepted.probability:.2f}, {m.n_inliers} inliers, t=({m.tx_px:.1f}, {m.ty_px:.1f}) px, "
+                f"rot {math.degrees(m.rotation_rad):.1f} deg, scale {m.scale:.3f})"))
+        poses = self.mapper.poses
+        i, j, loop = self.mapper.edges()
+        obs.log("world/graph/current/nodes", Points(poses[:, :2], radius=0.1))
+        obs.log("world/graph/current/edges", Segments(poses[i, :2], poses[j, :2]))
+        obs.log("world/graph/current/loops", Segments(poses[i[loop], :2], poses[j[loop], :2]))
+        obs.log("metrics/locations", Scalar(float(len(poses))))
+        if res.relaxation is not None:
+            self.relaxations += 1
+            for tag, p in (("before", res.relaxation.poses_before), ("after", res.relaxation.poses_after)):
+                keep = (i < len(p)) & (j < len(p))
+                obs.log(f"world/graph/{tag}/nodes", Points(p[:, :2], radius=0.08))
+                obs.log(f"world/graph/{tag}/edges", Segments(p[i[keep], :2], p[j[keep], :2]))
+            obs.log("topo/log", Text(f"relaxation {self.relaxations}: chi2 {res.relaxation.chi2_before:.4g} -> "
+                                     f"{res.relaxation.chi2_after:.4g} ({res.relaxation.iterations} iterations)"))
+
+    def _log_candidate(self, gray: np.ndarray, res: MapperStep, c: Candidate) -> None:
+        obs = self.ctx.observer
+        v = c.validation
+        w = gray.shape[1]
+        obs.log("camera/candidate", Image(np.hstack([self.gray[c.location], gray])))
+        ref = self.mapper.topomap_features(c.location)
+        cur = res.features
+        assert cur is not None
+        inl = v.motion.inliers if v.motion is not None else np.zeros(len(v.matches), bool)
+        a = ref.xy[v.matches[:, 0]] if len(v.matches) else np.zeros((0, 2))
+        b = cur.xy[v.matches[:, 1]] + [w, 0.0] if len(v.matches) else np.zeros((0, 2))
+        obs.log("camera/candidate/inliers", Segments(a[inl], b[inl]))
+        obs.log("camera/candidate/outliers", Segments(a[~inl], b[~inl]))
+        motion = "no motion" if v.motion is None else (
+            f"t=({v.motion.tx_px:.1f}, {v.motion.ty_px:.1f}) px, rot {math.degrees(v.motion.rotation_rad):.1f} deg, "
+            f"scale {v.motion.scale:.3f}, {v.motion.n_inliers}/{len(v.matches)} inliers")
+        obs.log("topo/log", Text(f"image {res.image_index}: candidate location {c.location} (p={c.probability:.2f}): "
+                                 f"{v.status.value}; {motion}", "INFO" if v.accepted else "DEBUG"))
+
+    # -- end --------------------------------------------------------------------------
+    def finish(self) -> dict[str, float]:
+        n_img = len(self.durations["image"])
+        loops = int(sum(self.taken_loop))
+        metrics: dict[str, float] = {"images": float(n_img), "locations": float(self.mapper.n_locations),
+                                     "loop_closures": float(loops)}
+        self.ctx.log(f"{n_img} images, {self.mapper.n_locations} locations, {loops} loop closures, "
+                     f"{self.mapper.vocabulary.n_words} words")
+        if len(self.gt) < 2 or not self.taken_t:
+            self.ctx.log("no ground truth: precision, recall and ATE do not apply")
+            return metrics
+        t_gt = np.asarray(self.t_gt, np.int64)
+        t = np.asarray(self.taken_t, np.int64)
+        inside = (t >= t_gt[0]) & (t <= t_gt[-1])
+        if inside.sum() < 2:
+            return metrics
+        truth = se2.interpolate((t - t_gt[0]).astype(float), (t_gt - t_gt[0]).astype(float), np.array(self.gt))
+        self.ctx.observer.log("world/trajectory/truth", LineStrips((truth[inside, :2],)))
+        metrics.update(self._loop_scores(truth, inside))
+        created = np.flatnonzero(~np.asarray(self.taken_loop))
+        poses = self.mapper.poses
+        locs = np.asarray(self.taken_loc)[created]
+        ok = inside[created]
+        est = poses[locs[ok], :2]
+        odo = np.asarray(self.taken_odom)[created][ok, :2]
+        tru = truth[created][ok, :2]
+        metrics["trajectory_ate_rmse_m"] = float(np.sqrt(np.mean(np.sum((est - tru) ** 2, axis=1))))
+        metrics["odometry_ate_rmse_m"] = float(np.sqrt(np.mean(np.sum((odo - tru) ** 2, axis=1))))
+        self.ctx.observer.log("world/trajectory/odometry", LineStrips((np.asarray(self.taken_odom)[:, :2],)))
+        return metrics
+
+    def _loop_scores(self, truth: np.ndarray, inside: np.ndarray) -> dict[str, float]:
+        """Precision and recall by the same-place rule of the module docstring."""
+        cfg = self.config
+        k = len(truth)
+        d = np.hypot(truth[:, None, 0] - truth[None, :, 0], truth[:, None, 1] - truth[None, :, 1])
+        dth = np.abs(se2.wrap_angle(truth[:, None, 2] - truth[None, :, 2]))
+        same = (d <= cfg.same_place_m) & (dth <= math.radians(cfg.same_place_deg))
+        same &= inside[:, None] & inside[None, :]
+        earlier = np.arange(k)[None, :] < np.arange(k)[:, None] - cfg.recent_images
+        should = (same & earlier).any(axis=1)
+        loop = np.asarray(self.taken_loop)
+        ref_img = {loc: idx for idx, loc in reversed(list(enumerate(self.taken_loc)))}  # first image of a location
+        correct = np.array([same[q, ref_img[self.taken_loc[q]]] for q in np.flatnonzero(loop)], bool)
+        out: dict[str, float] = {}
+        if loop.any():
+            out["loop_closure_precision"] = float(correct.mean())
+            for q in np.flatnonzero(loop)[~correct]:
+                self.ctx.log(f"false loop closure: image {q} -> location {self.taken_loc[q]}")
+        if should.any():
+            out["loop_closure_recall"] = float((loop & should).sum() / should.sum())
+        self.ctx.log(f"same-place truth: {int(should.sum())} images should close a loop, {int(loop.sum())} did, "
+                     f"{int(correct.sum()) if loop.any() else 0} correctly")
+        return out
+
+    def timings(self) -> dict[str, float]:
+        out: dict[str, float] = {}
+        for k, v in self.durations.items():
+            if v:
+                out[f"{k}_mean_s"] = float(np.mean(v))
+        if self.durations["image"]:
+            out["image_max_s"] = float(np.max(self.durations["image"]))
+        return out
+
+    def artifacts(self) -> dict[str, bytes]:
+        return {"map.npz": save_map(self.mapper.topomap())}
+
+    @classmethod
+    def blueprint(cls) -> rrb.Blueprint:
+        return rrb.Blueprint(
+            rrb.Horizontal(
+                rrb.Spatial2DView(name="Map", origin="/world"),
+                rrb.Vertical(
+                    rrb.Spatial2DView(name="Image and keypoints", origin="/camera/image"),
+                    rrb.Spatial2DView(name="Candidate: map | current", origin="/camera/candidate"),
+                    row_shares=[1, 1],
+                ),
+                rrb.Vertical(
+                    rrb.TimeSeriesView(name="Posterior", origin="/metrics"),
+                    rrb.Spatial2DView(name="Posterior over locations", origin="/topo/posterior"),
+                    rrb.TextLogView(name="Log", origin="/"),
+                    row_shares=[1, 1, 1],
+                ),
+                column_shares=[2, 2, 1],
+            ),
+            collapse_panels=True,
+        )

@@ -1,0 +1,240 @@
+"""Pipeline ``topometric-nav``: replay of a ``slamreplay navigate`` run (Battesti, Bazeille, Filliat, ECMR 2011, IV).
+
+The recording's metadata names the map (path and sha256), the start and goal nodes, the guidance
+configuration and the seed; the pipeline loads the map (``map_path`` overrides the recorded path,
+but its sha256 must match: another map cannot reproduce the run), plans the same route and runs
+the same :class:`~algorithms.topometric.guidance.Navigator` on the recorded odometry and images:
+``/odom`` -> :meth:`~Navigator.on_odometry`, ``/camera/image`` -> :meth:`~Navigator.on_image`,
+``/cmd_vel`` -> :meth:`~Navigator.control`. Each replayed localization and command is compared
+with the recorded ``/nav/localization`` and ``/cmd_vel``: ``replay_mismatches`` counts the
+differences (0: the replay reproduces the run exactly).
+
+Logged: the global path and the route's nodes, the local path at each image, the target point at
+each tick, the matched node and the heading correction (``topo/nav/heading_correction_deg``), the
+true, odometry and estimated trajectories (``world/trajectory/{truth,odometry,estimate}``). The
+cross-track error is the distance of the *true* position (``/ground_truth/pose``) to the planned
+path (the polyline through the route's nodes, map frame = world frame).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from algorithms.common import se2
+from algorithms.observe import Pose, Scalar, Text
+from algorithms.topometric.guidance import Navigator, NavUpdate
+from algorithms.topometric.pathfollow import distance_to_polyline
+from recorder.messages import (
+    TOPIC_CAMERA_IMAGE,
+    TOPIC_CMD_VEL,
+    TOPIC_GROUND_TRUTH_POSE,
+    TOPIC_NAV_LOCALIZATION,
+    TOPIC_ODOM,
+    CameraImage,
+    GroundTruthPose,
+    NavLocalization,
+    OdometryPose,
+    VelocityCommand,
+)
+from recorder.writer import METADATA_NAME
+from replay.errors import ReplayError
+from replay.navigate import SOURCE, MapLocalizer, guidance_from_dict, load_nav_map, localization_message
+from replay.pipeline import MetricSpec, Pipeline, ReplayContext, register
+from replay.reader import Envelope
+from replay.trajectory import TrajectoryLog
+
+
+@dataclass(frozen=True, slots=True)
+class TopometricNavConfig:
+    """Parameters of the ``topometric-nav`` pipeline."""
+
+    map_path: str = field(default="", metadata={"help": "the map file or topometric run directory; empty: the "
+                                                        "path recorded by `slamreplay navigate`"})
+    goal_radius_m: float = field(default=0.5, metadata={"help": "goal_reached needs the true final position "
+                                                                "this close to the goal node"})
+
+    def __post_init__(self) -> None:
+        if not self.goal_radius_m > 0:
+            raise ValueError(f"goal_radius_m must be > 0, got {self.goal_radius_m}")
+
+
+@register
+class TopometricNavPipeline(Pipeline):
+    name = "topometric-nav"
+    summary = "topo-metric navigation replay: Dijkstra route, qualitative visual localization, path following"
+    required_topics = (TOPIC_ODOM, TOPIC_CAMERA_IMAGE, TOPIC_CMD_VEL)
+    optional_topics = (TOPIC_GROUND_TRUTH_POSE, TOPIC_NAV_LOCALIZATION)
+    start_topic = TOPIC_ODOM
+    Config = TopometricNavConfig
+    metrics = {
+        "goal_reached": MetricSpec("higher", "", "1 when the navigator stopped at the goal and the true position "
+                                   "is within goal_radius_m of the goal node"),
+        "goal_distance_m": MetricSpec("lower", "m", "true final position to the goal node", 1e-9),
+        "cross_track_error_m_mean": MetricSpec("lower", "m", "mean distance of the true position to the planned "
+                                               "path", 1e-9),
+        "cross_track_error_m_max": MetricSpec("lower", "m", "largest distance of the true position to the "
+                                              "planned path", 1e-9),
+        "cross_track_error_m_final": MetricSpec("lower", "m", "distance of the true final position to the planned "
+                                                "path", 1e-9),
+        "visual_corrections": MetricSpec("none", "", "loop closures that reset the position (section IV-B)"),
+        "loop_closure_rate": MetricSpec("higher", "", "images with a loop closure / images", 1e-9),
+        "images": MetricSpec("none", "", "images processed"),
+        "route_length_m": MetricSpec("none", "m", "length of the planned route through the map's nodes", 1e-9),
+        "estimate_error_m_mean": MetricSpec("lower", "m", "mean position error of the estimate at the images",
+                                            1e-9),
+        "replay_mismatches": MetricSpec("lower", "", "recorded localizations and commands the replay did not "
+                                        "reproduce exactly"),
+    }
+
+    def __init__(self, config: TopometricNavConfig, ctx: ReplayContext) -> None:
+        super().__init__(config, ctx)
+        rec = _recorded(ctx)
+        path = config.map_path or rec["map"]["path"]
+        nav_map = load_nav_map(path)
+        if nav_map.sha256 != rec["map"]["sha256"]:
+            raise ReplayError(f"map {nav_map.path} (sha256 {nav_map.sha256[:12]}...) is not the map this navigation "
+                              f"was recorded with ({rec['map']['path']}, sha256 {rec['map']['sha256'][:12]}...): "
+                              f"another map cannot reproduce the run; use that map (--set map_path=...)")
+        self.map = nav_map
+        self.start, self.goal = int(rec["start"]), int(rec["goal"])
+        try:
+            guidance = guidance_from_dict(rec["guidance"])
+        except (TypeError, ValueError) as err:
+            raise ReplayError(f"the recording's guidance configuration is unreadable: {err}") from err
+        self.dt = float(rec["control_period_s"])
+        # The navigate runner's generators: odometry, localizer, image noise (replay/navigate.py).
+        rng_loc = np.random.default_rng(int(rec["seed"])).spawn(3)[1]
+        try:
+            self.nav = Navigator(nav_map.graph, self.start, self.goal, MapLocalizer(nav_map.topomap, self.start,
+                                                                                     rng_loc),
+                                 guidance, observer=ctx.observer)
+        except ValueError as err:
+            raise ReplayError(f"map {nav_map.path}: {err}") from err
+        ctx.log(f"route {self.start} -> {self.goal}: {len(self.nav.route.nodes)} nodes, "
+                f"{self.nav.route.length_m:.2f} m, visual correction {'on' if guidance.visual_correction else 'off'}")
+        self.truth = TrajectoryLog(ctx.observer, "world/trajectory/truth")
+        self.odometry = TrajectoryLog(ctx.observer, "world/trajectory/odometry")
+        self.estimate = TrajectoryLog(ctx.observer, "world/trajectory/estimate")
+        self.odom0: np.ndarray | None = None
+        self.pending: NavLocalization | None = None
+        self.last_cmd: tuple[float, float] | None = None
+        self.compared = 0
+        self.mismatches = 0
+        self.gt_xy: list[np.ndarray] = []
+        self.gt_t: list[int] = []
+        self.gt: list[np.ndarray] = []
+        self.est_t: list[int] = []
+        self.est: list[np.ndarray] = []
+
+    def step(self, env: Envelope) -> None:
+        msg, obs = env.msg, self.ctx.observer
+        if isinstance(msg, GroundTruthPose):
+            self.gt_t.append(env.log_time_ns)
+            self.gt.append(msg.xy_yaw)
+            self.truth.append(msg.x_m, msg.y_m)
+            obs.log("world/robot_truth", Pose(msg.xy_yaw))
+        elif isinstance(msg, OdometryPose):
+            odom = msg.xy_yaw
+            if self.odom0 is None:
+                self.odom0 = odom
+            est = self.nav.on_odometry(odom)
+            dead = se2.compose(self.map.graph.poses[self.start], se2.between(self.odom0, odom))
+            self.odometry.append(float(dead[0]), float(dead[1]))
+            self.estimate.append(float(est[0]), float(est[1]))
+            obs.log("world/robot", Pose(est))
+        elif isinstance(msg, CameraImage):
+            gray = msg.pixels if msg.pixels.ndim == 2 else msg.pixels.mean(axis=2).astype(np.uint8)
+            update = self.nav.on_image(gray)
+            self.pending = localization_message(env.log_time_ns, update)
+            self.est_t.append(env.log_time_ns)
+            self.est.append(update.pose)
+            self._log_update(update)
+        elif isinstance(msg, NavLocalization):
+            self._compare_localization(msg)
+        elif isinstance(msg, VelocityCommand):
+            cmd = self.nav.control(self.dt)
+            obs.log("topo/nav/heading_error_deg", Scalar(math.degrees(cmd.heading_error_rad)))
+            replayed = (0.0, 0.0) if cmd.reached else (cmd.linear_mps, cmd.angular_radps)
+            recorded = (msg.linear_mps, msg.angular_radps)
+            # The runner sends 0 at its last tick (goal, wall or time limit): only a moving command is compared then.
+            if recorded != (0.0, 0.0) or cmd.reached:
+                self._count(replayed == recorded, f"command {replayed} != recorded {recorded}")
+
+    def _log_update(self, update: NavUpdate) -> None:
+        obs = self.ctx.observer
+        obs.log("world/nav/estimate", Pose(update.pose))
+        if update.node >= 0:
+            what = "correction" if update.corrected else "loop closure (correction off)"
+            obs.log("topo/nav/log", Text(f"image {self.nav.images}: {what} at node {update.node}, x-translation "
+                                         f"{update.dx_px:.1f} px -> {math.degrees(update.deviation_rad):.2f} deg"))
+        obs.log("metrics/loop_closure_rate", Scalar(self.nav.matches / self.nav.images))
+
+    def _compare_localization(self, recorded: NavLocalization) -> None:
+        replayed, self.pending = self.pending, None
+        if replayed is None:
+            self._count(False, f"recorded localization at {recorded.stamp_ns} ns has no image before it")
+            return
+        same = dataclasses.astuple(replayed) == dataclasses.astuple(recorded)
+        self._count(same, f"localization {replayed} != recorded {recorded}")
+
+    def _count(self, same: bool, why: str) -> None:
+        self.compared += 1
+        if not same:
+            self.mismatches += 1
+            if self.mismatches <= 5:
+                self.ctx.log(f"replay differs from the recording: {why}")
+
+    def finish(self) -> dict[str, float]:
+        for t in (self.truth, self.odometry, self.estimate):
+            t.finish()
+        nav = self.nav
+        metrics: dict[str, float] = {
+            "visual_corrections": float(nav.corrections), "images": float(nav.images),
+            "route_length_m": nav.route.length_m, "replay_mismatches": float(self.mismatches),
+        }
+        if nav.images:
+            metrics["loop_closure_rate"] = nav.matches / nav.images
+        self.ctx.log(f"{nav.images} images, {nav.matches} loop closures, {nav.corrections} corrections; "
+                     f"{self.compared} recorded outputs compared, {self.mismatches} differ")
+        if not self.gt:
+            metrics["goal_reached"] = float(nav.reached)
+            self.ctx.log("no ground truth: cross-track errors do not apply; goal_reached is the navigator's own")
+            return metrics
+        gt = np.array(self.gt)
+        xt = distance_to_polyline(gt[:, :2], nav.route_xy)
+        self.ctx.observer.send_series("metrics/cross_track_error_m", np.arange(len(xt)), np.array(self.gt_t), xt)
+        goal_d = float(np.hypot(*(gt[-1, :2] - self.map.graph.poses[self.goal, :2])))
+        metrics.update(cross_track_error_m_mean=float(xt.mean()), cross_track_error_m_max=float(xt.max()),
+                       cross_track_error_m_final=float(xt[-1]),
+                       goal_distance_m=goal_d,
+                       goal_reached=float(nav.reached and goal_d <= self.config.goal_radius_m))
+        if self.est:
+            t_gt = np.array(self.gt_t, np.int64)
+            ref = se2.interpolate((np.array(self.est_t) - t_gt[0]).astype(float), (t_gt - t_gt[0]).astype(float), gt)
+            metrics["estimate_error_m_mean"] = float(np.hypot(*(np.array(self.est)[:, :2] - ref[:, :2]).T).mean())
+        return metrics
+
+
+def _recorded(ctx: ReplayContext) -> dict[str, Any]:
+    """The navigate run's parameters and seed from the recording's metadata; ReplayError if it has none."""
+    record = ctx.info.metadata.get(METADATA_NAME, {})
+    try:
+        source = json.loads(record.get("source", "{}"))
+        params = json.loads(record.get("parameters", "{}"))
+        if source.get("simulator") != SOURCE:
+            raise ReplayError(f"{Path(ctx.info.path).name} was not recorded by `slamreplay navigate` (its source is "
+                              f"{source or 'not stated'}): topometric-nav replays navigation runs")
+        out = {k: params[k] for k in ("map", "start", "goal", "guidance", "control_period_s")}
+        out["seed"] = int(record["seed"])
+        _ = out["map"]["path"], out["map"]["sha256"]
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
+        raise ReplayError(f"{Path(ctx.info.path).name}: the navigate metadata is incomplete or unreadable "
+                          f"({type(err).__name__}: {err})") from err
+    return out

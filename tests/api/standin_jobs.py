@@ -1,0 +1,39 @@
+"""Stand-in jobs for executor tests: ``task.pipeline`` picks one; a real pipeline name runs ``run_task``.
+
+Module-level functions, so that spawned workers import them and Ray pickles them (by value:
+``ray.cloudpickle.register_pickle_by_value`` on this module).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import numpy as np
+
+from api.executor import Outcome, Report, Task, run_task
+
+HOG_STEP_BYTES = 32 << 20
+HOG_MAX_BYTES = 3 << 30  # the stand-in gives up (and "succeeds") here, so a broken limit fails the test, not the host
+
+
+def standin_job(task: Task, report: Report | None = None) -> Outcome:
+    """``hog``: allocate until stopped; ``sleep``: 60 s in short naps; ``stuck``: 60 s in one native call;
+    ``crash``: SIGKILL itself; anything else: the real job."""
+    if task.pipeline == "hog":
+        chunks = []
+        while len(chunks) * HOG_STEP_BYTES < HOG_MAX_BYTES:
+            chunks.append(np.ones(HOG_STEP_BYTES // 8))  # touched, so resident
+            time.sleep(0.005)
+        return Outcome("succeeded", "the hog was never stopped")
+    if task.pipeline == "sleep":
+        for _ in range(600):
+            time.sleep(0.1)
+        return Outcome("succeeded", "the sleeper was never stopped")
+    if task.pipeline == "stuck":
+        time.sleep(60)  # one call: an exception raised into this thread waits for it to return
+        return Outcome("succeeded", "the stuck job was never stopped")
+    if task.pipeline == "crash":
+        os.kill(os.getpid(), signal.SIGKILL)
+    return run_task(task, report)
