@@ -15,6 +15,10 @@ of :mod:`algorithms.common.motion`). Per scan, :meth:`DSlam.observe`
 4. recovers the state (sections 3.2-3.3) without inverting I, and carries the joint covariance
    of the features near the robot in covariance form (:mod:`algorithms.dslam.covariance`).
 
+Every measurement the map used is also kept (:mod:`algorithms.dslam.relinearize`): at the end
+of a run, :meth:`DSlam.finalize` relinearises them all at the final estimate (not in the paper;
+``final_relinearization_iterations = 0`` keeps the EIF estimate ``I^-1 i``).
+
 Cost per scan: everything above works on the scan's features, the features near the robot and
 their neighbours in I, so a scan costs the same whatever the map size N, except for the
 fallbacks: a global PCG or direct solve when the local recovery is not enough, and an exact
@@ -53,6 +57,7 @@ from algorithms.dslam.information import InformationMatrix, dofs
 from algorithms.dslam.localization import MeasurementPose, PoseStatus, chi2_quantile, measurement_pose
 from algorithms.dslam.recast import Recast, angle_rows, init_features, map_invariants, recast
 from algorithms.dslam.recovery import Recovery, RecoveryReport, factor
+from algorithms.dslam.relinearize import MeasurementLog, relinearize
 from algorithms.dslam.spatial import Grid
 from algorithms.observe import NULL_OBSERVER, Observer, Scalar, Text
 
@@ -82,6 +87,7 @@ class DSlamConfig:
     covariance_refresh_scans: int = 0  # exact recomputation of the vicinity covariance (0: only when needed)
     vicinity_margin_m: float = 2.0  # V keeps features within the largest range seen so far plus this margin
     loop_closure_gap_scans: int = 300  # a mapped feature unseen for this long closes a loop
+    final_relinearization_iterations: int = 10  # relinearize: Gauss-Newton steps at finalize (0: the EIF estimate)
 
     def __post_init__(self) -> None:
         positive = ("default_range_sigma_m", "default_bearing_sigma_rad", "recovery_tol_m", "local_tol_m",
@@ -92,7 +98,7 @@ class DSlamConfig:
         for name in ("local_max_hops", "pcg_max_iterations", "loop_closure_gap_scans"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("global_every_scans", "covariance_refresh_scans"):
+        for name in ("global_every_scans", "covariance_refresh_scans", "final_relinearization_iterations"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.association not in ("known", "unknown"):
@@ -146,8 +152,8 @@ class DSlam:
         self.config = config
         self.observer = observer
         self.info = InformationMatrix()
-        self.recovery = Recovery(self.info, config.recovery, config.recovery_tol_m, config.local_tol_m,
-                                 config.local_max_hops, config.pcg_max_iterations, config.global_every_scans)
+        self.recovery = self._new_recovery()
+        self.map_log = MeasurementLog()  # every measurement of eq. (10), for the final relinearisation
         self.covariance = CovarianceCache()
         self.pose = np.zeros(3)
         self.pose_cov = np.zeros((3, 3))
@@ -162,6 +168,11 @@ class DSlam:
         self._grid: Grid | None = None  # built at the first spatial query
         self._clock = clock
         self.profile: dict[str, list[float]] = {}
+
+    def _new_recovery(self) -> Recovery:
+        c = self.config
+        return Recovery(self.info, c.recovery, c.recovery_tol_m, c.local_tol_m, c.local_max_hops,
+                        c.pcg_max_iterations, c.global_every_scans)
 
     @property
     def n(self) -> int:
@@ -327,6 +338,7 @@ class DSlam:
                 d_matrix, d_vector, h = mapping.phase_one_terms(self.recovery.x[2 * f:2 * f + 2],
                                                                 np.array([r[j], b[j]]), r_blocks[j])
                 self._apply([f], d_matrix, d_vector)
+                self.map_log.phase_one(f, np.array([r[j], b[j]]), r_blocks[j])
                 jacs.append(h)
             self._phase_one_covariance(touched, jacs, r_blocks[old + new])
         elif new and self.n < 2:
@@ -336,6 +348,7 @@ class DSlam:
             created = self._add_features(lm, new, features)
             touched = created
             self._apply(created, d_matrix, d_vector)
+            self.map_log.prior(created, d_matrix, d_vector)
             cov.insert(created, np.asarray(np.linalg.inv(d_matrix), dtype=np.float64))
         elif len(old) >= 2 and not self._map_outlier(r, b, r_old, features, old, new):
             status = ScanStatus.MAPPED
@@ -351,6 +364,7 @@ class DSlam:
             ordered = [int(features[j]) for j in order]
             d_matrix, d_vector, jac = mapping.recast_terms(self.recovery.x.reshape(-1, 2)[ordered], rc)
             self._apply(ordered, d_matrix, d_vector)
+            self.map_log.recast(ordered, rc.z_map, rc.r_map)
             cov.recast_update(ordered[:k_v], ordered[k_v:], jac, rc.r_map)
             loop = any(self.scans - self.last_seen[int(features[j])] >= self.config.loop_closure_gap_scans
                        for j in old)
@@ -467,8 +481,28 @@ class DSlam:
                           features, tentative, anchors, new, loop, report, self._refresh, note)
 
     def finalize(self) -> RecoveryReport:
-        """Solve I x = i exactly (direct) so that :meth:`estimates` is the EIF estimate to round-off."""
-        return self.recovery.solve_direct() if self.n else RecoveryReport("none", 0, 0, 0.0)
+        """End of the run: the exact EIF estimate ``I^-1 i``, then the relinearised one (module docstring).
+
+        With ``final_relinearization_iterations > 0``, I and i are replaced by every logged
+        measurement linearised at the final estimate (:func:`~algorithms.dslam.relinearize.relinearize`),
+        so :meth:`estimates` and :meth:`marginal_covariances` describe the relinearised map; the
+        report's ``iterations`` are the Gauss-Newton steps and ``error_m`` the last step (m).
+        The vicinity covariance is not recomputed.
+        """
+        if not self.n:
+            return RecoveryReport("none", 0, 0, 0.0)
+        report = self.recovery.solve_direct()
+        iterations = self.config.final_relinearization_iterations
+        if not iterations:
+            return report
+        result = relinearize(self.map_log, self.n, np.array(self.recovery.x), iterations, self.config.recovery_tol_m)
+        self.info = result.info
+        self.recovery = self._new_recovery()
+        self.recovery.grow(result.x.reshape(-1, 2))
+        self.recovery.set_state(result.x)
+        self._grid = None
+        self.observer.log("dslam/relinearization/iterations", Scalar(result.iterations))
+        return RecoveryReport("relinearized", result.iterations, 0, result.step_m)
 
     def marginal_covariances(self) -> F64:
         """Exact marginal covariances (N, 2, 2) of all features, by direct solves I c = e_j (costly: for scoring)."""

@@ -62,11 +62,16 @@ def recast_increment(positions: F64, rc: Recast) -> tuple[F64, F64]:
 
 def recast_terms(positions: F64, rc: Recast) -> tuple[F64, F64, F64]:
     """:func:`recast_increment` and the Jacobian ``grad H_map`` (2m-3, 2m) it was linearised with (eq. 8)."""
+    return invariant_terms(positions, rc.z_map, rc.r_map)
+
+
+def invariant_terms(positions: F64, z_map: F64, r_map: F64) -> tuple[F64, F64, F64]:
+    """:func:`recast_terms` from ``z_map`` (2m-3,) and its noise ``r_map`` (2m-3, 2m-3) alone."""
     h, jac = map_invariants(positions)
-    nu = rc.z_map - h
+    nu = z_map - h
     rows = angle_rows(len(positions))
     nu[rows] = wrap_angle(nu[rows])
-    d_matrix, d_vector = eif_increment(jac, rc.r_map, nu, positions.reshape(-1))
+    d_matrix, d_vector = eif_increment(jac, r_map, nu, positions.reshape(-1))
     return d_matrix, d_vector, jac
 
 

@@ -33,6 +33,7 @@ class DSlamPipelineConfig(LandmarkSlamConfig):
     global_every_scans: int = 100
     covariance_refresh_scans: int = 0  # 0: exact recomputation only when a scan sees < 2 vicinity features
     loop_closure_gap_scans: int = 300
+    final_relinearization_iterations: int = 10  # Gauss-Newton over the map's measurements at the end (0: EIF)
     info_every_scans: int = 100  # links and sparsity image interval
 
     def __post_init__(self) -> None:
@@ -47,7 +48,8 @@ class DSlamPipelineConfig(LandmarkSlamConfig):
                            association_params=self.association_params(), ci_criterion=self.ci_criterion,
                            recovery=self.recovery, global_every_scans=self.global_every_scans,
                            covariance_refresh_scans=self.covariance_refresh_scans,
-                           loop_closure_gap_scans=self.loop_closure_gap_scans)
+                           loop_closure_gap_scans=self.loop_closure_gap_scans,
+                           final_relinearization_iterations=self.final_relinearization_iterations)
 
 
 @register
