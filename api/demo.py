@@ -1,5 +1,5 @@
-"""`make demo`: record every built-in simulation (sim-landmarks, sim-seabed), replay each through every pipeline that
-fits.
+"""`make demo`: record every built-in simulation (sim-landmarks, sim-seabed, sim-corridor), replay each through the
+pipelines made for it, and navigate on the topo-metric map with the simulator in the loop.
 
 Needs nothing outside the repository. When the MRCLAM dataset folder is there, robot 1 is
 imported and replayed as well.
@@ -11,8 +11,6 @@ import shutil
 import sys
 from pathlib import Path
 
-from replay.pipeline import all_pipelines
-from replay.reader import RecordingReader
 from replay.run import RunResult, run_recording
 
 MARKER = ".slamreplay-demo"
@@ -24,9 +22,22 @@ def _say(text: str, quiet: bool) -> None:
         print(text, file=sys.stderr, flush=True)
 
 
+# Which pipelines each demo recording goes through (a forward camera is no photo-mapping input).
+PIPELINES = {
+    "sim-landmarks": ("odometry", "dslam", "ekfslam"),
+    "sim-seabed": ("odometry", "ifmi"),
+    "mrclam6-robot1": ("odometry", "dslam", "ekfslam"),
+    "sim-corridor": ("odometry", "topometric"),
+    "sim-corridor-navigation": ("topometric-nav",),
+}
+NAV_GOAL_ALONG_M = 20.0  # the demo navigates to the first map node this far along the mapped route
+
+
 def _recordings(out: Path, data: Path | None, quiet: bool) -> list[Path]:
     from api.cli import progress_bar
+    from recorder.sim.corridor import CorridorConfig, simulate_corridor
     from recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
+    from recorder.sim.seabed import SeabedSimConfig, simulate_seabed
 
     rec_dir = out / "recordings"
     rec_dir.mkdir(parents=True)
@@ -38,12 +49,15 @@ def _recordings(out: Path, data: Path | None, quiet: bool) -> list[Path]:
         # replays it through D-SLAM and EKF-SLAM too and should finish in a few minutes.
         simulate_landmarks(path, LandmarkSimConfig(duration_s=DEMO_DURATION_S), seed=1, progress=update)
     made.append(path)
-    from recorder.sim.seabed import SeabedSimConfig, simulate_seabed
-
     path = rec_dir / "sim-seabed.mcap"
     _say(f"recording the iFMI photo-mapping survey (sim-seabed, seed 1) -> {path}", quiet)
     with progress_bar("simulating", quiet) as update:
         simulate_seabed(path, SeabedSimConfig(), seed=1, progress=update)
+    made.append(path)
+    path = rec_dir / "sim-corridor.mcap"
+    _say(f"recording the teleoperated mapping route (sim-corridor, seed 1, 2.5 images/s) -> {path}", quiet)
+    with progress_bar("simulating", quiet) as update:
+        simulate_corridor(path, CorridorConfig(camera_rate_hz=2.5), seed=1, progress=update)
     made.append(path)
     mrclam = data / "mrclam-dataset6" if data is not None else None
     if mrclam is not None and mrclam.is_dir():
@@ -59,6 +73,32 @@ def _recordings(out: Path, data: Path | None, quiet: bool) -> list[Path]:
     return made
 
 
+def _config(recording: str, pipeline: str) -> dict[str, float] | None:
+    """MRCLAM's measured noise for the landmark pipelines (their defaults are the simulator's)."""
+    if recording.startswith("mrclam") and pipeline in ("dslam", "ekfslam"):
+        from replay.pipelines.landmark_slam import MRCLAM_CONFIG
+
+        return MRCLAM_CONFIG
+    return None
+
+
+def _navigation(out: Path, map_run: Path, world: Path, quiet: bool) -> Path:
+    """Drive the sim-corridor world on the demo's map, NAV_GOAL_ALONG_M along the mapped route (paper section IV)."""
+    import numpy as np
+
+    from api.cli import progress_bar
+    from replay.navigate import load_nav_map, navigate
+
+    poses = load_nav_map(map_run).graph.poses
+    along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])
+    goal = int(np.searchsorted(along, NAV_GOAL_ALONG_M)) if along[-1] > NAV_GOAL_ALONG_M else len(poses) - 1
+    path = out / "recordings" / "sim-corridor-navigation.mcap"
+    _say(f"navigating on the map from node 0 to node {goal} with the simulator in the loop -> {path}", quiet)
+    with progress_bar("navigating", quiet) as update:
+        navigate(map_run, world, goal, path, seed=1, progress=update)
+    return path
+
+
 def run_demo(out: Path, data: Path | None, quiet: bool = False) -> int:
     """Record, replay, print a metrics table; returns the exit code."""
     from api.cli import progress_bar
@@ -71,21 +111,23 @@ def run_demo(out: Path, data: Path | None, quiet: bool = False) -> int:
     out.mkdir(parents=True)
     (out / MARKER).write_text("made by `slamreplay demo`; removed and remade by the next demo\n")
     results: list[tuple[str, str, RunResult]] = []
-    for recording in _recordings(out, data, quiet):
-        topics = set(RecordingReader(recording).info.logical_topics())
-        for name, cls in all_pipelines().items():
-            if not set(cls.required_topics) <= topics:
-                continue
+    queue = _recordings(out, data, quiet)
+    while queue:
+        recording = queue.pop(0)
+        for name in PIPELINES[recording.stem]:
             run_dir = out / f"{recording.stem}--{name}"
             with progress_bar(f"{name} on {recording.name}", quiet) as update:
-                result = run_recording(recording, name, run_dir, seed=1, progress=update)
+                result = run_recording(recording, name, run_dir, seed=1, progress=update,
+                                       config=_config(recording.stem, name))
             results.append((recording.stem, name, result))
+            if name == "topometric":  # its map: navigate on it, then replay that drive too
+                queue.append(_navigation(out, run_dir, recording, quiet))
     print()
-    print(f"{'recording':<22} {'pipeline':<12} {'metric':<28} {'value':>12}")
+    print(f"{'recording':<24} {'pipeline':<15} {'metric':<28} {'value':>12}")
     for rec_name, pipe, result in results:
         for metric, value in sorted(result.metrics.items()):
             shown = f"{value:,.0f}" if float(value).is_integer() else f"{value:.4f}"
-            print(f"{rec_name:<22} {pipe:<12} {metric:<28} {shown:>12}")
+            print(f"{rec_name:<24} {pipe:<15} {metric:<28} {shown:>12}")
     print()
     print("Open a run in the Rerun viewer:")
     for _, _, result in results:

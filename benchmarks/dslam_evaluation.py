@@ -25,16 +25,11 @@ from typing import Any
 from recorder.importers.mrclam import import_mrclam
 from recorder.messages import TOPIC_RANGE_BEARING
 from recorder.sim import LandmarkSimConfig, simulate_landmarks
+from replay.pipelines.landmark_slam import MRCLAM_CONFIG
 from replay.reader import RecordingReader
 from replay.run import run_recording
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "mrclam-dataset6"
-# MRCLAM's odometry and camera, measured against its ground truth (README of the dataset and
-# this script's docstring): about 0.05 m/sqrt(m) translation and 0.1 rad/sqrt(m), 0.1 rad/sqrt(rad)
-# heading noise (plus a few % scale bias); range noise ~0.15 m, bearing ~0.02 rad. The scans state no sigma.
-MRCLAM_CONFIG = {"translation_sigma_per_sqrt_m": 0.06, "heading_sigma_per_sqrt_m": 0.1,
-                 "heading_sigma_per_sqrt_rad": 0.12, "range_sigma_m": 0.15, "bearing_sigma_rad": 0.02,
-                 "outlier_probability": 0.9999}  # MRCLAM has range outliers (1-3 % beyond 0.5 m)
 KEYS = ("landmark_rmse_m", "landmark_nees_mean", "robot_ate_rmse_m", "robot_nees_mean", "landmarks_mapped",
         "landmarks_true", "false_landmarks", "data_association_errors")
 

@@ -11,9 +11,19 @@ control period the robot moves by the command (an exact unicycle arc), the wheel
 Everything goes to one recording, in this order at each control tick (same log time, file order):
 ``/ground_truth/pose``, ``/odom``, then if an image was taken ``/camera/image`` (PNG, lossless)
 and ``/nav/localization``, then ``/cmd_vel``. The metadata holds the map's path and sha256, the
-start and goal, the guidance configuration, the world and the seed, so the ``topometric-nav``
-pipeline replays the same code on the same inputs and must give the same localizations and
-commands. Randomness: ``default_rng(seed).spawn(3)`` = odometry noise, localizer (RANSAC), image noise.
+start and goal, the guidance configuration, the world, the seed and a fingerprint of the loaded
+navigation code (:func:`nav_code_fingerprint`), so the ``topometric-nav`` pipeline replays the same
+code on the same inputs and must give the same localizations and commands, in any process.
+Randomness: ``default_rng(seed).spawn(3)`` = odometry noise, localizer (RANSAC), image noise.
+
+Scoring (:func:`reference_path`), as the paper's Fig. 4 compares the replay trajectory with the
+mapping trajectory, both measured by laser SLAM: when the map holds the mapping drive's ground
+truth (``TopoMap.truth_poses``, written by the ``topometric`` pipeline from ``/ground_truth/pose``),
+the cross-track error is the distance of the robot's *true* position to the *true path* (the
+route's nodes at their true poses, discretized like the global path) and the goal distance is to
+the goal node's true pose, so the map's own metric error does not count as path-following error.
+Without it (older maps, mapping without ground truth) both fall back to the map path and the goal
+node's map pose (map frame taken as world frame), and the summary and metrics say so.
 """
 
 from __future__ import annotations
@@ -33,7 +43,7 @@ from numpy.typing import NDArray
 from algorithms.common import se2
 from algorithms.topometric import NavigationConfig, TopoMap
 from algorithms.topometric.guidance import GuidanceConfig, NavGraph, Navigator, NavUpdate, RouteConfig, VisualMatch
-from algorithms.topometric.pathfollow import FollowerConfig, distance_to_polyline
+from algorithms.topometric.pathfollow import FollowerConfig, discretize, distance_to_polyline
 from recorder.codec.protobuf import yaw_from_quaternion
 from recorder.errors import RecorderError
 from recorder.messages import (
@@ -49,6 +59,7 @@ from recorder.messages import (
     VelocityCommand,
 )
 from recorder.writer import METADATA_NAME, Recorder
+from replay.codeprint import code_fingerprint
 from replay.errors import ReplayError
 from replay.reader import MCAP_MAGIC, RecordingReader
 from replay.topomap_io import load_map
@@ -56,6 +67,11 @@ from replay.topomap_io import load_map
 SOURCE = "navigate"
 EPOCH_NS = 1_000_000_000
 MAP_FILE = "map.npz"
+# What a navigation replay runs: the localizer, the guidance and the map reader (not the mapper).
+NAV_CODE = ("algorithms.common.se2", "algorithms.topometric.bayes", "algorithms.topometric.config",
+            "algorithms.topometric.features", "algorithms.topometric.guidance", "algorithms.topometric.navigation",
+            "algorithms.topometric.pathfollow", "algorithms.topometric.topomap", "algorithms.topometric.validation",
+            "algorithms.topometric.vocabulary", "replay.navigate", "replay.topomap_io")
 Progress = Callable[[int, int], None]
 
 
@@ -73,6 +89,44 @@ class NavMap:
     graph: NavGraph
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class ReferencePath:
+    """What a drive is scored against: a discretized path (k, 2), the goal point (2,), and their frame.
+
+    ``frame`` is ``"truth"`` (the route's nodes at the mapping drive's true poses) or ``"map"``
+    (at the nodes' map poses: the fallback when the map has no ground truth for every route node).
+    """
+
+    xy: NDArray[np.float64]
+    goal_xy: NDArray[np.float64]
+    frame: str
+
+    def describe(self) -> str:
+        """One line for logs: which path the cross-track error and goal distance are measured to."""
+        if self.frame == "truth":
+            return ("scored against the true path (route nodes at their mapping ground-truth poses) and the goal "
+                    "node's true pose")
+        return ("scored against the map path (route nodes at their map poses, map frame = world frame): the map "
+                "has no ground truth for its route, so the map's own error counts as path-following error")
+
+
+def reference_path(topomap: TopoMap, route: tuple[int, ...] | list[int], spacing_m: float) -> ReferencePath:
+    """The path a drive along ``route`` (node indices, start to goal) is scored against.
+
+    The route's nodes at their true poses (``topomap.truth_poses``) when every one is known, else
+    at their map poses; discretized every ``spacing_m`` like the navigator's global path (IV-C).
+    """
+    nodes = np.asarray(route, np.int64)
+    if nodes.size == 0:
+        raise ValueError("route must name at least one node")
+    truth = topomap.truth_poses
+    if truth is not None and np.all(np.isfinite(truth[nodes, :2])):
+        at, frame = truth[nodes, :2], "truth"
+    else:
+        at, frame = topomap.poses[nodes, :2], "map"
+    return ReferencePath(discretize(at, spacing_m), at[-1].copy(), frame)
+
+
 def map_file(path: str | Path) -> Path:
     """The map file of ``path``: ``RUN_DIR/map.npz`` for a ``topometric`` run directory, else the file."""
     p = Path(path)
@@ -86,11 +140,26 @@ def map_file(path: str | Path) -> Path:
     return p.resolve()
 
 
+def nav_code_fingerprint() -> str:
+    """Fingerprint of the navigation code this process has loaded, with the numpy and OpenCV versions."""
+    import cv2
+
+    return f"{code_fingerprint(NAV_CODE)} numpy {np.__version__} opencv {cv2.__version__}"
+
+
 def load_nav_map(path: str | Path) -> NavMap:
     """Load a map for navigation; ReplayError when it is missing, unreadable or has no node."""
     p = map_file(path)
-    raw = p.read_bytes()
-    topomap = load_map(raw)
+    try:
+        raw = p.read_bytes()
+    except OSError as err:
+        raise ReplayError(f"map {p}: cannot read it: {err.strerror or err}") from err
+    try:
+        topomap = load_map(raw)
+    except ReplayError as err:
+        detail = str(err).replace("<bytes>", p.name)
+        raise ReplayError(f"map {p} is not a usable topo-metric map (the map.npz a `topometric` run writes): "
+                          f"{detail}") from err
     if topomap.n_locations == 0:
         raise ReplayError(f"map {p} has no location: nothing to navigate on")
     edges = np.stack([topomap.edge_i, topomap.edge_j], axis=1)
@@ -149,7 +218,10 @@ def load_world(world: str | Path) -> tuple[Any, Any, int]:
             return CorridorWorld.from_config(config, int(spec["seed"])), config, int(spec["seed"])
         return world_from_metadata(record)  # type: ignore[no-any-return]
     except RecorderError as err:
-        raise ReplayError(f"world {world}: {err}") from err
+        what = "a recording whose metadata does not describe a sim-corridor world" if is_mcap else \
+            'not a world JSON file {"config": {...}, "seed": N}'
+        raise ReplayError(f"world {world}: {what} ({err}); give the sim-corridor recording the map was made "
+                          f"from, or a world JSON file") from err
     except (KeyError, TypeError, ValueError) as err:
         raise ReplayError(f"world {world}: its metadata does not describe a world ({err})") from err
 
@@ -172,10 +244,11 @@ class NavigateSummary:
     visual_corrections: int
     reached: bool  # the navigator declared the goal reached
     collided: bool  # the robot touched a wall (the run stops there unless through_walls)
-    goal_distance_m: float  # true final position to the goal node
-    cross_track_mean_m: float
+    goal_distance_m: float  # true final position to the goal node (its true pose when the map has it)
+    cross_track_mean_m: float  # true positions to the reference path (see scored_against)
     cross_track_max_m: float
     cross_track_final_m: float
+    scored_against: str = "truth"  # "truth": the true path; "map": the map path (the map has no ground truth)
 
 
 def navigate(map_path: str | Path, world: str | Path, goal: int, out: str | Path, *, start: int = 0, seed: int = 0,
@@ -189,7 +262,8 @@ def navigate(map_path: str | Path, world: str | Path, goal: int, out: str | Path
     map_path : a ``topometric`` run directory (its ``map.npz``) or a map file.
     world : a ``sim-corridor`` recording (its metadata names the world) or a world JSON file
         ``{"config": {...}, "seed": N}``. The map frame is taken as the world frame (the mapping
-        pipeline starts its map at the ground-truth start pose); the robot starts at the start node's pose.
+        pipeline starts its map at the ground-truth start pose). The robot starts where the start
+        node's image was taken (its true pose) when the map has ground truth, else at its map pose.
     visual_correction : False drives on odometry only (loop closures are still detected and recorded).
     guidance : navigation parameters (default :class:`GuidanceConfig`); its ``visual_correction`` is
         overridden by the argument.
@@ -202,6 +276,12 @@ def navigate(map_path: str | Path, world: str | Path, goal: int, out: str | Path
     Raises
     ------
     ReplayError : bad map, world, nodes or output path.
+
+    Notes
+    -----
+    Cross-track errors and the goal distance: the robot's true positions against
+    :func:`reference_path` (the true path when the map holds the mapping ground truth, else the
+    map path); ``scored_against`` in the summary says which.
     """
     nav_map = load_nav_map(map_path)
     the_world, world_cfg, world_seed = load_world(world)
@@ -209,6 +289,11 @@ def navigate(map_path: str | Path, world: str | Path, goal: int, out: str | Path
     for name, node in (("--start", start), ("--goal", goal)):
         if not 0 <= node < n:
             raise ReplayError(f"{name} {node} is not a node of map {nav_map.path} (it has nodes 0..{n - 1})")
+    if start == goal:
+        raise ReplayError(f"--start and --goal are both node {goal}: nothing to navigate; choose another goal")
+    if Path(out).exists():
+        raise ReplayError(f"{out} already exists; slamreplay never overwrites a recording: choose another --out "
+                          f"or delete it")
     if not control_period_s > 0 or round(control_period_s * 1e9) <= 0:
         raise ReplayError(f"control_period_s must be > 0, got {control_period_s}")
     cfg = dataclasses.replace(guidance or GuidanceConfig(hfov_deg=world_cfg.hfov_deg),
@@ -223,7 +308,10 @@ def navigate(map_path: str | Path, world: str | Path, goal: int, out: str | Path
     from recorder.sim.unicycle import arc_step
 
     odometry = WheelOdometry(world_cfg, rng_odom)
-    truth = nav_map.graph.poses[start].copy()
+    known = nav_map.topomap.truth_poses
+    # Start where the start node's image was taken: its map pose carries the map's error.
+    truth = known[start].copy() if known is not None and np.all(np.isfinite(known[start])) else \
+        nav_map.graph.poses[start].copy()
     if not through_walls and not the_world.is_free(truth[:2], clearance_m):
         raise ReplayError(f"start node {start} at ({truth[0]:.2f}, {truth[1]:.2f}) m is not in free space of the "
                           f"world: is the map from a recording of this world?")
@@ -236,6 +324,7 @@ def navigate(map_path: str | Path, world: str | Path, goal: int, out: str | Path
         "guidance": dataclasses.asdict(cfg), "control_period_s": dt, "through_walls": through_walls,
         "clearance_m": clearance_m, "max_duration_s": limit,
         "world": {"simulator": "sim-corridor", "config": dataclasses.asdict(world_cfg), "seed": world_seed},
+        "code": nav_code_fingerprint(),
     }
     robot = {"drive": "differential", "wheel_base_m": world_cfg.wheel_base_m,
              "camera": f"forward, hfov {world_cfg.hfov_deg} deg, {world_cfg.image_width}x{world_cfg.image_height}"}
@@ -275,11 +364,12 @@ def navigate(map_path: str | Path, world: str | Path, goal: int, out: str | Path
             messages = rec.message_count
     except RecorderError as err:
         raise ReplayError(str(err)) from err
-    xt = distance_to_polyline(np.array(trail), nav.route_xy)
+    ref = reference_path(nav_map.topomap, nav.route.nodes, cfg.follower.spacing_m)
+    xt = distance_to_polyline(np.array(trail), ref.xy)
     return NavigateSummary(Path(out), messages, nav.route.nodes, nav.route.length_m, k * dt, nav.images,
                            nav.matches, nav.corrections, nav.reached, collided,
-                           float(np.hypot(*(truth[:2] - nav_map.graph.poses[goal, :2]))),
-                           float(xt.mean()), float(xt.max()), float(xt[-1]))
+                           float(np.hypot(*(truth[:2] - ref.goal_xy))),
+                           float(xt.mean()), float(xt.max()), float(xt[-1]), ref.frame)
 
 
 def as_recorded(msg: OdometryPose) -> NDArray[np.float64]:

@@ -16,13 +16,19 @@ class MapperConfig:
     """Attributes
     ----------
     sample_distance_m, sample_angle_deg : an image is taken after this much odometry (paper: 50 cm, 10 deg).
-    recent_images : locations seen in the last this many taken images are no loop-closure hypotheses
-        (they look like the current image; Angeli et al. exclude them the same way).
+    recent_images : locations created from the last this many taken images are no loop-closure
+        hypotheses (they look like the current image; Angeli et al. exclude them the same way). A
+        location re-visited by one of them stays a hypothesis: it is validated against its own,
+        older reference image, and excluding it dropped correct loop closures a few images later.
     candidate_threshold : posterior above which a location is a potential loop closure.
     max_candidates : most probable candidates validated per image.
     odometry_sigma_xy_m_per_m, odometry_sigma_theta_rad_per_m, odometry_sigma_theta_rad_per_rad,
     odometry_sigma_floor : standard deviations of an odometry edge, growing with its length and turn.
-    loop_sigma_xy_m, loop_sigma_theta_deg : added to a loop edge (the two images are "very close").
+    loop_sigma_along_m, loop_sigma_xy_m, loop_sigma_theta_deg : added to a loop edge, in the matched
+        location's frame: along its view direction (large: an image scale cannot give a distance
+        without depth), across it, and on the heading (read off the image x-translation).
+    hfov_deg : the camera's horizontal field of view; a loop edge's heading is the matched location's
+        plus ``tx_px * hfov / width`` (section IV-B's linear rule, the one navigation uses).
     relax_iterations : Gauss-Newton iterations per relaxation.
     gate_m, gate_m_per_m, gate_deg, gate_deg_per_m : beyond the paper, a location is a hypothesis only
         within ``gate_m + gate_m_per_m * d`` metres and ``gate_deg + gate_deg_per_m * d`` degrees of the
@@ -44,8 +50,10 @@ class MapperConfig:
     odometry_sigma_theta_rad_per_m: float = 0.02
     odometry_sigma_theta_rad_per_rad: float = 0.05
     odometry_sigma_floor: float = 0.01
+    loop_sigma_along_m: float = 0.5
     loop_sigma_xy_m: float = 0.2
-    loop_sigma_theta_deg: float = 3.0
+    loop_sigma_theta_deg: float = 2.0
+    hfov_deg: float = 46.0
     relax_iterations: int = 10
     gate_m: float = 2.0
     gate_m_per_m: float = 0.1
@@ -60,11 +68,14 @@ class MapperConfig:
         if not 0.0 < self.candidate_threshold <= 1.0:
             raise ValueError(f"candidate_threshold must be in (0, 1], got {self.candidate_threshold}")
         sig = (self.odometry_sigma_xy_m_per_m, self.odometry_sigma_theta_rad_per_m,
-               self.odometry_sigma_theta_rad_per_rad, self.loop_sigma_xy_m, self.loop_sigma_theta_deg)
+               self.odometry_sigma_theta_rad_per_rad, self.loop_sigma_along_m, self.loop_sigma_xy_m,
+               self.loop_sigma_theta_deg)
         if not (all(s >= 0 for s in sig) and self.odometry_sigma_floor > 0):
             raise ValueError("odometry and loop sigmas must be >= 0, odometry_sigma_floor > 0")
         if not (self.gate_m > 0 and self.gate_m_per_m >= 0 and self.gate_deg > 0 and self.gate_deg_per_m >= 0):
             raise ValueError("gate_m and gate_deg must be > 0, gate_m_per_m and gate_deg_per_m >= 0")
+        if not 0.0 < self.hfov_deg < 180.0:
+            raise ValueError(f"hfov_deg must be in (0, 180), got {self.hfov_deg}")
 
 
 def mapper_config_from_dict(values: dict[str, Any]) -> MapperConfig:

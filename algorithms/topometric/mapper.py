@@ -7,9 +7,17 @@ location (its words gain the image's) and adds a loop edge to it, after which th
 [2]_. Detection is two-level: the Bayes filter over locations (:mod:`.bayes`) proposes the locations
 whose posterior exceeds ``candidate_threshold``; each is validated by the 2D motion of
 :mod:`.validation`, and among the accepted ones the one with the smallest translation wins
-(section III-A). A loop edge says "the robot is at the matched location": its measurement is the
-odometry since the previous image (from the previous location), its covariance that odometry's
-plus ``loop_sigma_*`` (how far apart two images passing the thresholds can be).
+(section III-A). A loop edge says "the robot is at the matched location, turned by the image
+x-translation": from the previous location, its measurement is the odometry since the previous
+image followed by the heading deviation ``delta = tx_px * hfov / width`` (section IV-B's linear rule,
+as navigation reads it; tx > 0: the robot points left of the location's heading), so the matched
+location's pose is the current one turned by ``-delta``. Its covariance is that odometry's plus the
+image's, anisotropic in the matched location's frame: ``loop_sigma_along_m`` along its view
+direction (an image scale cannot give a distance without depth), ``loop_sigma_xy_m`` across it and
+``loop_sigma_theta_deg`` on the heading.
+An edge that leaves a location the previous image closed a loop with starts from the robot's
+heading there (the location's plus that image's deviation) and carries that image's covariance too,
+in the location's frame: the robot was only near the location.
 
 The relaxation uses the project's pose-graph back end (Gauss-Newton, incremental; [2]_ used TORO)
 without robust kernel: validated loop closures are trusted (the paper's first concern is that none is
@@ -129,12 +137,13 @@ class TopoMetricMapper:
         self._graph = IncrementalOptimizer(IncrementalConfig(optimizer=opt), self._first_pose)
         self._features: list[Features] = []
         self._n_images: list[int] = []
-        self._last_seen: list[int] = []
+        self._created: list[int] = []  # taken-image index that created each location
         self._loop: list[bool] = []
         self._metric: bool | None = None
         self._sampled: F64 | None = None  # odometry at the last image taken
         self._processed: F64 | None = None  # odometry at the last image with features
         self._prev_location = -1
+        self._prev_deviation: float | None = None  # the last image closed a loop: its heading deviation (rad)
         self._taken = 0
         self._since_loop = 0.0  # metres driven since the last loop closure (for the gate)
 
@@ -194,7 +203,9 @@ class TopoMetricMapper:
         scores = self.vocabulary.scores(words, counts)
         tic = self._toc(dur, "bow", tic)
         n = self.n_locations
-        eligible = np.array(self._last_seen, np.int64) < k - self.cfg.recent_images
+        # Angeli et al.: the locations created from the last images look like the current one; a
+        # re-visited location stays eligible (it is validated against its old reference image)
+        eligible = np.array(self._created, np.int64) < k - self.cfg.recent_images
         motion = None
         if odom is not None and self._processed is not None:
             motion = se2.between(self._processed, odom)
@@ -213,23 +224,23 @@ class TopoMetricMapper:
             loc = best.location
             self.vocabulary.update_location(loc, words, counts)
             self._n_images[loc] += 1
-            self._last_seen[loc] = k
             post[loc] += post[n]
             post[n] = 0.0
-            relax = self._add_edge(loc, motion, loop=True)
+            relax = self._add_edge(loc, motion, self._deviation(best))
             status = StepStatus.LOOP_CLOSURE
         else:
             loc = self.vocabulary.add_location(words, counts)
             self._features.append(feats)
             self._n_images.append(1)
-            self._last_seen.append(k)
+            self._created.append(k)
             post = np.r_[post[:n], post[n], 0.0]
             if loc > 0:
-                self._add_edge(loc, motion, loop=False)
+                self._add_edge(loc, motion, None)
             status = StepStatus.NEW_LOCATION
         self._toc(dur, "relaxation", tic)
         self.filter.commit(post)
         self._prev_location = loc
+        self._prev_deviation = None if best is None else self._deviation(best)
         self._processed = odom
         if best is not None:
             self._since_loop = 0.0
@@ -244,7 +255,8 @@ class TopoMetricMapper:
         d = self._since_loop + math.hypot(motion[0], motion[1])
         dist = np.hypot(*(self.poses[:, :2] - here[:2]).T)
         turn = np.degrees(np.abs(se2.wrap_angle(self.poses[:, 2] - here[2])))
-        return (dist <= c.gate_m + c.gate_m_per_m * d) & (turn <= c.gate_deg + c.gate_deg_per_m * d)
+        ok: NDArray[np.bool_] = (dist <= c.gate_m + c.gate_m_per_m * d) & (turn <= c.gate_deg + c.gate_deg_per_m * d)
+        return ok
 
     def _take(self, odom: F64) -> bool:
         if self._sampled is None:
@@ -268,26 +280,50 @@ class TopoMetricMapper:
                    default=None)
         return cands, best
 
-    def _information(self, z: F64, loop: bool) -> F64:
+    def _deviation(self, match: Candidate) -> float:
+        """Heading of the current image minus the matched location's: ``tx_px * hfov / width`` (IV-B)."""
+        m = match.validation.motion
+        return 0.0 if m is None else m.tx_px * math.radians(self.cfg.hfov_deg) / self.cfg.features.width
+
+    def _image_covariance(self, heading: float) -> F64:
+        """(3, 3) covariance of "the robot is at a location" for a location with that heading in the edge frame."""
+        c = self.cfg
+        ca, sa = math.cos(heading), math.sin(heading)
+        rot = np.array([[ca, -sa], [sa, ca]])
+        cov = np.zeros((3, 3))
+        cov[:2, :2] = rot @ np.diag([c.loop_sigma_along_m**2, c.loop_sigma_xy_m**2]) @ rot.T
+        cov[2, 2] = math.radians(c.loop_sigma_theta_deg) ** 2
+        return cov
+
+    def _add_edge(self, loc: int, motion: F64 | None, deviation: float | None) -> Relaxation | None:
+        """Edge from the previous location to ``loc``; ``deviation`` (rad) when the image closed a loop with it.
+
+        The robot was at the previous location only as closely as its image said when that image closed
+        a loop (``self._prev_deviation`` not None): the edge then starts from the robot's heading there and
+        carries that image's uncertainty too.
+        """
+        prev = self._prev_location
+        if prev < 0 or prev == loc:
+            return None
+        loop = deviation is not None
+        z = np.zeros(3) if motion is None else motion
         c = self.cfg
         dist, turn = math.hypot(z[0], z[1]), abs(float(z[2]))
         sxy = c.odometry_sigma_floor + c.odometry_sigma_xy_m_per_m * dist
         sth = (c.odometry_sigma_floor + c.odometry_sigma_theta_rad_per_m * dist
                + c.odometry_sigma_theta_rad_per_rad * turn)
-        var = np.array([sxy**2, sxy**2, sth**2])
-        if loop:
-            var += [c.loop_sigma_xy_m**2, c.loop_sigma_xy_m**2, math.radians(c.loop_sigma_theta_deg) ** 2]
-        if not self._metric:
-            var = np.full(3, 1e6)  # no odometry: the edge only records adjacency
-        return np.diag(1.0 / var)
-
-    def _add_edge(self, loc: int, motion: F64 | None, loop: bool) -> Relaxation | None:
-        prev = self._prev_location
-        if prev < 0 or prev == loc:
-            return None
-        z = np.zeros(3) if motion is None else motion
+        cov = np.diag([sxy**2, sxy**2, sth**2])
+        if self._metric and motion is not None:
+            if self._prev_deviation is not None:
+                z = se2.compose(np.array([0.0, 0.0, self._prev_deviation]), z)
+                cov += self._image_covariance(0.0)
+            if deviation is not None:
+                z = se2.compose(z, np.array([0.0, 0.0, -deviation]))  # the location's heading: the robot's - delta
+                cov += self._image_covariance(float(z[2]))
+        else:
+            cov = np.diag(np.full(3, 1e6))  # no odometry: the edge only records adjacency
         before = self.poses
-        res = self._graph.step([prev], [loc], z[None, :], self._information(z, loop)[None])
+        res = self._graph.step([prev], [loc], z[None, :], np.linalg.inv(cov)[None])
         self._loop.append(loop)
         if not loop or not self._metric:
             return None

@@ -54,6 +54,11 @@ class TopoMap:
         histogram_words (H,) int64 (sorted) and histogram_counts (H,) int64.
     words : (W, 32) uint8, the dictionary.
     images_per_location : (n,) int64, images merged into each location (1 + its loop closures).
+    truth_poses : (n, 3) float64 or None, evaluation only: the ground-truth pose ``[x, y, theta]``
+        (world frame = map frame at the mapping start) of each location's reference image, NaN rows
+        where the recording had no ground truth at that time; None when mapping had no ground truth
+        at all. Navigation never reads it; evaluation scores a drive against it (the paper's
+        Fig. 4 compares the replay and the mapping trajectories, both from laser SLAM).
     """
 
     config: MapperConfig
@@ -71,6 +76,7 @@ class TopoMap:
     histogram_counts: I64
     words: U8
     images_per_location: I64
+    truth_poses: F64 | None = None
 
     def __post_init__(self) -> None:
         spec = {"poses": np.float64, "edge_i": np.int64, "edge_j": np.int64, "edge_measurements": np.float64,
@@ -100,6 +106,12 @@ class TopoMap:
             raise ValueError(f"histogram_words must index the {w} words, with one count each")
         if self.words.shape != (w, DESCRIPTOR_BYTES) or self.images_per_location.shape != (n,):
             raise ValueError(f"words must be (W, {DESCRIPTOR_BYTES}) and images_per_location ({n},)")
+        if self.truth_poses is not None:
+            t = np.array(self.truth_poses, dtype=np.float64, copy=True)
+            if t.shape != (n, 3):
+                raise ValueError(f"truth_poses must be ({n}, 3) (NaN where unknown), got {t.shape}")
+            t.setflags(write=False)
+            object.__setattr__(self, "truth_poses", t)
 
     @classmethod
     def build(cls, config: MapperConfig, poses: F64, i: I64, j: I64, z: F64, info: F64, loop: NDArray[np.bool_],

@@ -399,3 +399,14 @@ class LandmarkSlamPipeline(Pipeline):
             ),
             collapse_panels=True,
         )
+
+
+# Noise settings for MRCLAM recordings (`slamreplay record mrclam`): its odometry and camera measured
+# against its ground truth (the dataset's README): about 0.05 m/sqrt(m) translation, 0.1 rad/sqrt(m) and
+# 0.1 rad/sqrt(rad) heading noise (plus a few % scale bias); range noise ~0.15 m, bearing ~0.02 rad. The
+# scans state no sigma. Use with `--config` (or the demo and benchmarks/dslam_evaluation.py do).
+MRCLAM_CONFIG: dict[str, float] = {
+    "translation_sigma_per_sqrt_m": 0.06, "heading_sigma_per_sqrt_m": 0.1, "heading_sigma_per_sqrt_rad": 0.12,
+    "range_sigma_m": 0.15, "bearing_sigma_rad": 0.02,
+    "outlier_probability": 0.9999,  # MRCLAM has range outliers (1-3 % beyond 0.5 m)
+}

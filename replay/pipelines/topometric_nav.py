@@ -7,13 +7,23 @@ the same :class:`~algorithms.topometric.guidance.Navigator` on the recorded odom
 ``/odom`` -> :meth:`~Navigator.on_odometry`, ``/camera/image`` -> :meth:`~Navigator.on_image`,
 ``/cmd_vel`` -> :meth:`~Navigator.control`. Each replayed localization and command is compared
 with the recorded ``/nav/localization`` and ``/cmd_vel``: ``replay_mismatches`` counts the
-differences (0: the replay reproduces the run exactly).
+differences (0: the replay reproduces the run exactly). The recording also holds a fingerprint of
+the navigation code that made it: a replay by other code says so in its log (its mismatches then
+measure what the change does, they are not a determinism fault) and ``code_matches_recording`` is 0.
 
-Logged: the global path and the route's nodes, the local path at each image, the target point at
+Logged: the map's nodes and edges (``world/map``), the current image (``camera/image``), the global path and
+the route's nodes, the local path at each image, the target point at
 each tick, the matched node and the heading correction (``topo/nav/heading_correction_deg``), the
-true, odometry and estimated trajectories (``world/trajectory/{truth,odometry,estimate}``). The
-cross-track error is the distance of the *true* position (``/ground_truth/pose``) to the planned
-path (the polyline through the route's nodes, map frame = world frame).
+true, odometry and estimated trajectories (``world/trajectory/{truth,odometry,estimate}``), and
+the path the drive is scored against (``world/nav/reference_path``).
+
+Scoring, as the paper's Fig. 4 compares the replay and the mapping trajectories, both true
+(:func:`replay.navigate.reference_path`): the cross-track error is the distance of the *true*
+position (``/ground_truth/pose``) to the *true path*, the route's nodes at the mapping drive's
+ground-truth poses stored in the map (``truth_poses``), discretized like the global path; the goal
+distance is to the goal node's true pose. A map without them (an older map, or mapping without
+ground truth) falls back to the planned path in map coordinates (map frame = world frame), where
+the map's own error counts as path-following error; the log says which was used.
 """
 
 from __future__ import annotations
@@ -26,9 +36,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import rerun.blueprint as rrb
 
 from algorithms.common import se2
-from algorithms.observe import Pose, Scalar, Text
+from algorithms.observe import Image, LineStrips, Points, Pose, Scalar, Segments, Text
 from algorithms.topometric.guidance import Navigator, NavUpdate
 from algorithms.topometric.pathfollow import distance_to_polyline
 from recorder.messages import (
@@ -45,7 +56,15 @@ from recorder.messages import (
 )
 from recorder.writer import METADATA_NAME
 from replay.errors import ReplayError
-from replay.navigate import SOURCE, MapLocalizer, guidance_from_dict, load_nav_map, localization_message
+from replay.navigate import (
+    SOURCE,
+    MapLocalizer,
+    guidance_from_dict,
+    load_nav_map,
+    localization_message,
+    nav_code_fingerprint,
+    reference_path,
+)
 from replay.pipeline import MetricSpec, Pipeline, ReplayContext, register
 from replay.reader import Envelope
 from replay.trajectory import TrajectoryLog
@@ -76,13 +95,15 @@ class TopometricNavPipeline(Pipeline):
     metrics = {
         "goal_reached": MetricSpec("higher", "", "1 when the navigator stopped at the goal and the true position "
                                    "is within goal_radius_m of the goal node"),
-        "goal_distance_m": MetricSpec("lower", "m", "true final position to the goal node", 1e-9),
-        "cross_track_error_m_mean": MetricSpec("lower", "m", "mean distance of the true position to the planned "
-                                               "path", 1e-9),
-        "cross_track_error_m_max": MetricSpec("lower", "m", "largest distance of the true position to the "
-                                              "planned path", 1e-9),
-        "cross_track_error_m_final": MetricSpec("lower", "m", "distance of the true final position to the planned "
-                                                "path", 1e-9),
+        "goal_distance_m": MetricSpec("lower", "m", "true final position to the goal node's true pose (its map "
+                                      "pose when the map has no ground truth; the log says which)", 1e-9),
+        "cross_track_error_m_mean": MetricSpec("lower", "m", "mean distance of the true position to the true path "
+                                               "(route nodes at their mapping ground-truth poses; the map path "
+                                               "when the map has none, as the log says)", 1e-9),
+        "cross_track_error_m_max": MetricSpec("lower", "m", "largest distance of the true position to the true "
+                                              "path (map path fallback, as for the mean)", 1e-9),
+        "cross_track_error_m_final": MetricSpec("lower", "m", "distance of the true final position to the true "
+                                                "path (map path fallback, as for the mean)", 1e-9),
         "visual_corrections": MetricSpec("none", "", "loop closures that reset the position (section IV-B)"),
         "loop_closure_rate": MetricSpec("higher", "", "images with a loop closure / images", 1e-9),
         "images": MetricSpec("none", "", "images processed"),
@@ -91,7 +112,26 @@ class TopometricNavPipeline(Pipeline):
                                             1e-9),
         "replay_mismatches": MetricSpec("lower", "", "recorded localizations and commands the replay did not "
                                         "reproduce exactly"),
+        "code_matches_recording": MetricSpec("none", "", "1 when this replay runs the navigation code that made "
+                                             "the recording (same fingerprint), else 0"),
     }
+
+    @classmethod
+    def blueprint(cls) -> rrb.Blueprint:
+        return rrb.Blueprint(
+            rrb.Horizontal(
+                rrb.Spatial2DView(name="Map: nodes, global and local path, target, trajectories", origin="/world"),
+                rrb.Vertical(
+                    rrb.Spatial2DView(name="Current image", origin="/camera/image"),
+                    rrb.TimeSeriesView(name="Heading correction (deg)", origin="/topo/nav/heading_correction_deg"),
+                    rrb.TimeSeriesView(name="Cross-track error (m)", origin="/metrics/cross_track_error_m"),
+                    rrb.TextLogView(name="Log", contents=["/log", "/topo/nav/log"]),
+                    row_shares=[3, 2, 2, 2],
+                ),
+                column_shares=[3, 2],
+            ),
+            collapse_panels=True,
+        )
 
     def __init__(self, config: TopometricNavConfig, ctx: ReplayContext) -> None:
         super().__init__(config, ctx)
@@ -117,6 +157,16 @@ class TopometricNavPipeline(Pipeline):
                                  guidance, observer=ctx.observer)
         except ValueError as err:
             raise ReplayError(f"map {nav_map.path}: {err}") from err
+        self.code_matches = rec["code"] == nav_code_fingerprint()
+        if not self.code_matches:
+            ctx.observer.log("log", Text(f"this replay runs other navigation code than the recording's (fingerprint "
+                                         f"{nav_code_fingerprint()}, recorded {rec['code'] or 'none'}): "
+                                         f"replay_mismatches then measure the change, not a fault", level="WARN"))
+        p = nav_map.graph.poses
+        ctx.observer.log_static("world/map/nodes", Points(p[:, :2], labels=tuple(map(str, range(len(p)))),
+                                                          radius=0.06))
+        e = nav_map.graph.edges
+        ctx.observer.log_static("world/map/edges", Segments(p[e[:, 0], :2], p[e[:, 1], :2]))
         ctx.log(f"route {self.start} -> {self.goal}: {len(self.nav.route.nodes)} nodes, "
                 f"{self.nav.route.length_m:.2f} m, visual correction {'on' if guidance.visual_correction else 'off'}")
         self.truth = TrajectoryLog(ctx.observer, "world/trajectory/truth")
@@ -151,6 +201,7 @@ class TopometricNavPipeline(Pipeline):
             obs.log("world/robot", Pose(est))
         elif isinstance(msg, CameraImage):
             gray = msg.pixels if msg.pixels.ndim == 2 else msg.pixels.mean(axis=2).astype(np.uint8)
+            obs.log("camera/image", Image(gray))
             update = self.nav.on_image(gray)
             self.pending = localization_message(env.log_time_ns, update)
             self.est_t.append(env.log_time_ns)
@@ -198,6 +249,7 @@ class TopometricNavPipeline(Pipeline):
         metrics: dict[str, float] = {
             "visual_corrections": float(nav.corrections), "images": float(nav.images),
             "route_length_m": nav.route.length_m, "replay_mismatches": float(self.mismatches),
+            "code_matches_recording": float(self.code_matches),
         }
         if nav.images:
             metrics["loop_closure_rate"] = nav.matches / nav.images
@@ -208,9 +260,12 @@ class TopometricNavPipeline(Pipeline):
             self.ctx.log("no ground truth: cross-track errors do not apply; goal_reached is the navigator's own")
             return metrics
         gt = np.array(self.gt)
-        xt = distance_to_polyline(gt[:, :2], nav.route_xy)
+        scored = reference_path(self.map.topomap, nav.route.nodes, nav.cfg.follower.spacing_m)
+        self.ctx.log(f"cross-track error and goal distance {scored.describe()}")
+        self.ctx.observer.log_static("world/nav/reference_path", LineStrips((scored.xy,)))
+        xt = distance_to_polyline(gt[:, :2], scored.xy)
         self.ctx.observer.send_series("metrics/cross_track_error_m", np.arange(len(xt)), np.array(self.gt_t), xt)
-        goal_d = float(np.hypot(*(gt[-1, :2] - self.map.graph.poses[self.goal, :2])))
+        goal_d = float(np.hypot(*(gt[-1, :2] - scored.goal_xy)))
         metrics.update(cross_track_error_m_mean=float(xt.mean()), cross_track_error_m_max=float(xt.max()),
                        cross_track_error_m_final=float(xt[-1]),
                        goal_distance_m=goal_d,
@@ -233,6 +288,7 @@ def _recorded(ctx: ReplayContext) -> dict[str, Any]:
                               f"{source or 'not stated'}): topometric-nav replays navigation runs")
         out = {k: params[k] for k in ("map", "start", "goal", "guidance", "control_period_s")}
         out["seed"] = int(record["seed"])
+        out["code"] = str(params.get("code", ""))
         _ = out["map"]["path"], out["map"]["sha256"]
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
         raise ReplayError(f"{Path(ctx.info.path).name}: the navigate metadata is incomplete or unreadable "

@@ -134,7 +134,7 @@ def test_rtabmap_samples_precision_recall(shared_data: Path) -> None:
     """RTAB-Map's 84 images (no odometry: graph-neighbourhood model): no false loop closure, recall >= 0.6.
 
     The second lap was walked up to about 1.5 m off the first (scales 0.84-0.92 between matching
-    images), so the scale threshold is 1.2 here; sim-corridor needs the default 1.07.
+    images), so the scale threshold is 1.2 here; sim-corridor uses the default 1.10.
     """
     root = shared_data / "rtabmap-loop-samples"
     if not root.is_dir():
