@@ -28,7 +28,7 @@ from recorder.version import version
 from recorder.writer import CHUNK_SIZE, partial_path
 
 MAGIC = b"\x89MCAP0\r\n"
-_RECORD_CLASSES = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel, Opcode.MESSAGE: Message}
+_RECORD_CLASSES: dict[int, type[Any]] = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel, Opcode.MESSAGE: Message}
 
 
 @dataclass(frozen=True, slots=True)
@@ -143,7 +143,7 @@ def recover(src: str | Path, dst: str | Path) -> RecoveryReport:
                 copier.add(record)
             if copier.messages > before:
                 stopped += f" ({copier.messages - before} messages salvaged from the cut chunk)"
-        copier.writer.finish()
+        copier.writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer.finish is unannotated
         out.flush()
         os.fsync(out.fileno())
     os.replace(tmp, dst)

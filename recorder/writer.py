@@ -137,7 +137,7 @@ class Recorder:
         if self._writer is None or self._file is None:
             return
         try:
-            self._writer.finish()
+            self._writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer.finish is unannotated
             self._file.flush()
             os.fsync(self._file.fileno())
         finally:

@@ -22,7 +22,7 @@ from typing import Any
 
 import rerun as rr
 import rerun.blueprint as rrb
-from rerun.chunk import RrdReader
+from rerun.chunk import Chunk, RrdReader
 
 from replay.errors import ReplayError
 from replay.observer import APPLICATION_ID, deterministic_batcher
@@ -211,7 +211,11 @@ def write_comparison_rrd(a_dir: str | Path, b_dir: str | Path, out: str | Path) 
     try:
         for run_dir, label in ((a_dir, "A"), (b_dir, "B")):
             stream = RrdReader(run_dir / "run.rrd").stream()
-            rec.send_chunks(stream.map(lambda ch, lb=label: ch.with_entity_path(f"/runs/{lb}{ch.entity_path}")))
+
+            def relabel(ch: Chunk, lb: str = label) -> Chunk:
+                return ch.with_entity_path(f"/runs/{lb}{ch.entity_path}")
+
+            rec.send_chunks(stream.map(relabel))
     finally:
         rec.disconnect()
     tmp.replace(out)

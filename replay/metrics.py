@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,7 +26,7 @@ def associate(t_est_ns: NDArray[np.int64], t_gt_ns: NDArray[np.int64]) -> NDArra
     """Mask of estimate times inside the ground truth's time span (where interpolation is valid)."""
     if len(t_gt_ns) == 0:
         return np.zeros(len(t_est_ns), bool)
-    return (t_est_ns >= t_gt_ns[0]) & (t_est_ns <= t_gt_ns[-1])
+    return cast(NDArray[np.bool_], (t_est_ns >= t_gt_ns[0]) & (t_est_ns <= t_gt_ns[-1]))
 
 
 def position_errors(t_est_ns: NDArray[np.int64], est: F64, t_gt_ns: NDArray[np.int64], gt: F64) -> tuple[F64, F64]:

@@ -210,13 +210,13 @@ def load_world(world: str | Path) -> tuple[Any, Any, int]:
         is_mcap = f.read(8) == MCAP_MAGIC
     try:
         if not is_mcap:
-            return world_from_file(p)  # type: ignore[no-any-return]
+            return world_from_file(p)
         record = RecordingReader(p).info.metadata.get(METADATA_NAME, {})
         if json.loads(record.get("source", "{}")).get("simulator") == SOURCE:
             spec = json.loads(record["parameters"])["world"]
             config = CorridorConfig.from_dict(spec["config"])
             return CorridorWorld.from_config(config, int(spec["seed"])), config, int(spec["seed"])
-        return world_from_metadata(record)  # type: ignore[no-any-return]
+        return world_from_metadata(record)
     except RecorderError as err:
         what = "a recording whose metadata does not describe a sim-corridor world" if is_mcap else \
             'not a world JSON file {"config": {...}, "seed": N}'

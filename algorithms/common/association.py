@@ -28,6 +28,7 @@ References
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -87,7 +88,7 @@ def outliers(z: F64, z_pred: F64, s: F64, gate: float) -> NDArray[np.bool_]:
     """Observations z (k, 2) whose own innovation fails the gate (known ids), given z_pred and S (k, 2, 2)."""
     nu = z - z_pred
     nu[:, 1] = wrap_angle(nu[:, 1])
-    return np.einsum("ki,kij,kj->k", nu, np.linalg.inv(s), nu) > gate
+    return cast(NDArray[np.bool_], np.einsum("ki,kij,kj->k", nu, np.linalg.inv(s), nu) > gate)
 
 
 def mahalanobis(z: F64, z_pred: F64, s: F64, angular: bool = True) -> F64:
@@ -99,7 +100,7 @@ def mahalanobis(z: F64, z_pred: F64, s: F64, angular: bool = True) -> F64:
     if angular:
         nu[..., 1] = wrap_angle(nu[..., 1])
     s_inv = np.linalg.inv(s)
-    return np.einsum("mni,nij,mnj->mn", nu, s_inv, nu)
+    return cast(F64, np.einsum("mni,nij,mnj->mn", nu, s_inv, nu))
 
 
 def match(d2: F64, log_det: F64, gate: float, new_gate: float) -> tuple[I64, NDArray[np.bool_]]:

@@ -7,6 +7,8 @@ pose of shape (3,) or a stack of shape (..., 3) and broadcasts.
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -54,7 +56,7 @@ def transform_points(pose: ArrayLike, points: ArrayLike) -> F64:
     """Map points (..., n, 2) from the body frame of ``pose`` (..., 3) into its parent frame."""
     p = np.asarray(pose, dtype=np.float64)
     pts = np.asarray(points, dtype=np.float64)
-    return np.einsum("...ij,...nj->...ni", rot(p[..., 2]), pts) + p[..., None, :2]
+    return cast(F64, np.einsum("...ij,...nj->...ni", rot(p[..., 2]), pts) + p[..., None, :2])
 
 
 def to_matrix(a: ArrayLike) -> F64:

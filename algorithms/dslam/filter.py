@@ -460,7 +460,7 @@ class DSlam:
         """Append features at ``positions`` for the observations ``obs``; returns their indices."""
         if not obs:
             return []
-        created = self.info.add_features(len(obs)).tolist()
+        created: list[int] = self.info.add_features(len(obs)).tolist()
         self.recovery.grow(positions)
         for j, f in zip(obs, created, strict=True):
             features[j] = f

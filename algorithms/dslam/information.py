@@ -20,6 +20,8 @@ References
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
@@ -189,7 +191,7 @@ class InformationMatrix:
 
     def matvec(self, x: F64) -> F64:
         """I @ x for x (2N,) or (2N, k): a global product (assembles the CSR matrix when stale)."""
-        return self.csr() @ x
+        return cast(F64, self.csr() @ x)
 
     def csc(self) -> sp.csc_matrix:
         """I as one CSC matrix (for a direct solve)."""

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import scipy.linalg as sla
@@ -63,8 +64,8 @@ def apply_blocks(inv_blocks: F64, r: F64) -> F64:
     """Block-diagonal product D^-1 r for r (2n,) or (2n, k)."""
     n = len(inv_blocks)
     if r.ndim == 1:
-        return np.einsum("nij,nj->ni", inv_blocks, r.reshape(n, 2)).reshape(-1)
-    return np.einsum("nij,njk->nik", inv_blocks, r.reshape(n, 2, -1)).reshape(r.shape)
+        return cast(F64, np.einsum("nij,nj->ni", inv_blocks, r.reshape(n, 2)).reshape(-1))
+    return cast(F64, np.einsum("nij,njk->nik", inv_blocks, r.reshape(n, 2, -1)).reshape(r.shape))
 
 
 def block_errors(inv_blocks: F64, r: F64) -> F64:
@@ -170,7 +171,7 @@ class TwoLevel:
         self.lu = spla.splu(0.5 * (coarse + coarse.T), permc_spec="MMD_AT_PLUS_A")
 
     def __call__(self, r: F64) -> F64:
-        return apply_blocks(self.inv_blocks, r) + self.p @ np.asarray(self.lu.solve(np.asarray(self.pt @ r)))
+        return cast(F64, apply_blocks(self.inv_blocks, r) + self.p @ np.asarray(self.lu.solve(np.asarray(self.pt @ r))))
 
 
 def factor(info: InformationMatrix) -> spla.SuperLU:

@@ -16,6 +16,7 @@ References
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -68,4 +69,4 @@ class Grid:
             return []
         idx = np.asarray(sorted(cand), dtype=np.int64)
         d = np.hypot(*(positions[idx] - centre).T)
-        return idx[d <= radius].tolist()
+        return cast(list[int], idx[d <= radius].tolist())

@@ -86,10 +86,12 @@ class FeatureExtractor:
 
     def __init__(self, cfg: FeatureConfig = FeatureConfig()) -> None:
         self.cfg = cfg
-        self._star = cv2.xfeatures2d.StarDetector_create(
+        # cv2's bundled stubs omit the contrib xfeatures2d factories (present at run time)
+        self._star = cv2.xfeatures2d.StarDetector_create(  # type: ignore[attr-defined]
             cfg.star_max_size, cfg.star_response_threshold, cfg.star_line_threshold_projected,
             cfg.star_line_threshold_binarized, cfg.star_suppress_nonmax_size)
-        self._brief = cv2.xfeatures2d.BriefDescriptorExtractor_create(DESCRIPTOR_BYTES, False)
+        self._brief = cv2.xfeatures2d.BriefDescriptorExtractor_create(  # type: ignore[attr-defined]
+            DESCRIPTOR_BYTES, False)
 
     def prepare(self, image: NDArray[np.generic]) -> U8:
         """The image as (height, width) uint8 grey at the working resolution."""

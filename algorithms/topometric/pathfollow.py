@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -52,7 +53,7 @@ def discretize(points: ArrayLike, spacing_m: float = 0.01) -> F64:
     keep = np.concatenate([[True], seg > 1e-12])
     p = p[keep]
     if len(p) == 1:
-        return p.copy()
+        return cast(F64, p.copy())
     s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(p, axis=0).T))])
     n = math.floor(s[-1] / spacing_m + 1e-9)
     q = np.arange(n + 1) * spacing_m
@@ -66,7 +67,7 @@ def distance_to_polyline(points: ArrayLike, polyline: ArrayLike) -> F64:
     pts = np.asarray(points, np.float64).reshape(-1, 2)
     line = np.asarray(polyline, np.float64).reshape(-1, 2)
     if len(line) == 1:
-        return np.hypot(*(pts - line[0]).T)
+        return cast(F64, np.hypot(*(pts - line[0]).T))
     a, b = line[:-1], line[1:]
     ab = b - a
     denom = np.maximum(np.sum(ab * ab, axis=1), 1e-18)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -85,7 +85,7 @@ class TopoMap:
                 "histogram_words": np.int64, "histogram_counts": np.int64, "words": np.uint8,
                 "images_per_location": np.int64}
         for name, dtype in spec.items():
-            a = np.array(getattr(self, name), dtype=dtype, copy=True)
+            a: NDArray[Any] = np.array(getattr(self, name), dtype=dtype, copy=True)
             a.setflags(write=False)
             object.__setattr__(self, name, a)
         n, m = len(self.poses), len(self.edge_i)
@@ -123,9 +123,10 @@ class TopoMap:
         cat = np.concatenate
         return cls(config, poses, i, j, z.reshape(-1, 3), info.reshape(-1, 3, 3), loop, kp_off,
                    cat([f.xy for f in features]) if features else np.zeros((0, 2)),
-                   cat([f.descriptors for f in features]) if features else np.zeros((0, DESCRIPTOR_BYTES)),
-                   h_off, cat([w for w, _ in histograms]) if histograms else np.zeros(0),
-                   cat([c for _, c in histograms]) if histograms else np.zeros(0), words, images_per_location)
+                   cat([f.descriptors for f in features]) if features else np.zeros((0, DESCRIPTOR_BYTES), np.uint8),
+                   h_off, cat([w for w, _ in histograms]) if histograms else np.zeros(0, np.int64),
+                   cat([c for _, c in histograms]) if histograms else np.zeros(0, np.int64), words,
+                   images_per_location)
 
     @property
     def n_locations(self) -> int:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from functools import cache
-from typing import Any
+from typing import Any, Literal, cast
 
 import cv2
 import numpy as np
@@ -194,7 +194,8 @@ def from_proto(kind: type, proto: Any, log_time_ns: int) -> Message:
     stamp = stamp_of(proto, log_time_ns)
     if issubclass(kind, PlanarPose) and name == "foxglove.PoseInFrame":
         p, o = proto.pose.position, proto.pose.orientation
-        return kind(stamp, p.x, p.y, yaw_from_quaternion(o.w, o.x, o.y, o.z))
+        # kind is an OdometryPose/GroundTruthPose subclass of PlanarPose in practice
+        return cast(Message, kind(stamp, p.x, p.y, yaw_from_quaternion(o.w, o.x, o.y, o.z)))
     if kind is RangeBearingScan and name == "slamreplay.RangeBearingScan":
         return RangeBearingScan(stamp, np.array(proto.ranges), np.array(proto.bearings),
                                 np.array(proto.landmark_ids, dtype=np.int64), proto.range_sigma, proto.bearing_sigma)
@@ -203,7 +204,7 @@ def from_proto(kind: type, proto: Any, log_time_ns: int) -> Message:
                            np.stack([np.array(proto.x), np.array(proto.y)], -1).reshape(-1, 2))
     if kind is CameraImage and name == "foxglove.CompressedImage":
         fmt = proto.format.lower()
-        compression = "jpeg" if "jp" in fmt else "png"
+        compression: Literal["jpeg", "png"] = "jpeg" if "jp" in fmt else "png"
         return CameraImage(stamp, decode_image_bytes(proto.data, fmt), proto.frame_id or "camera", compression)
     if kind is CameraImage and name == "foxglove.RawImage":
         px = raw_pixels(proto.data, proto.width, proto.height, proto.step, proto.encoding)

@@ -9,7 +9,7 @@ use the ROS 1 style ``nav_msgs/Odometry`` too.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 from recorder.codec.protobuf import decode_image_bytes, raw_pixels, yaw_from_quaternion
 from recorder.errors import CodecError
@@ -40,7 +40,9 @@ def from_ros2(kind: type, schema_name: str, obj: Any, log_time_ns: int) -> Messa
     if issubclass(kind, PlanarPose) and name in ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped"):
         pose = obj.pose.pose if name == "nav_msgs/msg/Odometry" else obj.pose
         p, o = pose.position, pose.orientation
-        return kind(_stamp(obj.header, log_time_ns), p.x, p.y, yaw_from_quaternion(o.w, o.x, o.y, o.z))
+        # kind is an OdometryPose/GroundTruthPose subclass of PlanarPose in practice
+        return cast(Message, kind(_stamp(obj.header, log_time_ns), p.x, p.y,
+                                  yaw_from_quaternion(o.w, o.x, o.y, o.z)))
     if kind is CameraImage and name == "sensor_msgs/msg/Image":
         px = raw_pixels(bytes(obj.data), obj.width, obj.height, obj.step, obj.encoding)
         return CameraImage(_stamp(obj.header, log_time_ns), px, obj.header.frame_id or "camera", "raw")

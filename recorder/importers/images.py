@@ -13,10 +13,11 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Final
+from typing import Final, cast
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from recorder.errors import RecorderError
 from recorder.messages import TOPIC_CAMERA_IMAGE, CameraImage
@@ -83,7 +84,8 @@ def import_images(folder: Path, out: Path, rate_hz: float = 1.0, progress: Progr
             elif img.shape != size:
                 raise RecorderError(f"{path.name} is {img.shape[1]}x{img.shape[0]} but the first frame is "
                                     f"{size[1]}x{size[0]}: every frame must have one size")
-            rec.write(TOPIC_CAMERA_IMAGE, CameraImage(EPOCH_NS + k * period, img, frame_id="camera",
+            pixels = cast(NDArray[np.uint8], img)  # IMREAD_GRAYSCALE always yields 8-bit pixels
+            rec.write(TOPIC_CAMERA_IMAGE, CameraImage(EPOCH_NS + k * period, pixels, frame_id="camera",
                                                       compression="png"))
             if progress is not None:
                 progress(k + 1, len(frames))

@@ -35,7 +35,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Final
+from typing import Final, cast
 
 import cv2
 import numpy as np
@@ -153,18 +153,18 @@ def procedural_texture(width: int, height: int, rng: np.random.Generator) -> NDA
         axes = (int(r), max(2, int(r * ecc)))
         cv2.ellipse(rocks, (int(cx + 0.3 * r), int(cy + 0.3 * r)), axes, ang, 0, 360, -0.8, -1)  # shadow
         cv2.ellipse(rocks, (int(cx), int(cy)), axes, ang, 0, 360, 1.2, -1)
-    rocks = cv2.GaussianBlur(rocks, (0, 0), 2.0)
+    rocks = cast(NDArray[np.float32], cv2.GaussianBlur(rocks, (0, 0), 2.0))
     grain = rng.standard_normal((height, width)) * 0.25
     tex = sediment + 1.5 * rocks + grain
     tex = (tex - tex.mean()) / (tex.std() + 1e-12)
-    return np.clip(128.0 + 38.0 * tex, 0, 255).astype(np.uint8)
+    return cast(NDArray[np.uint8], np.clip(128.0 + 38.0 * tex, 0, 255).astype(np.uint8))
 
 
 def tiled_texture(folder: Path) -> NDArray[np.uint8]:
     """The frames of ``folder`` (sorted by name), illumination flattened, tiled in a near-square grid."""
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-    frames = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in files]
-    frames = [f for f in frames if f is not None]
+    decoded = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in files]
+    frames = [f for f in decoded if f is not None]
     if not frames:
         raise RecorderError(f"texture folder {folder} holds no readable images ({', '.join(IMAGE_SUFFIXES)})")
     h, w = frames[0].shape
@@ -253,7 +253,7 @@ def render(texture: NDArray[np.uint8], affine: F64, config: SeabedSimConfig, vig
     img = cv2.warpAffine(texture, affine, (n, n), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                          borderMode=cv2.BORDER_REFLECT).astype(np.float32)
     img = img * vignette + rng.standard_normal((n, n)).astype(np.float32) * np.float32(config.noise_sigma)
-    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+    return cast(NDArray[np.uint8], np.clip(img + 0.5, 0, 255).astype(np.uint8))
 
 
 def vignette_map(config: SeabedSimConfig) -> NDArray[np.float32]:
@@ -261,8 +261,9 @@ def vignette_map(config: SeabedSimConfig) -> NDArray[np.float32]:
     n = config.image_px
     y, x = np.mgrid[0:n, 0:n] / (n - 1.0) - 0.5
     r2 = (x - 0.08) ** 2 + (y + 0.1) ** 2
-    return (1.0 - config.vignetting * np.clip(r2 / 0.5, 0, 1) + 0.25 * config.vignetting * np.exp(-r2 / 0.02)
-            ).astype(np.float32)
+    return cast(NDArray[np.float32],
+                (1.0 - config.vignetting * np.clip(r2 / 0.5, 0, 1) + 0.25 * config.vignetting * np.exp(-r2 / 0.02)
+                 ).astype(np.float32))
 
 
 def simulate_seabed(out: Path, config: SeabedSimConfig, seed: int, progress: Progress | None = None

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, cast
 
 import numpy as np
 import rerun.blueprint as rrb
@@ -150,7 +150,7 @@ class LandmarkSlamPipeline(Pipeline):
 
     def to_world_cov(self, cov: np.ndarray) -> np.ndarray:
         rot = se2.rot(self.T[2])
-        return rot @ cov @ rot.T
+        return cast(np.ndarray, rot @ cov @ rot.T)
 
     # -- messages
     def step(self, env: Envelope) -> None:
@@ -268,8 +268,9 @@ class LandmarkSlamPipeline(Pipeline):
         k = int(np.searchsorted(tg, t))
         if tg[k] == t or k == 0:
             return self.gt[k]
-        return se2.interpolate([float(t - tg[k - 1])], [0.0, float(tg[k] - tg[k - 1])],
-                               np.stack([self.gt[k - 1], self.gt[k]]))[0]
+        pose: np.ndarray = se2.interpolate([float(t - tg[k - 1])], [0.0, float(tg[k] - tg[k - 1])],
+                                           np.stack([self.gt[k - 1], self.gt[k]]))[0]
+        return pose
 
     def _robot_nees(self, t: int, res: Any) -> None:
         truth = self._truth_pose_at(t)
