@@ -139,14 +139,12 @@ class Validation:
         return self.status is ValidationStatus.ACCEPTED
 
 
-_MATCHER = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
-
-
 def match(reference: Features, current: Features, max_distance_bits: int) -> I64:
     """Cross-checked nearest-neighbour Hamming matches (k, 2) = (reference index, current index)."""
     if len(reference) == 0 or len(current) == 0:
         return np.zeros((0, 2), np.int64)
-    ms = _MATCHER.match(reference.descriptors, current.descriptors)
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)  # about 1 us to make: no shared module state
+    ms = matcher.match(reference.descriptors, current.descriptors)
     pairs = sorted((m.queryIdx, m.trainIdx) for m in ms if m.distance <= max_distance_bits)
     return np.array(pairs, np.int64).reshape(-1, 2)
 
