@@ -164,9 +164,10 @@ def prepare(image: NDArray[np.generic], config: IfmiConfig = IfmiConfig(), name:
     lo, hi, _, _ = cv2.minMaxLoc(img)
     flat = hi - lo <= 1e-6 * max(1.0, abs(lo), abs(hi))
     spec = spectral.spectrum(img, p.window)
-    polar = None if flat else spectral.log_polar_magnitude(spec, p.log_polar)
+    mag = np.abs(spec)  # shared by the log-polar magnitude and the phase
+    polar = None if flat else spectral.log_polar_magnitude(spec, p.log_polar, mag)
     desc = None if polar is None else spectral.descriptor_phase(polar, p.radius_weight, p.radius_window)
     coarse = np.asarray(cv2.resize(img, p.coarse_shape[::-1], interpolation=cv2.INTER_AREA), dtype=np.float32)
     coarse_phase = spectral.phase_only(spectral.spectrum(coarse, p.coarse_window)) if moving else None
-    return Prepared(img, cv2.mean(img)[0], spectral.phase_only(spec) if moving else None,
+    return Prepared(img, cv2.mean(img)[0], spectral.phase_only(spec, mag) if moving else None,
                     coarse if reference else None, coarse_phase, polar, desc)

@@ -107,24 +107,32 @@ def spectrum(image: NDArray[Any], window: F32) -> C64:
     return rfft2(np.asarray(cv2.multiply(centred, window), dtype=np.float32))
 
 
-def phase_only(spec: C64) -> C64:
+def phase_only(spec: C64, magnitude: F32 | None = None) -> C64:
     """``F / |F|``: the phase of a spectrum (zero where the spectrum is zero).
 
     The POMF's normalized cross spectrum is the product of two of these (step 2 of the POMF),
-    so each image's phase is computed once and reused (the sequential mode).
+    so each image's phase is computed once and reused (the sequential mode). ``magnitude``:
+    ``np.abs(spec)`` if already computed (it is not modified).
     """
-    mag = np.abs(spec)
-    np.maximum(mag, np.float32(1e-30), out=mag)
+    mag = np.maximum(np.abs(spec) if magnitude is None else magnitude, np.float32(1e-30))
     np.reciprocal(mag, out=mag)
-    return spec * mag.astype(np.complex64)
+    return spec * mag  # (complex64 * float32 -> complex64)
 
 
-def log_polar_magnitude(spec: C64, lp: LogPolarMap) -> F32:
+def log_polar_magnitude(spec: C64, lp: LogPolarMap, magnitude: F32 | None = None) -> F32:
     """Steps 2-4: the magnitude of an rfft2 resampled on the log-polar grid, (n_angle, n_radius).
 
-    (An fftshift and a constant border remap 4x faster than ``BORDER_WRAP`` on the unshifted rows.)
+    ``magnitude``: ``np.abs(spec)`` if already computed. (An fftshift and a constant border remap
+    4x faster than ``BORDER_WRAP`` on the unshifted rows.)
     """
-    mag = np.fft.fftshift(np.abs(spec), axes=0)
+    h = spec.shape[0]
+    mid = (h + 1) // 2  # row 0 goes to h // 2, as np.fft.fftshift puts it
+    mag = np.empty(spec.shape, np.float32)
+    if magnitude is None:
+        np.abs(spec[:mid], out=mag[h - mid:])
+        np.abs(spec[mid:], out=mag[:h - mid])
+    else:
+        mag[h - mid:], mag[:h - mid] = magnitude[:mid], magnitude[mid:]
     return np.asarray(cv2.remap(mag, lp.map_x, lp.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                                 borderValue=0.0), dtype=np.float32)
 
@@ -258,8 +266,7 @@ def refine_peak(cross: C64, shape: tuple[int, int], row: float, col: float, iter
     fy, fx, weights = _trig_axes(shape)
     # Real arithmetic in one einsum, without BLAS: a threaded BLAS product of this size took
     # milliseconds on a busy machine (OpenBLAS threads above ~2.6e5 multiply-adds).
-    half = cross.shape[1]
-    re_im = np.concatenate([cross.real, cross.imag], axis=1)  # (H, 2 W'): [Re | Im]
+    re_im = np.ascontiguousarray(cross).view(np.float32)  # (H, 2 W'): Re, Im interleaved, no copy
     e = np.empty((6, h), np.float32)
     y, x = float(row), float(col)
     for _ in range(iterations):
@@ -268,7 +275,8 @@ def refine_peak(cross: C64, shape: tuple[int, int], row: float, col: float, iter
         # Rows of (ey, i fy ey, -fy^2 ey) split into real and imaginary parts, ey = exp(i fy y).
         e[0], e[1], e[2], e[3], e[4], e[5] = c, -fs, -fy * fc, s, fc, -fy * fs
         prod = np.einsum("ki,ij->kj", e, re_im)
-        a = (prod[:3, :half] - prod[3:, half:]) + 1j * (prod[:3, half:] + prod[3:, :half])
+        re, im = prod[:, 0::2], prod[:, 1::2]
+        a = (re[:3] - im[3:]) + 1j * (im[:3] + re[3:])
         ex = np.exp(fx * x) * weights
         g = (a @ np.stack([ex, ex * fx, ex * fx * fx]).T).real  # g[i, j] = sum a_i ex fx^j
         gy, gx, hyy, hxx, hxy = g[1, 0], g[0, 1], g[2, 0], g[0, 2], g[1, 1]
