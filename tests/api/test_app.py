@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -10,35 +9,17 @@ from typing import Any
 
 import pytest
 from conftest import write_tiny_recording
+from service_helpers import InlineExecutor, wait_for
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore", UserWarning)  # StarletteDeprecationWarning: it asks for httpx2; httpx works
     from fastapi.testclient import TestClient
 
 from api.app import create_app
-from api.executor import Outcome, Task, run_task
 from api.settings import Settings
 
 UNKNOWN_SHA = "0" * 64
 UNKNOWN_JOB = "0" * 32
-
-
-class InlineExecutor:
-    """Runs each task in the scheduler thread: the routes' contract without process start-up costs."""
-
-    slots = 1
-
-    def start(self) -> None:
-        """Nothing to start."""
-
-    def run(self, task: Task) -> Outcome:
-        return run_task(task)
-
-    def cancel(self, job_id: str) -> None:
-        """Tasks here are too short to cancel."""
-
-    def close(self) -> None:
-        """Nothing to stop."""
 
 
 @pytest.fixture(scope="module")
@@ -63,17 +44,6 @@ def idle(tmp_path: Path) -> TestClient:
 
 def upload(client: TestClient, data: bytes, **params: Any) -> Any:
     return client.post("/recordings", content=data, params=params)
-
-
-def wait_for(client: TestClient, job_id: str, timeout_s: float = 60.0) -> dict[str, Any]:
-    """Poll a job until it has ended."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        job: dict[str, Any] = client.get(f"/jobs/{job_id}").json()
-        if job["status"] not in ("queued", "running"):
-            return job
-        time.sleep(0.1)
-    raise AssertionError(f"job {job_id} did not end within {timeout_s} s")
 
 
 @pytest.fixture(scope="module")

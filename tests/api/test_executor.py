@@ -11,11 +11,10 @@ from pathlib import Path
 
 import pytest
 from conftest import write_tiny_recording
+from service_helpers import claimed, make_store
 
 from api.executor import LocalExecutor, Outcome, Task, describe_exit, run_task
-from api.store import RecordingRow, Store
-
-SHA = "a" * 64
+from api.store import Store
 
 
 @pytest.fixture(scope="module")
@@ -29,17 +28,7 @@ def executor() -> Iterator[LocalExecutor]:
 
 @pytest.fixture
 def store(tmp_path: Path) -> Store:
-    s = Store(tmp_path / "jobs.sqlite")
-    s.add_recording(RecordingRow(SHA, "x.mcap", 10, [], 0, 0, 0, 0.0))
-    return s
-
-
-def claimed_task(store: Store, recording: Path, job_id: str, tmp_path: Path) -> Task:
-    """Queue and claim a job (as the scheduler does), and describe it as a task."""
-    store.add_job(job_id, SHA, "odometry", {}, 0)
-    job = store.claim_next()
-    assert job is not None and job.id == job_id
-    return Task(job_id, str(recording), "odometry", {}, 0, str(tmp_path / job_id), str(store.path))
+    return make_store(tmp_path / "jobs.sqlite")
 
 
 def run_in_thread(executor: LocalExecutor, task: Task) -> tuple[threading.Thread, list[Outcome]]:
@@ -62,13 +51,13 @@ def pid_of(executor: LocalExecutor, job_id: str, timeout_s: float = 30.0) -> int
 def test_killed_worker_fails_only_its_job(executor: LocalExecutor, store: Store, tmp_path: Path) -> None:
     """SIGKILL of the worker fails that job with the cause; the next job runs in a fresh worker and reports progress."""
     rec = write_tiny_recording(tmp_path / "tiny.mcap")
-    doomed = claimed_task(store, rec, "1" * 32, tmp_path)
+    doomed = claimed(store, rec, "1" * 32, "odometry", tmp_path)
     thread, out = run_in_thread(executor, doomed)
     os.kill(pid_of(executor, doomed.job_id), signal.SIGKILL)
     thread.join(60)
     assert out == [Outcome("failed", "the worker process was killed by SIGKILL (for example by the out-of-memory "
                                      "killer) while running this job")]
-    healthy = claimed_task(store, rec, "2" * 32, tmp_path)
+    healthy = claimed(store, rec, "2" * 32, "odometry", tmp_path)
     assert executor.run(healthy) == Outcome("succeeded")
     assert (tmp_path / healthy.job_id / "run.rrd").is_file()
     job = store.get_job(healthy.job_id)
@@ -78,7 +67,7 @@ def test_killed_worker_fails_only_its_job(executor: LocalExecutor, store: Store,
 def test_cancel_stops_a_running_job(executor: LocalExecutor, store: Store, tmp_path: Path) -> None:
     """cancel() of a running job ends it as cancelled, and the worker is replaced."""
     rec = write_tiny_recording(tmp_path / "tiny.mcap")
-    task = claimed_task(store, rec, "3" * 32, tmp_path)
+    task = claimed(store, rec, "3" * 32, "odometry", tmp_path)
     thread, out = run_in_thread(executor, task)
     pid = pid_of(executor, task.job_id)
     executor.cancel(task.job_id)

@@ -3,49 +3,27 @@
 from __future__ import annotations
 
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from conftest import write_tiny_recording
+from service_helpers import claimed, make_store, run_all
 from standin_jobs import standin_job
 
 from api.app import make_executor
 from api.executor import LocalExecutor, Outcome, Task, run_limited
 from api.limits import EXIT_MEMORY, EXIT_WALL, JobLimits, Watchdog, rss_mib
 from api.settings import Settings
-from api.store import RecordingRow, Store
+from api.store import Store
 
-SHA = "b" * 64
 MEMORY_MIB = 450  # a worker holds about 200 MiB after its imports; a tiny replay adds about 30
 
 
 @pytest.fixture
 def store(tmp_path: Path) -> Store:
-    s = Store(tmp_path / "jobs.sqlite")
-    s.add_recording(RecordingRow(SHA, "x.mcap", 10, [], 0, 0, 0, 0.0))
-    return s
-
-
-def claimed(store: Store, recording: Path, job_id: str, pipeline: str, tmp_path: Path) -> Task:
-    """Queue and claim a job, as the scheduler does, and describe it as a task."""
-    store.add_job(job_id, SHA, pipeline, {}, 0)
-    job = store.claim_next()
-    assert job is not None and job.id == job_id
-    return Task(job_id, str(recording), pipeline, {}, 0, str(tmp_path / job_id), str(store.path))
-
-
-def run_all(executor: LocalExecutor, tasks: list[Task]) -> list[Outcome]:
-    """Run the tasks at once, one scheduler thread each, as JobService does."""
-    out: dict[str, Outcome] = {}
-    threads = [threading.Thread(target=lambda t=t: out.__setitem__(t.job_id, executor.run(t))) for t in tasks]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(120)
-    return [out[t.job_id] for t in tasks]
+    return make_store(tmp_path / "jobs.sqlite")
 
 
 @pytest.fixture(scope="module")

@@ -6,12 +6,9 @@ Run with `make test-ray` (it installs the ray extra); skipped when Ray is not in
 from __future__ import annotations
 
 import json
-import threading
-import time
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
 
@@ -19,13 +16,14 @@ ray = pytest.importorskip("ray", reason="the ray extra is not installed: `pip in
 
 import standin_jobs  # noqa: E402
 from conftest import write_tiny_recording  # noqa: E402
+from service_helpers import claimed, make_store, run_all, wait_for  # noqa: E402
 from standin_jobs import standin_job  # noqa: E402
 
 from api.executor import Outcome, Task, run_task  # noqa: E402
 from api.limits import JobLimits  # noqa: E402
 from api.ray_executor import RayExecutor  # noqa: E402
 from api.settings import Settings  # noqa: E402
-from api.store import RecordingRow, Store  # noqa: E402
+from api.store import Store  # noqa: E402
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore", UserWarning)
@@ -34,7 +32,6 @@ with warnings.catch_warnings():
 from api.app import create_app  # noqa: E402
 
 pytestmark = pytest.mark.ray
-SHA = "c" * 64
 MEMORY_MIB = 900  # a Ray worker holds about 270 MiB after importing the pipelines
 
 
@@ -57,35 +54,12 @@ def executor() -> Iterator[RayExecutor]:
 
 @pytest.fixture
 def store(tmp_path: Path) -> Store:
-    s = Store(tmp_path / "jobs.sqlite")
-    s.add_recording(RecordingRow(SHA, "x.mcap", 10, [], 0, 0, 0, 0.0))
-    return s
+    return make_store(tmp_path / "jobs.sqlite")
 
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_tiny_recording(tmp_path_factory.mktemp("rec") / "tiny.mcap")
-
-
-def claimed(store: Store, recording: Path, job_id: str, pipeline: str, tmp_path: Path, seed: int = 0) -> Task:
-    store.add_job(job_id, SHA, pipeline, {}, seed)
-    job = store.claim_next()
-    assert job is not None and job.id == job_id
-    return Task(job_id, str(recording), pipeline, {}, seed, str(tmp_path / job_id), str(store.path))
-
-
-def run_all(executor: RayExecutor, tasks: list[Task], cancel_after_s: float | None = None) -> list[Outcome]:
-    """Run the tasks at once, one thread each; optionally cancel the first after a while."""
-    out: dict[str, Outcome] = {}
-    threads = [threading.Thread(target=lambda t=t: out.__setitem__(t.job_id, executor.run(t))) for t in tasks]
-    for t in threads:
-        t.start()
-    if cancel_after_s is not None:
-        time.sleep(cancel_after_s)
-        executor.cancel(tasks[0].job_id)
-    for t in threads:
-        t.join(120)
-    return [out[t.job_id] for t in tasks]
 
 
 def test_same_metrics_as_local_and_progress(executor: RayExecutor, store: Store, recording: Path,
@@ -146,18 +120,8 @@ def test_service_with_the_ray_executor(tmp_path: Path, recording: Path) -> None:
     with TestClient(create_app(settings)) as c:
         rid = c.post("/recordings", content=recording.read_bytes()).json()["id"]
         jid = c.post("/jobs", json={"recording_id": rid, "pipeline": "odometry"}).json()["id"]
-        job = wait_for(c, jid)
+        job = wait_for(c, jid, timeout_s=120.0)
         assert job["status"] == "succeeded", job["error"]
         assert job["progress"] == 1.0 and job["metrics"]
         assert c.get(f"/jobs/{jid}/rrd").status_code == 200
     assert (shared / "recordings" / f"{rid}.mcap").is_file() and (shared / "runs" / jid / "run.rrd").is_file()
-
-
-def wait_for(client: TestClient, job_id: str, timeout_s: float = 120.0) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        job: dict[str, Any] = client.get(f"/jobs/{job_id}").json()
-        if job["status"] not in ("queued", "running"):
-            return job
-        time.sleep(0.1)
-    raise AssertionError(f"job {job_id} did not end within {timeout_s} s")

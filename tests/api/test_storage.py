@@ -7,10 +7,10 @@ import time
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
 from conftest import write_tiny_recording
+from service_helpers import InlineExecutor, wait_for
 
 from api import storage
 from api.executor import Outcome, Task, run_task
@@ -90,24 +90,6 @@ def test_run_task_on_remote_locations(tmp_path: Path, memory_root: str) -> None:
     assert missing.status == "failed" and (missing.error or "").startswith("storage: could not read memory://")
 
 
-class InlineExecutor:
-    """Each task in the scheduler thread, so memory:// (one process) is shared with the server."""
-
-    slots = 1
-
-    def start(self) -> None:
-        """Nothing to start."""
-
-    def run(self, task: Task) -> Outcome:
-        return run_task(task)
-
-    def cancel(self, job_id: str) -> None:
-        """Too short to cancel."""
-
-    def close(self) -> None:
-        """Nothing to stop."""
-
-
 def test_service_with_a_storage_url(tmp_path: Path, memory_root: str) -> None:
     """With SLAMREPLAY_STORAGE_URL, a job runs on the stored copy and its run is served from runs/ afterwards."""
     data_dir = tmp_path / "data"
@@ -124,13 +106,3 @@ def test_service_with_a_storage_url(tmp_path: Path, memory_root: str) -> None:
     assert storage.exists(storage.join(memory_root, "recordings", f"{rid}.mcap"))
     assert "run.rrd" in storage.list_files(storage.join(memory_root, "runs", jid))
     assert (data_dir / "runs" / jid / "run.rrd").is_file()
-
-
-def wait_for(client: TestClient, job_id: str, timeout_s: float = 60.0) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        job: dict[str, Any] = client.get(f"/jobs/{job_id}").json()
-        if job["status"] not in ("queued", "running"):
-            return job
-        time.sleep(0.05)
-    raise AssertionError(f"job {job_id} did not end within {timeout_s} s")
