@@ -44,7 +44,7 @@ from pathlib import Path
 from typing import Any, Final
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 from recorder.errors import RecorderError
 from recorder.messages import (
@@ -59,7 +59,7 @@ from recorder.messages import (
 )
 from recorder.sim.corridor_plan import TOURS, PurePursuit
 from recorder.sim.corridor_render import CorridorWorld
-from recorder.sim.unicycle import arc_step, wrap_angle
+from recorder.sim.unicycle import arc_step, between, wrap_angle
 from recorder.sim.wheel_odometry import WheelOdometry
 from recorder.writer import METADATA_NAME, Recorder
 
@@ -233,7 +233,7 @@ def simulate_corridor(out: Path, config: CorridorConfig, seed: int, progress: Pr
         for k in range(total):
             stamp = EPOCH_NS + k * period
             if k > 0:
-                odometry.step(_between(truth[k - 1], truth[k]))
+                odometry.step(between(truth[k - 1], truth[k]))
             odom = odometry.pose
             rec.write(TOPIC_GROUND_TRUTH_POSE, GroundTruthPose(stamp, truth[k, 0], truth[k, 1],
                                                                float(wrap_angle(truth[k, 2]))))
@@ -342,11 +342,3 @@ def _build(values: object, seed: int, what: str) -> tuple[CorridorWorld, Corrido
 
 def _json(value: object) -> object:
     return json.loads(value) if isinstance(value, str) else value
-
-
-def _between(a: ArrayLike, b: ArrayLike) -> F64:
-    """``b`` in the body frame of ``a``: [dx, dy, dyaw] (yaw difference not wrapped: poses are unwrapped)."""
-    pa, pb = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    c, s = math.cos(pa[2]), math.sin(pa[2])
-    d = pb[:2] - pa[:2]
-    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], pb[2] - pa[2]])

@@ -22,13 +22,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from recorder.errors import RecorderError
+from recorder.importers.images import SUFFIXES as IMAGE_SUFFIXES
 from recorder.sim.corridor_plan import floor_plan, route_waypoints
 
 if TYPE_CHECKING:
     from recorder.sim.corridor import CorridorConfig
 
 BUILTIN_TEXTURES: Final = Path(__file__).parent / "textures"
-IMAGE_SUFFIXES: Final = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm")
 TEX_W, TEX_H = 192, 256  # every texture is resized to this (width, height)
 MIP_LEVELS: Final = 4
 GRID_M: Final = 0.05

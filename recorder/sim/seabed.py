@@ -42,6 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from recorder.errors import RecorderError
+from recorder.importers.images import SUFFIXES as IMAGE_SUFFIXES
 from recorder.messages import (
     TOPIC_CAMERA_IMAGE,
     TOPIC_GROUND_TRUTH_POSE,
@@ -50,13 +51,12 @@ from recorder.messages import (
     GroundTruthPose,
     OdometryPose,
 )
-from recorder.sim.unicycle import wrap_angle
+from recorder.sim.unicycle import between, compose, wrap_angle
 from recorder.writer import Recorder
 
 SIMULATOR: Final = "sim-seabed"
 EPOCH_NS: Final = 1_000_000_000
 TEXTURE_MARGIN_PX: Final = 64
-IMAGE_SUFFIXES: Final = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm")
 
 Progress = Callable[[int, int], None]
 F64 = NDArray[np.float64]
@@ -293,13 +293,14 @@ def simulate_seabed(out: Path, config: SeabedSimConfig, seed: int, progress: Pro
     th, tw = texture.shape
     # Centre the survey on the texture: world (0, 0) at this texture pixel.
     origin = (0.5 * tw - 0.5 * (lo[0] + hi[0]) / mpp, 0.5 * th + 0.5 * (lo[1] + hi[1]) / mpp)
-    rel = np.array([_between(truth[k], truth[k + 1]) for k in range(len(truth) - 1)]).reshape(-1, 3)
+    rel = np.array([between(truth[k], truth[k + 1]) for k in range(len(truth) - 1)]).reshape(-1, 3)
+    rel[:, 2] = wrap_angle(rel[:, 2])  # the survey's poses are wrapped
     noise = rng_odom.standard_normal(rel.shape)
     dist = np.hypot(rel[:, 0], rel[:, 1])
     rel_odom = rel + noise * config.odom_sigma * np.column_stack([dist, dist, np.abs(rel[:, 2]) + 0.02])
     odom = [np.zeros(3)]
     for r in rel_odom:
-        odom.append(_compose(odom[-1], r))
+        odom.append(compose(odom[-1], r))
     vignette = vignette_map(config)
     period = max(1, round(1e9 / config.frame_rate_hz))
     total = len(truth)
@@ -318,14 +319,3 @@ def simulate_seabed(out: Path, config: SeabedSimConfig, seed: int, progress: Pro
         messages = rec.message_count
     return SeabedSummary(Path(out), messages, total, (tw, th), float(dist.sum()), EPOCH_NS,
                          EPOCH_NS + (total - 1) * period)
-
-
-def _compose(a: F64, b: F64) -> F64:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2]])
-
-
-def _between(a: F64, b: F64) -> F64:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    d = b[:2] - a[:2]
-    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], float(wrap_angle(b[2] - a[2]))])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -45,3 +47,19 @@ def integrate(start: ArrayLike, speed_mps: ArrayLike, turn_radps: ArrayLike, dt_
     poses[1:, 1] = p0[1] + np.cumsum(d[:, 1])
     poses[:, 2] = yaw
     return poses
+
+
+def between(a: ArrayLike, b: ArrayLike) -> F64:
+    """``b`` in the body frame of ``a``: ``[dx, dy, dyaw]``; the yaw difference is not wrapped (callers with
+    wrapped poses wrap it)."""
+    pa, pb = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    c, s = math.cos(pa[2]), math.sin(pa[2])
+    d = pb[:2] - pa[:2]
+    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], pb[2] - pa[2]])
+
+
+def compose(a: ArrayLike, b: ArrayLike) -> F64:
+    """Pose ``a`` followed by the body-frame motion ``b``: ``[x, y, yaw]`` (yaw not wrapped)."""
+    pa, pb = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    c, s = math.cos(pa[2]), math.sin(pa[2])
+    return np.array([pa[0] + c * pb[0] - s * pb[1], pa[1] + s * pb[0] + c * pb[1], pa[2] + pb[2]])
