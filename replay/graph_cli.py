@@ -28,7 +28,7 @@ def optimize_file(
     *,
     solver: str = "gn",
     init: str = "odometry",
-    robust: str = "none",
+    robust: str = "dcs",
     rrd_path: str | os.PathLike[str] | None = None,
 ) -> dict[str, Any]:
     """Optimize a g2o / TORO pose graph file and write the result in the output's format.
@@ -41,13 +41,17 @@ def optimize_file(
     init : "odometry" (compose measurements along a spanning tree, sequential edges first),
         "chordal" (LAGO-style linear orientations then positions) or "file" (the file's VERTEX
         records; odometry composition when the file has none).
-    robust : "none", "dcs" (Dynamic Covariance Scaling on loop closures), "huber" or "cauchy".
+    robust : "dcs" (Dynamic Covariance Scaling on loop closures, Phi graduated down to 1, then a
+        chi-square gate and a plain re-solve without the rejected closures), "huber", "cauchy" (same
+        gate and re-solve) or "none" (plain least squares on every edge).
     rrd_path : optional Rerun recording of the graph before/after and chi2 per iteration.
 
     Returns
     -------
     dict with ``vertices``, ``edges``, ``chi2_initial`` (plain g2o chi2 at the initial guess),
-    ``chi2_final``, ``iterations``, ``status`` ("converged", "max_iterations", "diverged") and
+    ``chi2_final`` (plain g2o chi2 over the kept edges: every edge when ``edges_rejected`` is 0),
+    ``edges_rejected`` (loop closures the inlier gate dropped; they stay in the output file),
+    ``iterations``, ``status`` ("converged", "max_iterations", "diverged") and
     ``time_s`` (initialization plus optimization, without file I/O).
 
     Raises
@@ -88,6 +92,7 @@ def optimize_file(
         "edges": graph.n_edges,
         "chi2_initial": chi2(graph),
         "chi2_final": result.chi2_final,
+        "edges_rejected": result.edges_rejected,
         "iterations": result.iterations,
         "status": result.status.value,
         "time_s": elapsed,

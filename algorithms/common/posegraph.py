@@ -10,9 +10,15 @@ and ``chi2 = sum_k e_k^T Omega_k e_k``. Poses are updated additively in (x, y, t
 ``VertexSE2``. One vertex (the gauge, vertex 0 by default) is held fixed.
 
 Robust kernels (:mod:`algorithms.common.robust`) act through IRLS weights ``w_k`` on ``Omega_k``;
-by default Dynamic Covariance Scaling [2]_ on loop closures (edges with ``|i - j| != 1``) only.
-``chi2`` values reported are always the plain, unweighted sum above, so they compare with the
-literature; the robust objective is reported separately as ``cost``.
+by default Dynamic Covariance Scaling [2]_ on loop closures (edges with ``|i - j| != 1``) only, in
+two stages: (1) DCS with Phi graduated from the largest initial loop-closure chi2 (plain least
+squares) down to 1 [3]_, so a poor start does not down-weight good closures; (2) closures whose
+chi2 at that solution fails a chi-square gate (3 dof, p = 0.999) are dropped and the rest is
+re-solved without a kernel, warm-started; a dropped closure whose innovation (residual against
+its covariance plus the prediction's, a family-wise gate) fits the re-solved graph is re-admitted
+if the re-solve that includes it keeps it within the gate. On a clean graph this ends at the plain
+least-squares optimum with nothing rejected. ``chi2`` values reported are the plain, unweighted
+sum above over the kept edges, so they compare with the literature.
 
 References
 ----------
@@ -20,18 +26,21 @@ References
    for graph optimization", ICRA 2011.
 .. [2] P. Agarwal, G. D. Tipaldi, L. Spinello, C. Stachniss, W. Burgard, "Robust map optimization
    using dynamic covariance scaling", ICRA 2013.
+.. [3] H. Yang, P. Antonante, V. Tzoumas, L. Carlone, "Graduated non-convexity for robust spatial
+   perception", RA-L 2020.
 """
 
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
+from scipy.stats import chi2 as chi2_distribution
 
 from algorithms.common.robust import DEFAULT_PARAMETER, Kernel, weights_and_cost
 from algorithms.common.se2 import wrap_angle
@@ -41,6 +50,7 @@ F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 
+READMIT_ROUNDS = 3  # re-admission rounds at most after the plain re-solve
 LM_DOWN, LM_UP = 0.1, 10.0  # damping factors; measured fewer iterations than Nielsen's rule here
 
 
@@ -154,6 +164,14 @@ class OptimizerConfig:
     lm_lambda : initial LM damping, relative to diag(H).
     divergence_ratio : DIVERGED when the cost exceeds this multiple of the initial cost.
     linear_solver : "auto" (CHOLMOD if scikit-sparse imports, else SuperLU), "cholmod", "superlu".
+    graduated : DCS only: start Phi at the largest loop-closure chi2 of the initial guess (no edge
+        down-weighted, plain least squares) and divide it by ``graduated_factor`` per iteration
+        down to the target Phi (graduated non-convexity), so a poor start does not down-weight
+        good loop closures.
+    graduated_factor : Phi shrink factor per iteration, in (0, 1).
+    inlier_gate : with a kernel, a second stage: robust-set edges whose chi2 at the robust
+        solution exceeds the chi-square (3 dof) quantile of this probability are rejected, and
+        the rest is re-solved by plain least squares, warm-started. None: robust solve only.
     """
 
     method: str = "gn"
@@ -167,6 +185,9 @@ class OptimizerConfig:
     lm_lambda: float = 1e-5
     divergence_ratio: float = 1e6
     linear_solver: Backend = "auto"
+    graduated: bool = True
+    graduated_factor: float = 0.1
+    inlier_gate: float | None = 0.999
 
     def __post_init__(self) -> None:
         if self.method not in ("gn", "lm"):
@@ -184,6 +205,10 @@ class OptimizerConfig:
             raise ValueError(f"divergence_ratio must be > 1, got {self.divergence_ratio}")
         if self.linear_solver not in ("auto", "cholmod", "superlu"):
             raise ValueError(f"linear_solver must be auto, cholmod or superlu, got {self.linear_solver!r}")
+        if not 0.0 < self.graduated_factor < 1.0:
+            raise ValueError(f"graduated_factor must be in (0, 1), got {self.graduated_factor}")
+        if self.inlier_gate is not None and not 0.0 < self.inlier_gate < 1.0:
+            raise ValueError(f"inlier_gate must be in (0, 1) or None, got {self.inlier_gate}")
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -193,15 +218,20 @@ class OptimizationResult:
     Attributes
     ----------
     poses : (n, 3) the lowest-cost estimate reached (world frame, gauge unchanged).
-    status : CONVERGED, MAX_ITERATIONS or DIVERGED.
-    iterations : number of linearizations (GN steps; LM outer iterations).
-    chi2_initial, chi2_final : plain g2o chi2 at the initial and returned poses.
-    chi2_history : (iterations + 1,) plain chi2 of each accepted iterate, initial first.
-    cost_history : (iterations + 1,) robust cost of the same iterates.
-    edge_chi2 : (m,) per-edge chi2 at the returned poses.
-    weights : (m,) IRLS weights at the returned poses (1 where no kernel applies).
+    status : CONVERGED, MAX_ITERATIONS or DIVERGED (of the last stage run).
+    iterations : number of linearizations (GN steps; LM outer iterations), both stages.
+    chi2_initial : plain g2o chi2 of all edges at the initial poses.
+    chi2_final : plain g2o chi2 at the returned poses over the kept edges (``inliers``); all edges
+        when ``edges_rejected`` is 0.
+    chi2_history : (iterations + 1,) plain chi2 of each accepted iterate, initial first, over the
+        edges in use (all in the robust stage, the kept ones in the re-solve).
+    cost_history : (iterations + 1,) objective of the same iterates (robust cost, then plain chi2).
+    edge_chi2 : (m,) per-edge chi2 at the returned poses (rejected edges included).
+    weights : (m,) IRLS weights at the returned poses (1 where no kernel applies, 0 when rejected).
     n_factorizations : sparse Cholesky factorizations done.
     linear_solver : "cholmod" or "superlu".
+    inliers : (m,) bool, False for the edges the inlier gate rejected.
+    edges_rejected : number of rejected edges.
     """
 
     poses: F64
@@ -216,6 +246,8 @@ class OptimizationResult:
     n_factorizations: int
     linear_solver: str
     lm_lambda: float = field(default=0.0)
+    inliers: NDArray[np.bool_] = field(default_factory=lambda: np.ones(0, dtype=bool))
+    edges_rejected: int = 0
 
 
 def edge_errors(graph: PoseGraph, poses: ArrayLike | None = None) -> F64:
@@ -277,22 +309,31 @@ class _Problem:
         self.graph = graph
         self.cfg = cfg
         self.robust = np.ones(graph.n_edges, dtype=bool) if cfg.robust_all_edges else np.abs(graph.i - graph.j) != 1
+        self.kernel = cfg.kernel
         self.kparam = cfg.kernel_parameter or DEFAULT_PARAMETER[cfg.kernel]
+        self.keep: F64 | None = None  # 1 for kept edges, 0 for rejected ones (None: all kept)
         self.info = np.ascontiguousarray(graph.information.transpose(1, 2, 0))  # (3, 3, m)
         self.fixed = tuple(int(v) for v in np.unique(gauge))
         self.system = BlockSystem(n, graph.i, graph.j, self.fixed, order=order) if n > len(self.fixed) else None
         self.chol = SparseCholesky(cfg.linear_solver)
 
     def evaluate(self, poses: F64) -> tuple[F64, F64, float]:
-        """Per-edge chi2, IRLS weights and the total robust cost."""
+        """Per-edge chi2, IRLS weights and the total robust cost (kept edges only)."""
         g = self.graph
         e = linearize(poses, g.i, g.j, g.measurements, jacobians=False)[0]
         c2 = np.einsum("im,ijm,jm->m", e, self.info, e)
+        return (c2, *self.reweight(c2))
+
+    def reweight(self, c2: F64) -> tuple[F64, float]:
+        """IRLS weights and robust cost of per-edge chi2 under the current kernel parameter."""
         w = np.ones_like(c2)
         cost = c2.copy()
-        if self.cfg.kernel is not Kernel.NONE and np.any(self.robust):
-            w[self.robust], cost[self.robust] = weights_and_cost(self.cfg.kernel, c2[self.robust], self.kparam)
-        return c2, w, float(cost.sum())
+        if self.kernel is not Kernel.NONE and np.any(self.robust):
+            w[self.robust], cost[self.robust] = weights_and_cost(self.kernel, c2[self.robust], self.kparam)
+        if self.keep is not None:
+            w *= self.keep
+            cost *= self.keep
+        return w, float(cost.sum())
 
     def normal_equations(self, poses: F64, w: F64) -> tuple[F64, F64]:
         """CSC data of H = J^T W J and b = J^T W e (permuted order)."""
@@ -349,12 +390,133 @@ def optimize(graph: PoseGraph, cfg: OptimizerConfig = OptimizerConfig()) -> Opti
     ----------
     .. [1] Kümmerle et al., ICRA 2011 (g2o), sec. III; Agarwal et al., ICRA 2013 (DCS).
     """
-    return _run(_Problem(graph, cfg), graph.poses.copy(), cfg)
+    prob = _Problem(graph, cfg)
+    robust = cfg.kernel is not Kernel.NONE and bool(np.any(prob.robust))
+    phi0 = None
+    if robust and cfg.graduated and cfg.kernel is Kernel.DCS:
+        c2 = prob.evaluate(graph.poses)[0]
+        phi0 = float(c2[prob.robust].max())
+    res = _run(prob, graph.poses.copy(), cfg, phi0)
+    if not robust or cfg.inlier_gate is None or res.status is Status.DIVERGED or prob.system is None:
+        return res
+    gate = float(chi2_distribution.ppf(cfg.inlier_gate, 3))
+    # family-wise gate (Bonferroni over the tested edges) for edges once rejected
+    wide = float(chi2_distribution.isf((1.0 - cfg.inlier_gate) / int(prob.robust.sum()), 3))
+    keep = _inliers(graph, prob.robust, res.edge_chi2, gate)
+    r2, sub = _plain(prob, graph, keep, res.poses, cfg)
+    parts = [res, r2]
+    c2 = prob.evaluate(parts[-1].poses)[0] if not keep.all() else parts[-1].edge_chi2
+    for _ in range(READMIT_ROUNDS):
+        if keep.all() or parts[-1].status is Status.DIVERGED:
+            break
+        # A good closure the robust stage stretched past the gate is consistent with the graph
+        # without it (its residual against its own plus the prediction's covariance); re-admit
+        # such edges if the re-solve keeps every re-admitted edge within the gate.
+        out = np.flatnonzero(~keep)
+        back = out[_innovation_chi2(sub, graph, out, parts[-1].poses) <= wide]
+        if back.size == 0:
+            break
+        trial = keep.copy()
+        trial[back] = True
+        r, s2 = _plain(prob, graph, trial, parts[-1].poses, cfg)
+        c2t = prob.evaluate(r.poses)[0]
+        if not (r.status is Status.CONVERGED and np.all(c2t[back] <= gate)
+                and np.all(c2t[trial & prob.robust] <= wide)):
+            break
+        parts.append(r)
+        keep, c2, sub = trial, c2t, s2
+    last = parts[-1]
+    return OptimizationResult(
+        poses=last.poses, status=last.status, iterations=sum(r.iterations for r in parts),
+        chi2_initial=res.chi2_initial, chi2_final=float(c2[keep].sum()),
+        chi2_history=np.concatenate([res.chi2_history, *(r.chi2_history[1:] for r in parts[1:])]),
+        cost_history=np.concatenate([res.cost_history, *(r.cost_history[1:] for r in parts[1:])]),
+        edge_chi2=c2, weights=keep.astype(np.float64), n_factorizations=sum(r.n_factorizations for r in parts),
+        linear_solver=last.linear_solver, lm_lambda=last.lm_lambda, inliers=keep,
+        edges_rejected=int(keep.size - keep.sum()),
+    )
 
 
-def _run(prob: _Problem, poses: F64, cfg: OptimizerConfig) -> OptimizationResult:
+def _plain(prob: _Problem, graph: PoseGraph, keep: NDArray[np.bool_], poses: F64,
+           cfg: OptimizerConfig) -> tuple[OptimizationResult, _Problem]:
+    """Plain least squares on the kept edges from ``poses``; fewer edges get their own, sparser structure."""
+    if keep.all():
+        prob.kernel = Kernel.NONE
+        sub = prob
+    else:
+        g = PoseGraph._trusted(graph.poses, graph.i[keep], graph.j[keep], graph.measurements[keep],
+                               graph.information[keep])
+        sub = _Problem(g, replace(cfg, kernel=Kernel.NONE), check_connected=False)
+    return _run(sub, poses.copy(), cfg), sub
+
+
+def _innovation_chi2(prob: _Problem, graph: PoseGraph, edges: I64, poses: F64, batch: int = 32) -> F64:
+    """``e^T (Omega^-1 + J H^-1 J^T)^-1 e`` of edges absent from ``prob``, at ``poses``."""
+    assert prob.system is not None
+    e, ji, jj = linearize(poses, graph.i[edges], graph.j[edges], graph.measurements[edges])
+    _, w, _ = prob.evaluate(poses)
+    if not prob.chol.factor(prob.system.matrix(prob.normal_equations(poses, w)[0])):
+        return np.full(edges.size, np.inf)
+    pos = prob.system.pos
+    cov = np.linalg.inv(graph.information[edges])  # (k, 3, 3)
+    out = np.empty(edges.size)
+    d = np.arange(3)
+    for s in range(0, edges.size, batch):
+        t = np.arange(s, min(s + batch, edges.size))
+        rhs = np.zeros((prob.system.size, 3 * t.size))
+        ends = [(pos[graph.i[edges[t]]], ji[:, :, t]), (pos[graph.j[edges[t]]], jj[:, :, t])]
+        for p, jac in ends:  # column 3 k + c holds row c of the edge Jacobian (its transpose)
+            ok = np.flatnonzero(p >= 0)
+            rows = 3 * p[ok][:, None, None] + d[None, None, :]  # (k, c, d)
+            cols = 3 * ok[:, None, None] + d[None, :, None]
+            rhs[rows, cols] = jac[:, :, ok].transpose(2, 0, 1)
+        x = prob.chol.solve(rhs).reshape(prob.system.size, t.size, 3)
+        m = np.zeros((t.size, 3, 3))
+        for p, jac in ends:
+            ok = np.flatnonzero(p >= 0)
+            xb = x[3 * p[ok][:, None] + d, ok[:, None], :]  # (k, d, c')
+            m[ok] += np.einsum("cdk,kde->kce", jac[:, :, ok], xb)
+        r = e[:, t].T
+        out[t] = np.einsum("ki,ki->k", r, np.linalg.solve(cov[t] + m, r[:, :, None])[:, :, 0])
+    return out
+
+
+def _inliers(graph: PoseGraph, robust: NDArray[np.bool_], c2: F64, gate: float) -> NDArray[np.bool_]:
+    """Edges passing the chi2 gate; rejected edges needed to keep the graph connected are kept."""
+    keep = ~robust | (c2 <= gate)
+    n = graph.n_vertices
+    if keep.all() or n < 2:
+        return keep
+    adj = coo_matrix((np.ones(int(keep.sum())), (graph.i[keep], graph.j[keep])), shape=(n, n))
+    k, label = connected_components(adj, directed=False)
+    if k == 1:
+        return keep
+    root = list(range(k))
+
+    def find(a: int) -> int:
+        while root[a] != a:
+            root[a] = root[root[a]]
+            a = root[a]
+        return a
+
+    out = np.flatnonzero(~keep)
+    for e in out[np.argsort(c2[out], kind="stable")]:  # best-fitting bridges first
+        a, b = find(int(label[graph.i[e]])), find(int(label[graph.j[e]]))
+        if a != b:
+            root[a] = b
+            keep[e] = True
+    return keep
+
+
+def _run(prob: _Problem, poses: F64, cfg: OptimizerConfig, phi0: float | None = None) -> OptimizationResult:
+    """Iterate from ``poses``; with ``phi0``, the kernel parameter starts there and shrinks to its target."""
+    target = prob.kparam
+    graduating = phi0 is not None and phi0 > target
+    if graduating:
+        prob.kparam = float(phi0)  # type: ignore[arg-type]
     c2, w, cost = prob.evaluate(poses)
-    chi2_hist, cost_hist = [float(c2.sum())], [cost]
+    kept = prob.keep
+    chi2_hist, cost_hist = [_kept_sum(c2, kept)], [cost]
     best = (cost, poses, c2, w)
     status, iters, nfact = Status.MAX_ITERATIONS, 0, 0
     lam = cfg.lm_lambda
@@ -397,17 +559,30 @@ def _run(prob: _Problem, poses: F64, cfg: OptimizerConfig) -> OptimizationResult
             break
         rel = (cost - costn) / cost if cost > 0.0 else 0.0
         poses, c2, w, cost = new, c2n, wn, costn
-        chi2_hist.append(float(c2.sum()))
+        chi2_hist.append(_kept_sum(c2, kept))
         cost_hist.append(cost)
+        if graduating:  # costs under different parameters do not compare: restart the tests
+            prob.kparam = max(target, prob.kparam * cfg.graduated_factor)
+            graduating = prob.kparam > target
+            w, cost = prob.reweight(c2)
+            best = (cost, poses, c2, w)
+            continue
         if cost < best[0]:
             best = (cost, poses, c2, w)
         if cost > cfg.divergence_ratio * cost_hist[0]:
             status = Status.DIVERGED
         elif 0.0 <= rel < cfg.rel_tol or float(np.abs(dx).max(initial=0.0)) < cfg.step_tol:
             status = Status.CONVERGED
+    prob.kparam = target
     _, poses, c2, w = best
     return OptimizationResult(
-        poses=poses, status=status, iterations=iters, chi2_initial=chi2_hist[0], chi2_final=float(c2.sum()),
+        poses=poses, status=status, iterations=iters, chi2_initial=chi2_hist[0], chi2_final=_kept_sum(c2, kept),
         chi2_history=np.array(chi2_hist), cost_history=np.array(cost_hist), edge_chi2=c2, weights=w,
         n_factorizations=nfact, linear_solver=prob.chol.backend, lm_lambda=lam,
+        inliers=np.ones(c2.size, dtype=bool) if kept is None else kept > 0.0,
     )
+
+
+def _kept_sum(c2: F64, kept: F64 | None) -> float:
+    """Plain chi2 over the kept edges."""
+    return float(c2.sum()) if kept is None else float(np.einsum("m,m->", c2, kept))

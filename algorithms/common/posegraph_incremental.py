@@ -25,7 +25,8 @@ class IncrementalConfig:
 
     Attributes
     ----------
-    optimizer : used for each re-optimization; its ``max_iterations`` is the per-update budget
+    optimizer : used for each re-optimization (its kernel at its fixed parameter: no graduation,
+        no inlier gate); its ``max_iterations`` is the per-update budget
         (default 1: one relinearization per update, as iSAM2 does; the next update continues from
         there, and M3500 replayed this way ends at the batch optimum).
     reorder_growth : recompute the fill-reducing ordering when the vertex count has grown by this

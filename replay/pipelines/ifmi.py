@@ -236,7 +236,7 @@ class IfmiPipeline(Pipeline):
             self.ctx.log("fewer than two images: no graph to optimize")
             return metrics
         graph, res = self._graph()
-        result = optimize(graph, OptimizerConfig(method="lm", max_iterations=50))
+        result = optimize(graph, OptimizerConfig(method="lm", max_iterations=50, graduated=False, inlier_gate=None))
         after = graph.with_poses(result.poses)
         metrics["chi2_initial"], metrics["chi2_final"] = chi2(graph), chi2(after)
         self.ctx.log(f"pose graph: {n} nodes, {graph.n_edges} edges; squared Mahalanobis sum "

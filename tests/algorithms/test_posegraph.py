@@ -255,8 +255,9 @@ def test_cholmod_backend_wiring(monkeypatch: pytest.MonkeyPatch) -> None:
 
             return np.asarray(sla.spsolve(self.h.tocsc(), rhs))
 
-    def analyze(h: object) -> FakeFactor:
+    def analyze(h: object, **kwargs: str) -> FakeFactor:
         calls["analyze"] += 1
+        assert kwargs == {"mode": "simplicial", "ordering_method": "natural"}  # h comes fill-reduced
         return FakeFactor()
 
     g, _ = random_graph(np.random.default_rng(10), n=30, loops=10)
@@ -300,6 +301,10 @@ def test_bad_input_raises_value_error_naming_the_argument() -> None:
         OptimizerConfig(kernel_parameter=-1.0)
     with pytest.raises(ValueError, match="max_iterations must be >= 0"):
         OptimizerConfig(max_iterations=-1)
+    with pytest.raises(ValueError, match="graduated_factor must be in"):
+        OptimizerConfig(graduated_factor=1.0)
+    with pytest.raises(ValueError, match="inlier_gate must be in"):
+        OptimizerConfig(inlier_gate=1.0)
     with pytest.raises(ValueError, match="linear_solver must be"):
         OptimizerConfig(linear_solver="umfpack")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="vertices must be in"):
@@ -332,6 +337,17 @@ def test_reference_optimum_reached(shared_data: Path, name: str, optimum: float,
     assert r.chi2_final == pytest.approx(optimum, rel=1e-4)
 
 
+@pytest.mark.parametrize(("name", "optimum", "start"), REFERENCE, ids=[r[0].split("/")[1] for r in REFERENCE])
+def test_default_options_reach_reference_optimum(shared_data: Path, name: str, optimum: float, start: str) -> None:
+    """Default options (graduated DCS, chi-square gate, plain re-solve): the reference chi2, 0 rejected."""
+    g = read_graph(shared_data / name).graph
+    if start == "odometry":
+        g = g.with_poses(init_odometry(g))
+    r = optimize(g)
+    assert r.status is Status.CONVERGED and r.edges_rejected == 0
+    assert r.chi2_final == pytest.approx(optimum, rel=1e-4)
+
+
 @pytest.mark.parametrize("name", ["posegraph-m3500/manhattanOlson3500.g2o", "pose_graphs/intel.g2o"])
 def test_reference_optimum_lm_and_chordal(shared_data: Path, name: str) -> None:
     """LM from the file and GN from the chordal start reach the same optimum as GN."""
@@ -354,6 +370,8 @@ def test_mit_odometry_and_chordal_minima(shared_data: Path) -> None:
     assert np.isfinite(odo.chi2_final) and ch.chi2_final < odo.chi2_final
     assert ch.chi2_final == pytest.approx(41.163, rel=1e-4)
     assert ch_lm.chi2_final == pytest.approx(ch.chi2_final, rel=1e-4)
+    odo_default = optimize(g.with_poses(init_odometry(g)))  # DCS leaves the odometry basin
+    assert odo_default.edges_rejected == 0 and odo_default.chi2_final == pytest.approx(41.163, rel=1e-4)
 
 
 def test_m3500_dcs_with_ten_percent_false_loop_closures(shared_data: Path) -> None:
@@ -371,8 +389,38 @@ def test_m3500_dcs_with_ten_percent_false_loop_closures(shared_data: Path) -> No
     loop_info = g.information[np.flatnonzero(np.abs(g.i - g.j) != 1)[0]]
     bad = PoseGraph(g.poses, np.r_[g.i, a], np.r_[g.j, b], np.r_[g.measurements, z],
                     np.r_[g.information, np.broadcast_to(loop_info, (k, 3, 3))])
-    r = optimize(bad, OptimizerConfig(kernel=Kernel.DCS))
+    r = optimize(bad)  # default options: graduated DCS, chi-square gate, plain re-solve
     rmse = aligned_position_rmse(r.poses, truth)
     assert r.status is Status.CONVERGED
     assert rmse <= 1.1 * clean
-    assert np.median(r.weights[g.n_edges :]) < 1e-3
+    assert r.edges_rejected == k and not r.inliers[g.n_edges :].any() and np.all(r.weights[g.n_edges :] == 0.0)
+    assert r.chi2_final == pytest.approx(146.077, rel=1e-4)  # the clean optimum, over the kept edges
+
+
+def test_default_options_reject_exactly_the_false_loop_closures() -> None:
+    """Synthetic graph with 4 wrong closures: the default two-stage solve drops those and only those."""
+    g, truth = random_graph(np.random.default_rng(21), n=60, loops=25, noise=0.01)
+    wrong_i, wrong_j = np.array([3, 10, 20, 41]), np.array([30, 52, 47, 58])
+    z = between(truth[wrong_i], truth[wrong_j]) + [[2.0, -1.5, 0.8], [-3.0, 1.0, -1.2], [1.5, 2.5, 2.0],
+                                                   [0.0, -4.0, 0.5]]
+    bad = PoseGraph(g.poses, np.r_[g.i, wrong_i], np.r_[g.j, wrong_j], np.r_[g.measurements, z],
+                    np.r_[g.information, g.information[:4]])
+    r = optimize(bad)
+    clean = optimize(g, NONE)
+    np.testing.assert_array_equal(np.flatnonzero(~r.inliers), g.n_edges + np.arange(4))
+    assert r.edges_rejected == 4 and r.status is Status.CONVERGED
+    assert r.chi2_final == pytest.approx(clean.chi2_final, rel=1e-6)
+    assert r.chi2_final == pytest.approx(float(r.edge_chi2[r.inliers].sum()), rel=1e-12)
+    np.testing.assert_allclose(r.poses, clean.poses, atol=1e-6)
+    # the robust stage alone (old DCS behaviour) keeps every edge and reports chi2 over all of them
+    one = optimize(bad, OptimizerConfig(graduated=False, inlier_gate=None))
+    assert one.edges_rejected == 0 and one.inliers.all() and one.weights[-4:].max() < 0.01
+
+
+def test_clean_graph_rejects_nothing_and_matches_plain_least_squares() -> None:
+    """Without outliers the default (DCS, gate, re-solve) ends at the plain optimum, 0 rejected."""
+    g, _ = random_graph(np.random.default_rng(22), n=60, loops=25, noise=0.01)
+    r, plain = optimize(g), optimize(g, NONE)
+    assert r.edges_rejected == 0 and r.inliers.all()
+    assert r.chi2_final == pytest.approx(plain.chi2_final, rel=1e-6)
+    assert r.chi2_history.size == r.cost_history.size == r.iterations + 1

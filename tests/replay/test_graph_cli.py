@@ -15,7 +15,7 @@ from replay.diff import rerun_cli
 from replay.graph_cli import optimize_file
 from replay.graph_io import GraphFileError, read_graph, write_graph
 
-KEYS = {"vertices", "edges", "chi2_initial", "chi2_final", "iterations", "status", "time_s"}
+KEYS = {"vertices", "edges", "chi2_initial", "chi2_final", "edges_rejected", "iterations", "status", "time_s"}
 
 
 def small_graph_file(tmp_path: Path, name: str = "in.g2o") -> Path:
@@ -41,7 +41,7 @@ def test_optimize_file_summary_and_output(tmp_path: Path, solver: str, init: str
     out = tmp_path / "out.g2o"
     s = optimize_file(src, out, solver=solver, init=init, robust=robust)
     assert set(s) == KEYS
-    assert (s["vertices"], s["edges"], s["status"]) == (12, 14, "converged")
+    assert (s["vertices"], s["edges"], s["status"], s["edges_rejected"]) == (12, 14, "converged", 0)
     assert s["chi2_final"] < s["chi2_initial"] and s["iterations"] >= 1 and s["time_s"] > 0
     back = read_graph(out)
     np.testing.assert_array_equal(back.vertex_ids, np.arange(100, 112))
@@ -100,8 +100,26 @@ def test_bad_arguments_name_the_argument(tmp_path: Path) -> None:
 
 
 def test_csail_toro_optimum_through_the_file_api(shared_data: Path, tmp_path: Path) -> None:
-    """CSAIL (TORO) without a kernel from the file's guess: chi2 38.956."""
-    s = optimize_file(shared_data / "posegraph-toro-csail-fr079/CSAIL_P_toro.graph", tmp_path / "csail.g2o",
-                      init="file", robust="none")
+    """CSAIL (TORO) from the file's guess, without a kernel and with the default (DCS): chi2 38.956."""
+    src = shared_data / "posegraph-toro-csail-fr079/CSAIL_P_toro.graph"
+    s = optimize_file(src, tmp_path / "csail.g2o", init="file", robust="none")
     assert s["status"] == "converged" and s["chi2_final"] == pytest.approx(38.956, rel=1e-4)
     assert s["chi2_initial"] == pytest.approx(1.31065e6, rel=1e-5)
+    d = optimize_file(src, tmp_path / "csail_dcs.g2o", init="file")
+    assert d["status"] == "converged" and d["edges_rejected"] == 0
+    assert d["chi2_final"] == pytest.approx(38.956, rel=1e-4)
+
+
+def test_default_rejects_a_false_loop_closure_and_reports_it(tmp_path: Path) -> None:
+    """A wrong closure added to the file: the default drops it; chi2_final is over the kept edges."""
+    good = read_graph(small_graph_file(tmp_path, "good.g2o")).graph
+    g = PoseGraph(good.poses, np.r_[good.i, 2], np.r_[good.j, 8], np.r_[good.measurements, [[4.0, -3.0, 1.0]]],
+                  np.r_[good.information, good.information[:1]])
+    src = tmp_path / "bad.g2o"
+    write_graph(src, g, np.arange(100, 112))
+    s = optimize_file(src, tmp_path / "out.g2o")
+    clean = optimize_file(tmp_path / "good.g2o", tmp_path / "clean.g2o")
+    assert s["edges"] == 15 and s["edges_rejected"] == 1 and s["status"] == "converged"
+    assert s["chi2_final"] == pytest.approx(clean["chi2_final"], rel=1e-6)
+    out = read_graph(tmp_path / "out.g2o").graph  # every edge is written back, the rejected one too
+    assert out.n_edges == 15 and chi2(out) > 100 * s["chi2_final"]
