@@ -1,7 +1,7 @@
 """What iFMI registration computes once: per image shape (:class:`Plan`) and per image (:class:`Prepared`).
 
 Steps 1-4 of section II-A of [1]_ for one image: the windowed spectrum, its magnitude resampled
-on a log-polar grid and the phase of the FMI descriptor's spectrum, plus a downsampled copy for
+on a log-polar grid and the FMI descriptor's spectrum, plus a downsampled copy for
 the coarse translation pass. The sequential mode computes them once per image.
 
 References
@@ -126,17 +126,17 @@ def plan(shape: tuple[int, int], config: IfmiConfig) -> Plan:
 class Prepared:
     """One image's reusable spectra: the sequential mode computes them once per image.
 
-    An image registered only as the reference needs no ``phase`` or ``coarse_phase``, one
+    An image registered only as the reference needs no ``spectrum`` or ``coarse_phase``, one
     registered only as the moving image no ``coarse``: :func:`register` leaves them out (None).
     """
 
     image: F32  # (H, W) float32 as given
     mean: float  # its mean: the value a warp gives to pixels from outside it
-    phase: NDArray[np.complex64] | None  # phase of the rfft2 of the windowed image (step 1)
+    spectrum: NDArray[np.complex64] | None  # rfft2 of the windowed image (step 1)
     coarse: F32 | None  # the image downsampled COARSE times (pixel areas averaged), for the coarse pass
     coarse_phase: NDArray[np.complex64] | None  # phase of the rfft2 of the windowed coarse image
     polar: F32 | None  # the log-polar magnitude (steps 2-4); None if flat
-    descriptor: NDArray[np.complex64] | None  # phase of the rfft2 of the FMI descriptor (steps 2-4); None if flat
+    descriptor: NDArray[np.complex64] | None  # rfft2 of the FMI descriptor (steps 2-4); None if flat
 
 
 def _check(name: str, image: object) -> F32:
@@ -163,11 +163,11 @@ def prepare(image: NDArray[np.generic], config: IfmiConfig = IfmiConfig(), name:
     p = plan((img.shape[0], img.shape[1]), config)
     lo, hi, _, _ = cv2.minMaxLoc(img)
     flat = hi - lo <= 1e-6 * max(1.0, abs(lo), abs(hi))
-    spec = spectral.spectrum(img, p.window)
-    mag = np.abs(spec)  # shared by the log-polar magnitude and the phase
-    polar = None if flat else spectral.log_polar_magnitude(spec, p.log_polar, mag)
-    desc = None if polar is None else spectral.descriptor_phase(polar, p.radius_weight, p.radius_window)
+    mean = cv2.mean(img)[0]
+    spec = spectral.spectrum(img, p.window, mean)
+    polar = None if flat else spectral.log_polar_magnitude(spec, p.log_polar)
+    desc = None if polar is None else spectral.descriptor_spectrum(polar, p.radius_weight, p.radius_window)
     coarse = np.asarray(cv2.resize(img, p.coarse_shape[::-1], interpolation=cv2.INTER_AREA), dtype=np.float32)
     coarse_phase = spectral.phase_only(spectral.spectrum(coarse, p.coarse_window)) if moving else None
-    return Prepared(img, cv2.mean(img)[0], spectral.phase_only(spec, mag) if moving else None,
+    return Prepared(img, mean, spec if moving else None,
                     coarse if reference else None, coarse_phase, polar, desc)

@@ -163,7 +163,7 @@ def register_prepared(ref: Prepared, mov: Prepared, config: IfmiConfig = DEFAULT
     """
     if ref.image.shape != mov.image.shape:
         raise ValueError(f"mov has shape {mov.image.shape} but ref has {ref.image.shape}: they must match")
-    if ref.coarse is None or mov.phase is None or mov.coarse_phase is None:
+    if ref.coarse is None or mov.spectrum is None or mov.coarse_phase is None:
         raise ValueError("ref was prepared with reference=False or mov with moving=False: prepare them for their roles")
     if ref.descriptor is None or mov.descriptor is None or ref.polar is None or mov.polar is None:
         return _flat()
@@ -232,10 +232,10 @@ def _rotation_scale(ref: Prepared, mov: Prepared, p: Plan, k: int, n_cols: int
     if n_cols == p.radius_window.shape[1] and ref.descriptor is not None and mov.descriptor is not None:
         ref_desc, mov_desc = ref.descriptor, mov.descriptor
     else:
-        ref_desc = spectral.descriptor_phase(ref.polar, weight, window)
-        mov_desc = spectral.descriptor_phase(mov.polar, weight, window)
+        ref_desc = spectral.descriptor_spectrum(ref.polar, weight, window)
+        mov_desc = spectral.descriptor_spectrum(mov.polar, weight, window)
     col_limit = min(p.col_limit, n_cols // 2 - 1)
-    cross = spectral.cross_phase(ref_desc, mov_desc)
+    cross = spectral.normalized_cross(ref_desc, mov_desc)
     surface = spectral.pomf(cross, (lp.map_x.shape[0], n_cols))
     peak = spectral.find_peak(surface, k, col_limit, cross)
     angle, scale = -peak.row * lp.deg_per_bin, math.exp(-peak.col * lp.log_step)
@@ -244,7 +244,7 @@ def _rotation_scale(ref: Prepared, mov: Prepared, p: Plan, k: int, n_cols: int
         turned = cv2.warpAffine(ref.image, affine(p.shape, GRID_OFFSET_DEG, 1.0, (0.0, 0.0)), (w, h),
                                 flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=ref.mean)
         polar = spectral.log_polar_magnitude(spectral.spectrum(turned, p.window), lp)
-        cross2 = spectral.cross_phase(spectral.descriptor_phase(polar, weight, window), mov_desc)
+        cross2 = spectral.normalized_cross(spectral.descriptor_spectrum(polar, weight, window), mov_desc)
         surface2 = spectral.pomf(cross2, (lp.map_x.shape[0], n_cols))
         peak2 = spectral.find_peak(surface2, k, col_limit, cross2)
         angle2 = angle + (GRID_OFFSET_DEG - peak2.row * lp.deg_per_bin - angle + 90.0) % 180.0 - 90.0
@@ -313,9 +313,8 @@ def _translation_pass(ref: Prepared, mov: Prepared, p: Plan, config: IfmiConfig,
     """
     cx, cy = cand.coarse_shift
     whole = (float(round(cx)), float(round(cy))) if config.refine_translation else (0.0, 0.0)
-    phase = spectral.phase_only(_warped_spectrum(ref, p, cand.angle, cand.scale, whole))
-    assert mov.phase is not None  # register_prepared checked the roles
-    cross = spectral.cross_phase(phase, mov.phase)
+    assert mov.spectrum is not None  # register_prepared checked the roles
+    cross = spectral.normalized_cross(_warped_spectrum(ref, p, cand.angle, cand.scale, whole), mov.spectrum)
     surface = spectral.pomf(cross, p.shape)
     peak, band, surface = spectral.band_peak(cross, p.shape, config.peak_neighbourhood, config.min_pnr,
                                              spectral.find_peak(surface, config.peak_neighbourhood), surface)

@@ -100,59 +100,77 @@ def log_polar_map(shape: tuple[int, int], n_angle: int, n_radius: int, r_min_cyc
                        log_step)
 
 
-def spectrum(image: NDArray[Any], window: F32) -> C64:
-    """rfft2 of the windowed, mean-free float32 image (step 1 of the POMF)."""
-    mean = cv2.mean(image)[0]
-    centred = cv2.subtract(image, mean, dtype=cv2.CV_32F)  # type: ignore[call-overload]
-    return rfft2(np.asarray(cv2.multiply(centred, window), dtype=np.float32))
+def spectrum(image: NDArray[Any], window: F32, mean: float | None = None) -> C64:
+    """rfft2 of the windowed, mean-free float32 image (step 1 of the POMF); ``mean``: the image's, if known."""
+    mean = cv2.mean(image)[0] if mean is None else mean
+    windowed = np.subtract(image, np.float32(mean), dtype=np.float32)  # in place below: faster than two cv2 calls
+    windowed *= window
+    return rfft2(windowed)
 
 
-def phase_only(spec: C64, magnitude: F32 | None = None) -> C64:
+TINY = np.float32(1e-30)  # added to a magnitude before dividing by it: a zero keeps phase 0
+
+
+def phase_only(spec: C64) -> C64:
     """``F / |F|``: the phase of a spectrum (zero where the spectrum is zero).
 
-    The POMF's normalized cross spectrum is the product of two of these (step 2 of the POMF),
-    so each image's phase is computed once and reused (the sequential mode). ``magnitude``:
-    ``np.abs(spec)`` if already computed (it is not modified).
+    The coarse pass's normalized cross spectra are products of two of these (step 2 of the
+    POMF): the moving image's coarse phase is computed once, for both half turns and, in the
+    sequential mode, for every pair it is in.
     """
-    mag = np.maximum(np.abs(spec) if magnitude is None else magnitude, np.float32(1e-30))
-    np.reciprocal(mag, out=mag)
-    return spec * mag  # (complex64 * float32 -> complex64)
+    inv = np.abs(spec)
+    inv += TINY  # 1 / (|F| + TINY): 5x faster than np.maximum(|F|, TINY) here
+    np.divide(np.float32(1.0), inv, out=inv)
+    return spec * inv  # (complex64 * float32 -> complex64)
 
 
-def log_polar_magnitude(spec: C64, lp: LogPolarMap, magnitude: F32 | None = None) -> F32:
+def normalized_cross(spec_a: C64, spec_b: C64) -> C64:
+    """The normalized cross spectrum ``B A* / |B A*|`` of two spectra (POMF steps 1-2).
+
+    Equal to the product of their phases (:func:`cross_phase`), for one normalization instead of
+    two: the descriptors and the full-resolution translation POMF take this path.
+    """
+    cross = np.conjugate(spec_a)
+    cross *= spec_b
+    inv = np.abs(cross)
+    inv += TINY
+    np.divide(np.float32(1.0), inv, out=inv)
+    cross *= inv
+    return cross
+
+
+def log_polar_magnitude(spec: C64, lp: LogPolarMap) -> F32:
     """Steps 2-4: the magnitude of an rfft2 resampled on the log-polar grid, (n_angle, n_radius).
 
-    ``magnitude``: ``np.abs(spec)`` if already computed. (An fftshift and a constant border remap
-    4x faster than ``BORDER_WRAP`` on the unshifted rows.)
+    (An fftshift and a constant border remap 4x faster than ``BORDER_WRAP`` on the unshifted rows.)
     """
     h = spec.shape[0]
     mid = (h + 1) // 2  # row 0 goes to h // 2, as np.fft.fftshift puts it
     mag = np.empty(spec.shape, np.float32)
-    if magnitude is None:
-        np.abs(spec[:mid], out=mag[h - mid:])
-        np.abs(spec[mid:], out=mag[:h - mid])
-    else:
-        mag[h - mid:], mag[:h - mid] = magnitude[:mid], magnitude[mid:]
+    np.abs(spec[:mid], out=mag[h - mid:])
+    np.abs(spec[mid:], out=mag[:h - mid])
     return np.asarray(cv2.remap(mag, lp.map_x, lp.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                                 borderValue=0.0), dtype=np.float32)
 
 
-def descriptor_phase(polar: F32, radius_weight: F32, radius_window: F32) -> C64:
-    """The phase of the FMI descriptor's spectrum from the first ``radius_window.shape[1]`` radius columns.
+def descriptor_spectrum(polar: F32, radius_weight: F32, radius_window: F32) -> C64:
+    """The FMI descriptor's spectrum from the first ``radius_window.shape[1]`` radius columns.
 
     ``radius_weight`` (1, n) is the high-pass at each radius (:func:`highpass`), ``radius_window``
-    (1, n) a taper along the (non-cyclic) radius axis. Returns the phase-only rfft2 of the
-    high-passed, mean-free, tapered descriptor, ready for the rotation/scale POMF (step 5).
+    (1, n) a taper along the (non-cyclic) radius axis. Returns the rfft2 of the high-passed,
+    mean-free, tapered descriptor, for the rotation/scale POMF (step 5, :func:`normalized_cross`).
     """
     desc = polar[:, : radius_window.shape[1]] * radius_weight
     desc -= np.float32(cv2.mean(desc)[0])
     desc *= radius_window
-    return phase_only(rfft2(desc))
+    return rfft2(desc)
 
 
 def cross_phase(phase_a: C64, phase_b: C64) -> C64:
     """The normalized cross spectrum ``B A* / |B A*|`` from two phase-only spectra (POMF steps 1-2)."""
-    return phase_b * np.conj(phase_a)
+    cross = np.conjugate(phase_a)
+    cross *= phase_b
+    return cross
 
 
 def pomf(cross: C64, shape: tuple[int, int]) -> F32:
@@ -342,34 +360,39 @@ def find_peak(surface: F32, k: int, col_limit: int | None = None, cross: C64 | N
     if col_limit is None or 2 * col_limit + 1 >= cols:
         c0, r0 = cv2.minMaxLoc(surface)[3]
     else:
-        sub = np.concatenate([surface[:, : col_limit + 1], surface[:, cols - col_limit:]], axis=1)
-        cc, r0 = cv2.minMaxLoc(sub)[3]
-        c0 = cc if cc <= col_limit else cols - (sub.shape[1] - cc)
+        _, high, _, (c0, r0) = cv2.minMaxLoc(surface[:, : col_limit + 1])  # views: no copy
+        _, high_neg, _, (cn, rn) = cv2.minMaxLoc(surface[:, cols - col_limit:])
+        if high_neg > high:
+            c0, r0 = cols - col_limit + cn, rn
     half = k // 2
     if half <= r0 < rows - half and half <= c0 < cols - half:
-        patch = surface[r0 - half:r0 + half + 1, c0 - half:c0 + half + 1].astype(np.float64)
+        patch = surface[r0 - half:r0 + half + 1, c0 - half:c0 + half + 1]
     else:  # the neighbourhood wraps around the cyclic surface
         ri = np.arange(r0 - half, r0 + half + 1) % rows
-        patch = surface[ri].take(np.arange(c0 - half, c0 + half + 1), axis=1, mode="wrap").astype(np.float64)
-    centre = float(patch[half, half])
+        patch = surface[ri].take(np.arange(c0 - half, c0 + half + 1), axis=1, mode="wrap")
+    # Python floats (float64) from here: a K x K neighbourhood is faster in plain Python than in NumPy calls.
+    cells: list[list[float]] = patch.tolist()
+    centre = cells[half][half]
+    up, down, left, right = cells[half - 1][half], cells[half + 1][half], cells[half][half - 1], cells[half][half + 1]
     if cross is None:
-        dr = _sinc_offset(patch[half - 1, half], centre, patch[half + 1, half])
-        dc = _sinc_offset(patch[half, half - 1], centre, patch[half, half + 1])
+        dr, dc = _sinc_offset(up, centre, down), _sinc_offset(left, centre, right)
     else:
-        dr = _parabola_offset(patch[half - 1, half], centre, patch[half + 1, half])
-        dc = _parabola_offset(patch[half, half - 1], centre, patch[half, half + 1])
+        dr, dc = _parabola_offset(up, centre, down), _parabola_offset(left, centre, right)
         y, x = refine_peak(cross, (rows, cols), r0 + dr, c0 + dc)
         dr, dc = y - r0, x - c0
-    energy = patch * patch
+    energy = [[v * v for v in line] for line in cells]
     total = float(cv2.norm(surface, cv2.NORM_L2SQR))  # accumulated in float64
-    local = float(energy.sum())
+    local = sum(map(sum, energy))
     s = min(local / total, 1.0 - 1e-12) if total > 0 else 0.0
-    p = energy / local if local > 0 else np.full_like(energy, 1.0 / energy.size)
-    off = np.arange(-half, half + 1, dtype=np.float64)
-    yr, xc = off - dr, off - dc
-    crr = float(p.sum(axis=1) @ (yr * yr)) + 1.0 / 12.0
-    ccc = float(p.sum(axis=0) @ (xc * xc)) + 1.0 / 12.0
-    crc = float(yr @ p @ xc)
+    if local > 0:
+        p = [[v / local for v in line] for line in energy]
+    else:
+        p = [[1.0 / (k * k)] * k for _ in range(k)]
+    yr = [i - half - dr for i in range(k)]
+    xc = [j - half - dc for j in range(k)]
+    crr = sum(sum(line) * d * d for line, d in zip(p, yr, strict=True)) + 1.0 / 12.0
+    ccc = sum(sum(column) * d * d for column, d in zip(zip(*p, strict=True), xc, strict=True)) + 1.0 / 12.0
+    crc = sum(dy * sum(v * dx for v, dx in zip(line, xc, strict=True)) for line, dy in zip(p, yr, strict=True))
     row = r0 + dr
     col = c0 + dc
     row = row - rows if row > rows / 2 else row
