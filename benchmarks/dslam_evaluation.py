@@ -10,7 +10,8 @@ Every run is a normal run directory under ``--out``; the script prints one table
 the association error rate from each unknown-id run's log, and writes ``summary.json``.
 
 Run: ``.venv/bin/python benchmarks/dslam_evaluation.py --out /tmp/dslam-eval [--seeds 1 2 3 4 5]
-[--associations known unknown] [--robots 1 2 3 4 5] [--duration-s 1800] [--skip-sim] [--skip-mrclam]``.
+[--associations known unknown] [--robots 1 2 3 4 5] [--duration-s 1800] [--skip-sim] [--skip-mrclam]
+[--composite]``.
 Each run directory is reused when its metrics exist (use a fresh ``--out`` after changing the code).
 """
 
@@ -77,6 +78,8 @@ def main() -> None:
     parser.add_argument("--associations", nargs="*", choices=("known", "unknown"), default=["known", "unknown"],
                         help="association modes of the paper-scenario runs")
     parser.add_argument("--skip-sim", action="store_true")
+    parser.add_argument("--composite", action="store_true",
+                        help="MRCLAM: also run D-SLAM with composite scans (composite_max_scans 400)")
     parser.add_argument("--skip-mrclam", action="store_true")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -103,9 +106,12 @@ def main() -> None:
             rec = args.out / f"mrclam-robot{robot}.mcap"
             if not rec.exists():
                 import_mrclam(DATA, robot, rec)
-            for pipeline in ("odometry", "dslam", "ekfslam"):
-                name = f"robot{robot}-{pipeline}"
-                m = run(rec, pipeline, args.out / name, None if pipeline == "odometry" else MRCLAM_CONFIG)
+            runs = [("odometry", "odometry", None), ("dslam", "dslam", MRCLAM_CONFIG), ("ekfslam", "ekfslam", MRCLAM_CONFIG)]
+            if args.composite:
+                runs.append(("dslam-composite", "dslam", {**MRCLAM_CONFIG, "composite_max_scans": 400}))
+            for label, pipeline, config in runs:
+                name = f"robot{robot}-{label}"
+                m = run(rec, pipeline, args.out / name, config)
                 rows.append((name, m))
                 summary["mrclam"][name] = m
                 print(f"{name}: " + " ".join(f"{k}={fmt(m.get(k, '-'))}" for k in KEYS), flush=True)

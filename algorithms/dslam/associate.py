@@ -57,6 +57,7 @@ class Associator:
         self.tentative = TentativeList()
         self._ids: I64 | None = None
         self.rejected = 0  # known-id observations rejected as outliers
+        self.unmapped: dict[int, tuple[F64, F64, int]] = {}  # known ids not mapped yet: sum C^-1 p, sum C^-1, readings
 
     def check_ids(self, ids: ArrayLike | None, m: int) -> I64 | None:
         """Validated ids (m,) in known-id mode (ValueError when absent or negative); None otherwise."""
@@ -121,6 +122,37 @@ class Associator:
         features[obs[bad]] = -1
         self.rejected += int(bad.sum())
 
+    def check_unmapped(self, slam: DSlam, r: F64, b: F64, new: list[int], r_old: F64) -> list[int]:
+        """Known ids with the outlier gate on: the readings of unmapped ids that agree with their earlier readings.
+
+        The tentative list of section 3.1, for known ids: every reading of an id that is not
+        mapped yet is placed with the localized pose (covariance ``G_X P G_X^T + G_z R G_z^T``);
+        a reading whose position is outside the outlier gate of the earlier readings' mean is not
+        used (a misread barcode), the others join the mean. The mean's covariance is kept at the
+        readings' average, not their fused one, since they share the robot's pose error.
+        """
+        if self.mode != "known" or self._ids is None or not np.isfinite(self.params.outlier_gate) or not new:
+            return new
+        lm, g_pose, g_z = rangebearing.landmarks_from(slam.pose, r[new], b[new])
+        r_cov = rangebearing.blocks(r_old)[new]
+        covs = g_pose @ slam.pose_cov @ g_pose.transpose(0, 2, 1) + g_z @ r_cov @ g_z.transpose(0, 2, 1)
+        kept = []
+        for j, p, c in zip(new, lm, covs, strict=True):
+            key = int(self._ids[j])
+            info = np.linalg.inv(c)
+            if key in self.unmapped:
+                vec, mat, count = self.unmapped[key]
+                mean = np.linalg.solve(mat, vec)
+                d = p - mean
+                if float(d @ np.linalg.solve(c + count * np.linalg.inv(mat), d)) > self.params.outlier_gate:
+                    self.rejected += 1
+                    continue
+                self.unmapped[key] = (vec + info @ p, mat + info, count + 1)
+            else:
+                self.unmapped[key] = (info @ p, info, 1)
+            kept.append(j)
+        return kept
+
     def confirm(self, slam: DSlam, r: F64, b: F64, assoc: Association, r_old: F64
                 ) -> tuple[list[int], I64]:
         """The observations to map as new features now, and the tentative entry of each observation.
@@ -142,12 +174,17 @@ class Associator:
         tentative[obs] = index
         return [j for j, ok in zip(obs, confirmed.tolist(), strict=True) if ok], tentative
 
-    def commit(self, features: I64, tentative: I64) -> None:
-        """Record the scan's outcome: ids of new features; tentative entries that joined the map."""
+    def commit(self, features: I64, tentative: I64, ids: I64 | None = None) -> None:
+        """Record the scan's outcome: ids of new features; tentative entries that joined the map.
+
+        ``ids``: the landmark id of each entry of ``features`` when not the current scan's (composite scans).
+        """
         if self.mode == "known":
-            if self._ids is not None:
+            ids = ids if ids is not None else self._ids
+            if ids is not None:
                 for j in np.flatnonzero(features >= 0).tolist():
-                    self.by_id.setdefault(int(self._ids[j]), int(features[j]))
+                    self.by_id.setdefault(int(ids[j]), int(features[j]))
+                    self.unmapped.pop(int(ids[j]), None)
             return
         mapped = [int(tentative[j]) for j in range(len(features)) if features[j] >= 0 and tentative[j] >= 0]
         if mapped:

@@ -39,7 +39,7 @@ from __future__ import annotations
 import enum
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -52,6 +52,7 @@ from algorithms.common.motion import OdometryNoise
 from algorithms.common.se2 import wrap_angle
 from algorithms.dslam import mapping
 from algorithms.dslam.associate import Associator
+from algorithms.dslam.composite import CompositeScan
 from algorithms.dslam.covariance import CovarianceCache, RefreshReport
 from algorithms.dslam.information import InformationMatrix, dofs
 from algorithms.dslam.localization import MeasurementPose, PoseStatus, chi2_quantile, measurement_pose
@@ -88,6 +89,9 @@ class DSlamConfig:
     vicinity_margin_m: float = 2.0  # V keeps features within the largest range seen so far plus this margin
     loop_closure_gap_scans: int = 300  # a mapped feature unseen for this long closes a loop
     final_relinearization_iterations: int = 10  # relinearize: Gauss-Newton steps at finalize (0: the EIF estimate)
+    composite_max_scans: int = 0  # composite: scans a reading may wait in the window (0: off, the paper's rule)
+    composite_max_distance_m: float = 3.0  # composite: readings taken more than this much travel ago are dropped
+    composite_max_heading_sigma_rad: float = 0.4  # composite: ... or odometry heading sigma accrued since
 
     def __post_init__(self) -> None:
         positive = ("default_range_sigma_m", "default_bearing_sigma_rad", "recovery_tol_m", "local_tol_m",
@@ -98,7 +102,11 @@ class DSlamConfig:
         for name in ("local_max_hops", "pcg_max_iterations", "loop_closure_gap_scans"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("global_every_scans", "covariance_refresh_scans", "final_relinearization_iterations"):
+        for name in ("composite_max_distance_m", "composite_max_heading_sigma_rad"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("global_every_scans", "covariance_refresh_scans", "final_relinearization_iterations",
+                     "composite_max_scans"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.association not in ("known", "unknown"):
@@ -163,6 +171,10 @@ class DSlam:
         self.last_seen: list[int] = []
         self.max_range = 0.0
         self.associator = Associator(config.association, config.association_params)
+        self.window: CompositeScan | None = None  # known ids only: composite scans (composite.py)
+        if config.composite_max_scans and config.association == "known":
+            self.window = CompositeScan(config.composite_max_scans, config.composite_max_distance_m,
+                                        config.composite_max_heading_sigma_rad)
         self._recast: tuple[list[int], int, Recast] | None = None  # set by _map_outlier for _map
         self._refresh: RefreshReport | None = None
         self._grid: Grid | None = None  # built at the first spatial query
@@ -202,6 +214,8 @@ class DSlam:
             self.moved = True
         q = self.config.odometry_noise.covariance(u)
         self.pose, self.pose_cov, _ = motion.predict(self.pose, self.pose_cov, u, q)
+        if self.window is not None:
+            self.window.move(u, q)
 
     def _sigmas(self, range_sigma: float, bearing_sigma: float) -> tuple[float, float]:
         for name, value in (("range_sigma", range_sigma), ("bearing_sigma", bearing_sigma)):
@@ -313,13 +327,77 @@ class DSlam:
                 self.pose, self.pose_cov, omega = ci.mean, ci.cov, ci.omega
             self._toc("localize", tic)
         new, tentative = self.associator.confirm(self, r, b, assoc, r_old)
+        if self.moved:
+            new = self.associator.check_unmapped(self, r, b, new, r_old)
+        if self.window is not None and self.moved and self.n >= 2:
+            assert ids_arr is not None
+            return self._map_composite(r, b, r_old, ids_arr, assoc.features, old + new, pred, pred_cov,
+                                       measurement, omega)
+        if self.window is not None:
+            self.window.clear()
         result = self._map(r, b, r_old, assoc.features, tentative, old, new, pred, pred_cov, measurement, omega)
         self.associator.commit(result.features, tentative)
         return result
 
+    def _map_composite(self, r: F64, b: F64, r_old: F64, ids: I64, features: I64, usable: list[int], pred: F64,
+                       pred_cov: F64, measurement: MeasurementPose | None, omega: float | None) -> ScanResult:
+        """Phase II with composite scans (composite.py): the scan joins the window, and the window's
+        oldest scans are mapped whenever the split rule allows. A window whose oldest scan is beyond
+        the limits (composite.py) is mapped whole, or dropped scan by scan when it cannot be, before
+        this scan joins.
+
+        ``usable``: the scan's readings of mapped features that passed the outlier gate and of
+        unmapped ids. The result's ``features`` refer to this scan's readings.
+        """
+        window = self.window
+        assert window is not None
+        by_id = self.associator.by_id
+        result: ScanResult | None = None
+        while window.expired(self.scans):  # the odometry since the oldest scan is too long to bridge with
+            if len(window.keys() & set(by_id)) >= 2:
+                result = self._map_window(len(window)) or result  # the window was within its limits until now
+            else:
+                window.drop_oldest()
+        window.add(ids[usable].tolist(), r[usable], b[usable], rangebearing.blocks(r_old)[usable], self.scans)
+        while count := window.split(set(by_id)):
+            result = self._map_window(count) or result
+        scan_features = features.copy()
+        for j in usable:
+            scan_features[j] = by_id.get(int(ids[j]), -1)
+        if result is None:
+            note = (f"scan {self.scans}: fewer than two mapped features in the composite window "
+                    f"({len(window)} scan(s)): localization only")
+            self.observer.log("dslam/log", Text(note))
+            for j in np.flatnonzero(features >= 0).tolist():
+                self.last_seen[int(features[j])] = self.scans
+            self._leave()
+            return self._result(ScanStatus.LOCALIZATION_ONLY, pred, pred_cov, scan_features, np.full(len(r), -1),
+                                measurement, omega, note=note)
+        return replace(result, pose=self.pose.copy(), pose_cov=self.pose_cov.copy(), prediction=pred,
+                       prediction_cov=pred_cov, measurement=measurement, omega=omega, features=scan_features,
+                       tentative=np.full(len(r), -1))
+
+    def _map_window(self, count: int) -> ScanResult | None:
+        """Map the window's ``count`` oldest scans as one composite scan (eqs. 3-4, 9-10 via :meth:`_map`)."""
+        window = self.window
+        assert window is not None
+        comp = window.take(count, chi2_quantile(self.config.map_gate_probability, 2))
+        w_features = np.array([self.associator.by_id.get(int(k), -1) for k in comp.keys], dtype=np.int64)
+        w_old = np.flatnonzero(w_features >= 0).tolist()
+        if len(w_old) < 2:  # the fusion gate dropped an anchor's readings
+            return None
+        w_new = np.flatnonzero(w_features < 0).tolist()
+        self.ensure_covariance(w_features[w_old].tolist())
+        none = np.full(len(comp.keys), -1)
+        self.observer.log("dslam/composite/scans", Scalar(comp.scans))
+        result = self._map(comp.ranges, comp.bearings, comp.cov, w_features, none, w_old, w_new, self.pose,
+                           self.pose_cov, None, None, ids=comp.keys)
+        self.associator.commit(result.features, none, ids=comp.keys)
+        return result
+
     def _map(self, r: F64, b: F64, r_old: F64, features: I64, tentative: I64, old: list[int],
              new: list[int], pred: F64, pred_cov: F64, measurement: MeasurementPose | None,
-             omega: float | None) -> ScanResult:
+             omega: float | None, ids: I64 | None = None) -> ScanResult:
         """The mapping half of :meth:`observe` (phase I, bootstrap or eqs. 9-10), the recovery, the covariance."""
         r_blocks = rangebearing.blocks(r_old)
         features = features.copy()
@@ -360,7 +438,7 @@ class DSlam:
             k0 = len(order) - len(new)
             alpha, dist = rc.z_map[2 * k0 - 3::2], rc.z_map[2 * k0 - 2::2]
             pos, _, _ = init_features(x[f1], x[f2], alpha, dist)  # eq. (9)
-            created = self._add_features(pos, new, features)
+            created = self._add_features(pos, new, features, ids)
             ordered = [int(features[j]) for j in order]
             d_matrix, d_vector, jac = mapping.recast_terms(self.recovery.x.reshape(-1, 2)[ordered], rc)
             self._apply(ordered, d_matrix, d_vector)
@@ -456,15 +534,18 @@ class DSlam:
         stat = float(nu @ np.linalg.solve(s, nu))
         return stat > chi2_quantile(self.config.map_gate_probability, len(nu))
 
-    def _add_features(self, positions: F64, obs: list[int], features: I64) -> list[int]:
-        """Append features at ``positions`` for the observations ``obs``; returns their indices."""
+    def _add_features(self, positions: F64, obs: list[int], features: I64, ids: I64 | None = None) -> list[int]:
+        """Append features at ``positions`` for the observations ``obs``; returns their indices.
+
+        ``ids``: the landmark id of each observation when they are not the current scan's (composite).
+        """
         if not obs:
             return []
         created: list[int] = self.info.add_features(len(obs)).tolist()
         self.recovery.grow(positions)
         for j, f in zip(obs, created, strict=True):
             features[j] = f
-            self.feature_ids.append(self.associator.pending_id(j))
+            self.feature_ids.append(int(ids[j]) if ids is not None else self.associator.pending_id(j))
             self.last_seen.append(self.scans)
         return created
 

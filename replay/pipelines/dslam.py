@@ -17,10 +17,10 @@ from typing import Any, Literal
 
 import numpy as np
 
-from algorithms.dslam import DSlam, DSlamConfig
+from algorithms.dslam import DSlam, DSlamConfig, ScanStatus
 from algorithms.dslam.localization import PoseStatus
 from algorithms.observe import CovarianceEllipses, Image, Points, Pose, Scalar, Segments
-from replay.pipeline import MetricSpec, register
+from replay.pipeline import MetricSpec, ReplayContext, register
 from replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, LandmarkSlamPipeline
 
 
@@ -34,6 +34,9 @@ class DSlamPipelineConfig(LandmarkSlamConfig):
     covariance_refresh_scans: int = 0  # 0: exact recomputation only when a scan sees < 2 vicinity features
     loop_closure_gap_scans: int = 300
     final_relinearization_iterations: int = 10  # Gauss-Newton over the map's measurements at the end (0: EIF)
+    composite_max_scans: int = 0  # known ids: composite scans (algorithms/dslam/composite.py); 0: the paper's rule
+    composite_max_distance_m: float = 3.0
+    composite_max_heading_sigma_rad: float = 0.4
     info_every_scans: int = 100  # links and sparsity image interval
 
     def __post_init__(self) -> None:
@@ -49,7 +52,10 @@ class DSlamPipelineConfig(LandmarkSlamConfig):
                            recovery=self.recovery, global_every_scans=self.global_every_scans,
                            covariance_refresh_scans=self.covariance_refresh_scans,
                            loop_closure_gap_scans=self.loop_closure_gap_scans,
-                           final_relinearization_iterations=self.final_relinearization_iterations)
+                           final_relinearization_iterations=self.final_relinearization_iterations,
+                           composite_max_scans=self.composite_max_scans,
+                           composite_max_distance_m=self.composite_max_distance_m,
+                           composite_max_heading_sigma_rad=self.composite_max_heading_sigma_rad)
 
 
 @register
@@ -64,6 +70,10 @@ class DSlamPipeline(LandmarkSlamPipeline):
         "info_nnz_blocks_per_landmark": MetricSpec("none", "", "nonzero blocks per mapped feature", 1e-9),
     }
 
+    def __init__(self, config: DSlamPipelineConfig, ctx: ReplayContext) -> None:
+        super().__init__(config, ctx)
+        self.statuses: dict[ScanStatus, int] = {}
+
     def make_filter(self, mode: str) -> DSlam:
         return DSlam(self.config.algorithm(mode), observer=self.ctx.observer, clock=time.perf_counter)
 
@@ -73,6 +83,7 @@ class DSlamPipeline(LandmarkSlamPipeline):
 
     def draw_scan(self, result: Any, world_xy: np.ndarray) -> None:
         obs = self.ctx.observer
+        self.statuses[result.status] = self.statuses.get(result.status, 0) + 1
         m = result.measurement
         if m is not None and m.status is PoseStatus.OK:
             pose_w = self.to_world_pose(m.pose)
@@ -100,6 +111,13 @@ class DSlamPipeline(LandmarkSlamPipeline):
         report = self.filter.finalize()
         self.draw_information(self.to_world_xy(self.filter.estimates()))
         self.ctx.log(f"final recovery: {report.method}; {self.filter.n} features")
+        counts = ", ".join(f"{status.value} {n}" for status, n in self.statuses.items())
+        self.ctx.log(f"scans by status: {counts}")
+        alone = self.statuses.get(ScanStatus.LOCALIZATION_ONLY, 0)
+        if self.config.composite_max_scans == 0 and alone > self.scans // 4:
+            self.ctx.log(f"{alone} of {self.scans} scans saw fewer than two mapped features and were not used for "
+                         f"the map (the paper's rule); composite scans (config composite_max_scans, e.g. 400) map "
+                         f"such scans together: see the README's D-SLAM section for what they gain and cost")
 
     def extra_metrics(self) -> dict[str, float]:
         n = self.filter.n
