@@ -1,8 +1,10 @@
 """What iFMI registration computes once: per image shape (:class:`Plan`) and per image (:class:`Prepared`).
 
 Steps 1-4 of section II-A of [1]_ for one image: the windowed spectrum, its magnitude resampled
-on a log-polar grid and the FMI descriptor's spectrum, plus a downsampled copy for
-the coarse translation pass. The sequential mode computes them once per image.
+on a log-polar grid and the FMI descriptor's spectrum, plus what the coarse translation pass
+needs: a downsampled copy of the reference (to warp) and, for the moving image, the phase of the
+low band of its spectrum (no second transform: a half-size spectrum of the band-limited image,
+shifted onto the downsampled copy's pixel centres). The sequential mode computes them once per image.
 
 References
 ----------
@@ -15,6 +17,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -78,9 +81,11 @@ DEFAULT_CONFIG = IfmiConfig()
 def affine(shape: tuple[int, int], angle_deg: float, scale: float, shift_px: tuple[float, float]) -> F64:
     """``cv2.getRotationMatrix2D`` about the centre of an (H, W) image, plus ``shift_px``."""
     h, w = shape
-    a = cv2.getRotationMatrix2D(((w - 1) / 2.0, (h - 1) / 2.0), float(angle_deg), float(scale))
-    a[:, 2] += np.asarray(shift_px, dtype=np.float64)
-    return np.asarray(a, dtype=np.float64)
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    theta = math.radians(angle_deg)  # OpenCV's formula, in Python floats (a few NumPy calls fewer)
+    alpha, beta = math.cos(theta) * scale, math.sin(theta) * scale
+    return np.array([[alpha, beta, (1.0 - alpha) * cx - beta * cy + shift_px[0]],
+                     [-beta, alpha, beta * cx + (1.0 - alpha) * cy + shift_px[1]]])
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -90,15 +95,15 @@ class Plan:
     shape: tuple[int, int]
     window: F32
     log_polar: spectral.LogPolarMap
-    radius_weight: F32  # (1, n_radius) the magnitude high-pass at each radius
-    radius_window: F32  # (1, n_radius) taper of the non-cyclic radius axis
-    low_window: F32  # (1, n_radius // 2) taper of the low-radius descriptor (the first half of the columns)
+    taper: spectral.RadiusTaper  # the descriptor's radius weights (high-pass and taper), all n_radius columns
+    low_taper: spectral.RadiusTaper  # those of the low-radius descriptor (the first half of the columns)
     col_limit: int
     coarse_shape: tuple[int, int]  # (H // COARSE, W // COARSE)
     coarse_window: F32
-    coarse_flip: NDArray[np.complex64]  # spectrum of a coarse image turned by 180 degrees: conj(F) * coarse_flip
-    to_coarse: F64  # (3, 3) full-resolution pixel -> coarse pixel (cv2.resize's pixel-centre convention)
-    from_coarse: F64  # its inverse
+    coarse_turn: NDArray[np.complex64]  # a coarse image turned by 180 degrees has the spectrum conj(F / coarse_turn)
+    coarse_ramp: NDArray[np.complex64]  # moves the low band of a spectrum onto the coarse image's pixel centres
+    coarse_grid: tuple[float, float, float, float]  # (sx, sy, ox, oy): full-resolution pixel (x, y) -> coarse
+    # pixel (sx x + ox, sy y + oy), cv2.resize's pixel-centre convention
 
 
 @functools.lru_cache(maxsize=8)
@@ -108,18 +113,20 @@ def plan(shape: tuple[int, int], config: IfmiConfig) -> Plan:
     auto = cv2.getOptimalDFTSize(min(h, w))
     n_angle, n_radius = config.n_angle or auto, config.n_radius or auto
     lp = spectral.log_polar_map(shape, n_angle, n_radius, config.r_min_cycles)
-    radius_window = np.hanning(n_radius + 2)[1:-1].astype(np.float32)[None, :]
-    low_window = np.hanning(n_radius // 2 + 2)[1:-1].astype(np.float32)[None, :]
+    weight = spectral.highpass(lp.radius_cycles)[None, :]
+    taper = np.hanning(n_radius + 2)[1:-1].astype(np.float32)[None, :]
+    low_taper = np.hanning(n_radius // 2 + 2)[1:-1].astype(np.float32)[None, :]
     col_limit = min(n_radius // 2 - 1, math.ceil(math.log(config.max_scale) / lp.log_step) + 1)
     hc, wc = h // COARSE, w // COARSE
     fy = np.fft.fftfreq(hc)[:, None]
     fx = np.fft.rfftfreq(wc)[None, :]
-    flip = np.exp(2j * np.pi * (fy + fx)).astype(np.complex64)
+    turn = np.exp(-2j * np.pi * (fy + fx)).astype(np.complex64)
     sx, sy = wc / w, hc / h
-    to_coarse = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
-    return Plan(shape, spectral.tukey_window(shape, config.window_alpha), lp,
-                spectral.highpass(lp.radius_cycles)[None, :], radius_window, low_window, col_limit, (hc, wc),
-                spectral.tukey_window((hc, wc), config.window_alpha), flip, to_coarse, np.linalg.inv(to_coarse))
+    ox, oy = 0.5 * sx - 0.5, 0.5 * sy - 0.5
+    ramp = np.exp(-2j * np.pi * (fy * oy + fx * ox)).astype(np.complex64)  # a shift by (-ox, -oy) coarse pixels
+    return Plan(shape, spectral.tukey_window(shape, config.window_alpha), lp, spectral.radius_taper(weight, taper),
+                spectral.radius_taper(weight[:, : low_taper.shape[1]], low_taper), col_limit, (hc, wc),
+                spectral.tukey_window((hc, wc), config.window_alpha), turn, ramp, (sx, sy, ox, oy))
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -130,27 +137,37 @@ class Prepared:
     registered only as the moving image no ``coarse``: :func:`register` leaves them out (None).
     """
 
-    image: F32  # (H, W) float32 as given
-    mean: float  # its mean: the value a warp gives to pixels from outside it
+    centred: F32  # (H, W) float32: the image minus its mean (a warp fills pixels from outside it with 0, the mean)
+    mean: float  # the image's mean
     spectrum: NDArray[np.complex64] | None  # rfft2 of the windowed image (step 1)
-    coarse: F32 | None  # the image downsampled COARSE times (pixel areas averaged), for the coarse pass
-    coarse_phase: NDArray[np.complex64] | None  # phase of the rfft2 of the windowed coarse image
+    coarse: F32 | None  # ``centred`` downsampled COARSE times (pixel areas averaged): the coarse pass warps it
+    coarse_phase: NDArray[np.complex64] | None  # phase of the low band of ``spectrum`` (the rfft2 of the windowed
+    # image on the COARSE times coarser grid, band-limited), moved onto ``coarse``'s pixel centres
     polar: F32 | None  # the log-polar magnitude (steps 2-4); None if flat
     descriptor: NDArray[np.complex64] | None  # rfft2 of the FMI descriptor (steps 2-4); None if flat
 
+    @property
+    def image(self) -> F32:
+        """The (H, W) float32 image (recomputed from ``centred`` and ``mean``)."""
+        return self.centred + np.float32(self.mean)
 
-def _check(name: str, image: object) -> F32:
+
+EXACT_STATS = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.int16), np.dtype(np.float32))  # OpenCV reads
+
+
+def _check(name: str, image: object) -> NDArray[Any]:
+    """The image, validated: as given if OpenCV reads its dtype exactly (else as float32), never to be written."""
     arr = np.asarray(image)
     if arr.ndim != 2:
         raise ValueError(f"{name} must be a 2-D (H, W) image, got shape {arr.shape}")
-    if not (np.issubdtype(arr.dtype, np.number) and not np.iscomplexobj(arr)):
+    if arr.dtype.kind not in "uif":  # bool, complex, object, ...
         raise ValueError(f"{name} must hold real numbers, got dtype {arr.dtype}")
     if min(arr.shape) < MIN_SIZE:
         raise ValueError(f"{name} must be at least {MIN_SIZE}x{MIN_SIZE}, got {arr.shape}")
-    out = arr.astype(np.float32)
-    if not np.issubdtype(arr.dtype, np.integer) and not np.all(np.isfinite(out)):
+    src = arr if arr.dtype in EXACT_STATS else arr.astype(np.float32)
+    if src.dtype.kind == "f" and not cv2.checkRange(src)[0]:
         raise ValueError(f"{name} contains NaN or infinite values")
-    return out
+    return src
 
 
 def prepare(image: NDArray[np.generic], config: IfmiConfig = IfmiConfig(), name: str = "image", *,
@@ -159,15 +176,20 @@ def prepare(image: NDArray[np.generic], config: IfmiConfig = IfmiConfig(), name:
 
     ``reference`` / ``moving``: compute what registering it in that role needs (default: both).
     """
-    img = _check(name, image)
-    p = plan((img.shape[0], img.shape[1]), config)
-    lo, hi, _, _ = cv2.minMaxLoc(img)
+    src = _check(name, image)
+    p = plan((src.shape[0], src.shape[1]), config)
+    lo, hi, _, _ = cv2.minMaxLoc(src)
     flat = hi - lo <= 1e-6 * max(1.0, abs(lo), abs(hi))
-    mean = cv2.mean(img)[0]
-    spec = spectral.spectrum(img, p.window, mean)
+    mean = cv2.mean(src)[0]
+    centred = src.astype(np.float32)  # a copy even if float32: the input is never written
+    centred -= np.float32(mean)
+    spec = spectral.rfft2(centred * p.window)  # step 1 (:func:`spectral.spectrum`, the mean known)
     polar = None if flat else spectral.log_polar_magnitude(spec, p.log_polar)
-    desc = None if polar is None else spectral.descriptor_spectrum(polar, p.radius_weight, p.radius_window)
-    coarse = np.asarray(cv2.resize(img, p.coarse_shape[::-1], interpolation=cv2.INTER_AREA), dtype=np.float32)
-    coarse_phase = spectral.phase_only(spectral.spectrum(coarse, p.coarse_window)) if moving else None
-    return Prepared(img, mean, spec if moving else None,
-                    coarse if reference else None, coarse_phase, polar, desc)
+    desc = None if polar is None else spectral.descriptor_spectrum(polar, p.taper)
+    coarse = cast(F32, cv2.resize(centred, p.coarse_shape[::-1], interpolation=cv2.INTER_AREA)) if reference else None
+    coarse_phase = None
+    if moving:  # the coarse pass's spectrum: the low band of the full one, no second transform
+        low = spectral.low_band(spec, p.shape, COARSE)
+        low *= p.coarse_ramp
+        coarse_phase = spectral.phase_only(low)
+    return Prepared(centred, mean, spec if moving else None, coarse, coarse_phase, polar, desc)

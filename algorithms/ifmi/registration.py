@@ -38,6 +38,7 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -114,8 +115,8 @@ def register(reference: NDArray[np.generic], moving: NDArray[np.generic], config
     """
     ref = prepare(reference, config, "reference", moving=False)
     mov_arr = np.asarray(moving)
-    if mov_arr.shape != ref.image.shape:
-        raise ValueError(f"moving has shape {mov_arr.shape} but reference has {ref.image.shape}: they must match")
+    if mov_arr.shape != ref.centred.shape:
+        raise ValueError(f"moving has shape {mov_arr.shape} but reference has {ref.centred.shape}: they must match")
     return register_prepared(ref, prepare(mov_arr, config, "moving", reference=False), config, observer)
 
 
@@ -161,23 +162,23 @@ def register_prepared(ref: Prepared, mov: Prepared, config: IfmiConfig = DEFAULT
     frames) the outer radii of the magnitude spectrum are noise and the full descriptor's peak
     is a chance one; textured images keep their information in the outer radii.
     """
-    if ref.image.shape != mov.image.shape:
-        raise ValueError(f"mov has shape {mov.image.shape} but ref has {ref.image.shape}: they must match")
+    if ref.centred.shape != mov.centred.shape:
+        raise ValueError(f"mov has shape {mov.centred.shape} but ref has {ref.centred.shape}: they must match")
     if ref.coarse is None or mov.spectrum is None or mov.coarse_phase is None:
         raise ValueError("ref was prepared with reference=False or mov with moving=False: prepare them for their roles")
     if ref.descriptor is None or mov.descriptor is None or ref.polar is None or mov.polar is None:
         return _flat()
-    p = plan((ref.image.shape[0], ref.image.shape[1]), config)
+    p = plan((ref.centred.shape[0], ref.centred.shape[1]), config)
     lp = p.log_polar
     k = config.peak_neighbourhood
-    n_radius = p.radius_window.shape[1]
+    n_radius = p.taper.weight.shape[1]
     rs, rs_surface, angle, scale = _rotation_scale(ref, mov, p, k, n_radius)
     first, *others = _coarse_translation(ref, mov, p, config, rs, rs_surface, angle, scale)
     best = _translation_pass(ref, mov, p, config, first)
     if best.peak.pnr < config.min_pnr or others:
         pending = list(others)
         if best.peak.pnr < config.min_pnr:
-            low = _rotation_scale(ref, mov, p, k, p.low_window.shape[1])
+            low = _rotation_scale(ref, mov, p, k, p.low_taper.weight.shape[1])
             d_angle = (low[2] - angle + 90.0) % 180.0 - 90.0
             if abs(d_angle) > lp.deg_per_bin or abs(math.log(low[3] / scale)) > lp.log_step:
                 pending += _coarse_translation(ref, mov, p, config, *low)
@@ -188,17 +189,16 @@ def register_prepared(ref: Prepared, mov: Prepared, config: IfmiConfig = DEFAULT
     c, t = best.candidate, best.peak
     shift = (best.whole[0] + t.col, best.whole[1] + t.row)
     angle = (c.angle + 180.0) % 360.0 - 180.0
-    cov = np.zeros((3, 3))
-    cov[0, 0], cov[1, 1] = t.cov[1][1], t.cov[0][0]
-    cov[0, 1] = cov[1, 0] = t.cov[0][1]
-    cov[2, 2] = c.rs.cov[0][0] * lp.deg_per_bin**2
+    angle_var = c.rs.cov[0][0] * lp.deg_per_bin**2
     scale_var = c.rs.cov[1][1] * (c.scale * lp.log_step) ** 2
     if best.band > 1:
         # The translation Dirac of band b confirms the rotation and scale only as far as they move the
         # image's edge (half the smaller side, r) by less than b pixels: b / r radians, b / r in scale.
         tol = best.band / (0.5 * min(p.shape))
-        cov[2, 2] = max(cov[2, 2], math.degrees(tol) ** 2)
+        angle_var = max(angle_var, math.degrees(tol) ** 2)
         scale_var = max(scale_var, (c.scale * tol) ** 2)
+    (t_yy, t_yx), (_, t_xx) = t.cov  # (row, col) = (y, x) bins -> (dx, dy)
+    cov = np.array([[t_xx, t_yx, 0.0], [t_yx, t_yy, 0.0], [0.0, 0.0, angle_var]])
     status = Status.OK if t.pnr >= config.min_pnr else Status.AMBIGUOUS
     if observer is not NULL_OBSERVER:
         _log_surface(observer, "ifmi/pomf/rotation_scale", c.rs_surface, c.rs)
@@ -227,13 +227,12 @@ def _rotation_scale(ref: Prepared, mov: Prepared, p: Plan, k: int, n_cols: int
     """
     lp = p.log_polar
     assert ref.polar is not None and mov.polar is not None
-    window = p.radius_window if n_cols == p.radius_window.shape[1] else p.low_window
-    weight = p.radius_weight[:, :n_cols]
-    if n_cols == p.radius_window.shape[1] and ref.descriptor is not None and mov.descriptor is not None:
+    taper = p.taper if n_cols == p.taper.weight.shape[1] else p.low_taper
+    if taper is p.taper and ref.descriptor is not None and mov.descriptor is not None:
         ref_desc, mov_desc = ref.descriptor, mov.descriptor
     else:
-        ref_desc = spectral.descriptor_spectrum(ref.polar, weight, window)
-        mov_desc = spectral.descriptor_spectrum(mov.polar, weight, window)
+        ref_desc = spectral.descriptor_spectrum(ref.polar, taper)
+        mov_desc = spectral.descriptor_spectrum(mov.polar, taper)
     col_limit = min(p.col_limit, n_cols // 2 - 1)
     cross = spectral.normalized_cross(ref_desc, mov_desc)
     surface = spectral.pomf(cross, (lp.map_x.shape[0], n_cols))
@@ -241,10 +240,10 @@ def _rotation_scale(ref: Prepared, mov: Prepared, p: Plan, k: int, n_cols: int
     angle, scale = -peak.row * lp.deg_per_bin, math.exp(-peak.col * lp.log_step)
     if abs((angle + 45.0) % 90.0 - 45.0) < GRID_BIAS_DEG:
         h, w = p.shape
-        turned = cv2.warpAffine(ref.image, affine(p.shape, GRID_OFFSET_DEG, 1.0, (0.0, 0.0)), (w, h),
-                                flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=ref.mean)
+        turned = cast(F32, cv2.warpAffine(ref.centred, affine(p.shape, GRID_OFFSET_DEG, 1.0, (0.0, 0.0)), (w, h),
+                                          flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0))
         polar = spectral.log_polar_magnitude(spectral.spectrum(turned, p.window), lp)
-        cross2 = spectral.normalized_cross(spectral.descriptor_spectrum(polar, weight, window), mov_desc)
+        cross2 = spectral.normalized_cross(spectral.descriptor_spectrum(polar, taper), mov_desc, overwrite_a=True)
         surface2 = spectral.pomf(cross2, (lp.map_x.shape[0], n_cols))
         peak2 = spectral.find_peak(surface2, k, col_limit, cross2)
         angle2 = angle + (GRID_OFFSET_DEG - peak2.row * lp.deg_per_bin - angle + 90.0) % 180.0 - 90.0
@@ -257,14 +256,27 @@ def _warped_spectrum(ref: Prepared, p: Plan, angle: float, scale: float,
                      shift: tuple[float, float] = (0.0, 0.0)) -> NDArray[np.complex64]:
     """Step 7: the windowed spectrum of the reference re-rotated, re-scaled (and shifted) onto ``moving``.
 
-    Pixels from outside the reference get its mean, which the spectrum's mean removal turns into
-    zero: they add nothing to the POMF (a mirrored border adds texture that matches nothing,
+    Pixels from outside the reference get its mean (0 in ``ref.centred``), which the spectrum's mean
+    removal keeps near zero: they add nothing to the POMF (a mirrored border adds texture that matches nothing,
     and lowered the PNR of large shifts).
     """
     h, w = p.shape
-    warped = cv2.warpAffine(ref.image, affine(p.shape, angle, scale, shift), (w, h), flags=cv2.INTER_LINEAR,
-                            borderMode=cv2.BORDER_CONSTANT, borderValue=ref.mean)
+    warped = cast(F32, cv2.warpAffine(ref.centred, affine(p.shape, angle, scale, shift), (w, h),
+                                      flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0))
     return spectral.spectrum(warped, p.window)
+
+
+def _coarse_affine(p: Plan, angle: float, scale: float) -> F64:
+    """The (2, 3) :func:`affine` (no shift) in the coarse image's pixels: ``G A G^-1`` for the grid map ``G``."""
+    h, w = p.shape
+    sx, sy, ox, oy = p.coarse_grid
+    theta = math.radians(angle)
+    alpha, beta = math.cos(theta) * scale, math.sin(theta) * scale
+    tx = (1.0 - alpha) * ((w - 1) / 2.0) - beta * ((h - 1) / 2.0)
+    ty = beta * ((w - 1) / 2.0) + (1.0 - alpha) * ((h - 1) / 2.0)
+    b01, b10 = beta * sx / sy, -beta * sy / sx  # the linear part, conjugated by the grid's scaling
+    return np.array([[alpha, b01, sx * tx + ox - (alpha * ox + b01 * oy)],
+                     [b10, alpha, sy * ty + oy - (b10 * ox + alpha * oy)]])
 
 
 def _coarse_translation(ref: Prepared, mov: Prepared, p: Plan, config: IfmiConfig, rs: spectral.Peak,
@@ -279,14 +291,15 @@ def _coarse_translation(ref: Prepared, mov: Prepared, p: Plan, config: IfmiConfi
     are within :data:`FLIP_AMBIGUITY` (textured pairs: 6 to 50 apart).
     """
     hc, wc = p.coarse_shape
-    a = p.to_coarse @ np.vstack([affine(p.shape, angle, scale, (0.0, 0.0)), [0.0, 0.0, 1.0]]) @ p.from_coarse
     assert ref.coarse is not None and mov.coarse_phase is not None  # register_prepared checked the roles
-    warped = cv2.warpAffine(ref.coarse, a[:2], (wc, hc), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                            borderValue=ref.mean)
+    warped = cast(F32, cv2.warpAffine(ref.coarse, _coarse_affine(p, angle, scale), (wc, hc), flags=cv2.INTER_LINEAR,
+                                      borderMode=cv2.BORDER_CONSTANT, borderValue=0.0))
     phase = spectral.phase_only(spectral.spectrum(warped, p.coarse_window))
     k = config.peak_neighbourhood
-    crosses = [spectral.cross_phase(phase, mov.coarse_phase),
-               spectral.cross_phase(np.conj(phase) * p.coarse_flip, mov.coarse_phase)]
+    # The half-turned hypothesis: conj(conj(phase) / coarse_turn) * moving = phase * moving * coarse_turn.
+    turned = phase * mov.coarse_phase
+    turned *= p.coarse_turn
+    crosses = [spectral.cross_phase(phase, mov.coarse_phase), turned]
     surfaces = [spectral.pomf(c, p.coarse_shape) for c in crosses]
     peaks = [spectral.find_peak(sf, k) for sf in surfaces]
     if min(pk.pnr for pk in peaks) * FLIP_AMBIGUITY > max(pk.pnr for pk in peaks) or max(
@@ -295,7 +308,7 @@ def _coarse_translation(ref: Prepared, mov: Prepared, p: Plan, config: IfmiConfi
                  for c, pk, sf in zip(crosses, peaks, surfaces, strict=True)]
     out = []
     for flipped, peak in zip((False, True), peaks, strict=True):
-        shift = (peak.col / p.to_coarse[0, 0], peak.row / p.to_coarse[1, 1])
+        shift = (peak.col / p.coarse_grid[0], peak.row / p.coarse_grid[1])
         out.append((peak.pnr, _Candidate(rs, rs_surface, angle + 180.0 if flipped else angle, scale, shift)))
     out.sort(key=lambda pc: -pc[0])
     (p0, c0), (p1, c1) = out
@@ -314,7 +327,8 @@ def _translation_pass(ref: Prepared, mov: Prepared, p: Plan, config: IfmiConfig,
     cx, cy = cand.coarse_shift
     whole = (float(round(cx)), float(round(cy))) if config.refine_translation else (0.0, 0.0)
     assert mov.spectrum is not None  # register_prepared checked the roles
-    cross = spectral.normalized_cross(_warped_spectrum(ref, p, cand.angle, cand.scale, whole), mov.spectrum)
+    cross = spectral.normalized_cross(_warped_spectrum(ref, p, cand.angle, cand.scale, whole), mov.spectrum,
+                                      overwrite_a=True)
     surface = spectral.pomf(cross, p.shape)
     peak, band, surface = spectral.band_peak(cross, p.shape, config.peak_neighbourhood, config.min_pnr,
                                              spectral.find_peak(surface, config.peak_neighbourhood), surface)
@@ -352,8 +366,8 @@ class SequentialRegistrar:
         previous, self.previous = self.previous, current
         if previous is None:
             return None
-        if previous.image.shape != current.image.shape:
+        if previous.centred.shape != current.centred.shape:
             self.previous = previous
-            raise ValueError(f"image has shape {current.image.shape} but the previous image has "
-                             f"{previous.image.shape}: a sequence must keep one size")
+            raise ValueError(f"image has shape {current.centred.shape} but the previous image has "
+                             f"{previous.centred.shape}: a sequence must keep one size")
         return register_prepared(previous, current, self.config, observer)

@@ -24,7 +24,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import NamedTuple, cast
 
 import cv2
 import numpy as np
@@ -100,19 +100,18 @@ def log_polar_map(shape: tuple[int, int], n_angle: int, n_radius: int, r_min_cyc
                        log_step)
 
 
-def spectrum(image: NDArray[Any], window: F32, mean: float | None = None) -> C64:
-    """rfft2 of the windowed, mean-free float32 image (step 1 of the POMF); ``mean``: the image's, if known."""
-    mean = cv2.mean(image)[0] if mean is None else mean
-    windowed = np.subtract(image, np.float32(mean), dtype=np.float32)  # in place below: faster than two cv2 calls
-    windowed *= window
-    return rfft2(windowed)
+def spectrum(image: F32, window: F32) -> C64:
+    """rfft2 of the windowed, mean-free image (step 1 of the POMF), made in place: ``image`` is a float32 temporary."""
+    image -= np.float32(cv2.mean(image)[0])  # in place: faster than two cv2 calls or a new array
+    image *= window
+    return rfft2(image)
 
 
 TINY = np.float32(1e-30)  # added to a magnitude before dividing by it: a zero keeps phase 0
 
 
 def phase_only(spec: C64) -> C64:
-    """``F / |F|``: the phase of a spectrum (zero where the spectrum is zero).
+    """``F / |F|``: the phase of a spectrum (zero where the spectrum is zero), in place: returns ``spec``.
 
     The coarse pass's normalized cross spectra are products of two of these (step 2 of the
     POMF): the moving image's coarse phase is computed once, for both half turns and, in the
@@ -121,16 +120,18 @@ def phase_only(spec: C64) -> C64:
     inv = np.abs(spec)
     inv += TINY  # 1 / (|F| + TINY): 5x faster than np.maximum(|F|, TINY) here
     np.divide(np.float32(1.0), inv, out=inv)
-    return spec * inv  # (complex64 * float32 -> complex64)
+    spec *= inv  # (complex64 * float32 -> complex64)
+    return spec
 
 
-def normalized_cross(spec_a: C64, spec_b: C64) -> C64:
+def normalized_cross(spec_a: C64, spec_b: C64, overwrite_a: bool = False) -> C64:
     """The normalized cross spectrum ``B A* / |B A*|`` of two spectra (POMF steps 1-2).
 
     Equal to the product of their phases (:func:`cross_phase`), for one normalization instead of
-    two: the descriptors and the full-resolution translation POMF take this path.
+    two: the descriptors and the full-resolution translation POMF take this path. With
+    ``overwrite_a`` (a temporary ``spec_a``) the result is made in ``spec_a``.
     """
-    cross = np.conjugate(spec_a)
+    cross = np.conjugate(spec_a, out=spec_a) if overwrite_a else np.conjugate(spec_a)
     cross *= spec_b
     inv = np.abs(cross)
     inv += TINY
@@ -149,21 +150,40 @@ def log_polar_magnitude(spec: C64, lp: LogPolarMap) -> F32:
     mag = np.empty(spec.shape, np.float32)
     np.abs(spec[:mid], out=mag[h - mid:])
     np.abs(spec[mid:], out=mag[:h - mid])
-    return np.asarray(cv2.remap(mag, lp.map_x, lp.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                borderValue=0.0), dtype=np.float32)
+    return cast(F32, cv2.remap(mag, lp.map_x, lp.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                               borderValue=0.0))
 
 
-def descriptor_spectrum(polar: F32, radius_weight: F32, radius_window: F32) -> C64:
-    """The FMI descriptor's spectrum from the first ``radius_window.shape[1]`` radius columns.
+@dataclass(frozen=True, slots=True, eq=False)
+class RadiusTaper:
+    """The column weights of an FMI descriptor made of the first ``n`` log-polar radius columns."""
 
-    ``radius_weight`` (1, n) is the high-pass at each radius (:func:`highpass`), ``radius_window``
-    (1, n) a taper along the (non-cyclic) radius axis. Returns the rfft2 of the high-passed,
-    mean-free, tapered descriptor, for the rotation/scale POMF (step 5, :func:`normalized_cross`).
+    weight: F32  # (1, n) the magnitude high-pass at each radius (:func:`highpass`) times the taper
+    inv_taper: F32  # (n,) 1 / taper (a Hann window, nowhere zero) / n
+    taper_rfft: C64  # (n // 2 + 1,) rfft of the taper
+
+
+def radius_taper(radius_weight: F32, taper: F32) -> RadiusTaper:
+    """:class:`RadiusTaper` from the high-pass ``radius_weight`` (1, n) and the radius ``taper`` (1, n)."""
+    t = np.asarray(taper, dtype=np.float64).ravel()
+    return RadiusTaper((radius_weight * taper).astype(np.float32), (1.0 / (t * t.size)).astype(np.float32),
+                       np.fft.rfft(t).astype(np.complex64))
+
+
+def descriptor_spectrum(polar: F32, taper: RadiusTaper) -> C64:
+    """The FMI descriptor's spectrum from the first ``n`` radius columns (``taper`` of :func:`radius_taper`).
+
+    The descriptor is the high-passed log-polar magnitude, made mean-free and then tapered
+    along the (non-cyclic) radius axis; returns its rfft2, for the rotation/scale POMF (step 5,
+    :func:`normalized_cross`). The mean times the taper is the same in every row, so its
+    spectrum is the taper's rfft in row ``ky = 0``: it is subtracted there, after one pass over
+    the descriptor (the column sums give the mean, the taper divided out).
     """
-    desc = polar[:, : radius_window.shape[1]] * radius_weight
-    desc -= np.float32(cv2.mean(desc)[0])
-    desc *= radius_window
-    return rfft2(desc)
+    desc = polar[:, : taper.weight.shape[1]] * taper.weight
+    col_sums = cv2.reduce(desc, 0, cv2.REDUCE_SUM)  # (1, n) sums over the angles of polar * high-pass * taper
+    spec = rfft2(desc)
+    spec[0] -= taper.taper_rfft * float(col_sums[0] @ taper.inv_taper)  # rows * mean * rfft(taper)
+    return spec
 
 
 def cross_phase(phase_a: C64, phase_b: C64) -> C64:
@@ -197,6 +217,7 @@ def low_band(spec: C64, shape: tuple[int, int], factor: int) -> C64:
 MIN_BAND_SIDE = 48  # cells per side of the coarsest band's POMF: a random K-neighbourhood stays far below eq. 13's 0.2
 
 
+@functools.lru_cache(maxsize=16)
 def bands(shape: tuple[int, int]) -> tuple[int, ...]:
     """The band factors 1, 2, 4, ... whose POMF keeps at least :data:`MIN_BAND_SIDE` cells per side."""
     out, b = [1], 2
@@ -244,7 +265,10 @@ def band_peak(cross: C64, shape: tuple[int, int], k: int, min_pnr: float, full: 
 def _parabola_offset(c_minus: float, c0: float, c_plus: float) -> float:
     """Vertex of the parabola through three samples: the start of :func:`refine_peak` (~0.06 bin on FMI peaks)."""
     d = c_minus - 2.0 * c0 + c_plus
-    return float(min(0.5, max(-0.5, 0.5 * (c_minus - c_plus) / d))) if d < 0 else 0.0
+    if not d < 0:
+        return 0.0
+    off = 0.5 * (c_minus - c_plus) / d
+    return 0.5 if off > 0.5 else -0.5 if off < -0.5 else off
 
 
 def _sinc_offset(c_minus: float, c0: float, c_plus: float) -> float:
@@ -253,19 +277,39 @@ def _sinc_offset(c_minus: float, c0: float, c_plus: float) -> float:
         d = c_plus / (c_plus + c0) if c_plus + c0 > 0 else 0.0
     else:
         d = -c_minus / (c_minus + c0) if c_minus + c0 > 0 else 0.0
-    return float(min(0.5, max(-0.5, d)))
+    return 0.5 if d > 0.5 else -0.5 if d < -0.5 else d
+
+
+BLAS_SERIAL_MACS = 1 << 18  # OpenBLAS runs a product below 4 * 65536 multiply-adds on the calling thread
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _TrigAxes:
+    """What :func:`refine_peak` needs of an (H, W) rfft half-plane's frequencies, computed once per shape."""
+
+    iy: NDArray[np.complex128]  # (H,) 2 pi i f_y of every row
+    ix: NDArray[np.complex128]  # (W',) 2 pi i f_x of every column
+    dy: NDArray[np.complex128]  # (3, H) (1, iy, iy^2): the y derivatives
+    dx: NDArray[np.complex128]  # (3, W') c_k (1, ix, ix^2): column weight times the x derivatives
+    blocks: tuple[slice, ...]  # row blocks of the (H, W') x (W', 3) product, each one serial in BLAS
 
 
 @functools.lru_cache(maxsize=16)
-def _trig_axes(shape: tuple[int, int]) -> tuple[F64, NDArray[np.complex128], F64]:
+def _trig_axes(shape: tuple[int, int]) -> _TrigAxes:
     """Angular frequencies of an (H, W) rfft half-plane and the column weights of its real interpolant."""
     h, w = shape
     weights = np.full(w // 2 + 1, 2.0)
     weights[0] = 1.0
     if w % 2 == 0:
         weights[-1] = 1.0
-    fy = np.asarray(2.0 * np.pi * np.fft.fftfreq(h), dtype=np.float64)
-    return fy, np.asarray(2j * np.pi * np.fft.rfftfreq(w), dtype=np.complex128), weights
+    iy = np.asarray(2j * np.pi * np.fft.fftfreq(h), dtype=np.complex128)
+    ix = np.asarray(2j * np.pi * np.fft.rfftfreq(w), dtype=np.complex128)
+    rows = max(1, BLAS_SERIAL_MACS // (3 * (w // 2 + 1)) - 1)
+    n_blocks = -(-h // rows)
+    step = -(-h // n_blocks)  # equal blocks
+    blocks = tuple(slice(i, min(h, i + step)) for i in range(0, h, step))
+    return _TrigAxes(iy, ix, np.stack([np.ones(h), iy, iy * iy]), np.stack([weights, weights * ix, weights * ix * ix]),
+                     blocks)
 
 
 def refine_peak(cross: C64, shape: tuple[int, int], row: float, col: float, iterations: int = 3
@@ -274,30 +318,23 @@ def refine_peak(cross: C64, shape: tuple[int, int], row: float, col: float, iter
 
     The POMF is a trigonometric polynomial, ``v(y, x) = (1/N) Re sum_k c_k R_k exp(2 pi i (f_y y + f_x x))``
     over the rfft half-plane (``c_k`` = 2 for columns that stand for a conjugate pair); its value,
-    gradient and Hessian at any off-grid point cost one (6, H) x (H, 2 W') product (the
-    matrix-multiply DFT of upsampled-DFT registration, evaluated only where needed). Steps are
+    gradient and Hessian at any off-grid point cost one (H, W') x (W', 3) product (the
+    matrix-multiply DFT of upsampled-DFT registration, evaluated only where needed): the x
+    derivatives of order 0-2 summed over the columns, then the y ones over the rows. Steps are
     clipped to half a bin and stop when the Hessian is not negative definite, so the estimate
     never leaves the peak found on the grid. From a start within ~0.1 bin (the parabolic
     estimate of :func:`find_peak`) one step leaves < 0.01 bin (Newton converges quadratically).
     """
-    h, _ = shape
-    fy, fx, weights = _trig_axes(shape)
-    # Real arithmetic in one einsum, without BLAS: a threaded BLAS product of this size took
-    # milliseconds on a busy machine (OpenBLAS threads above ~2.6e5 multiply-adds).
-    re_im = np.ascontiguousarray(cross).view(np.float32)  # (H, 2 W'): Re, Im interleaved, no copy
-    e = np.empty((6, h), np.float32)
+    ax = _trig_axes(shape)
+    spec = np.asarray(cross, dtype=np.complex64)
     y, x = float(row), float(col)
     for _ in range(iterations):
-        c, s = np.cos(fy * y), np.sin(fy * y)
-        fc, fs = fy * c, fy * s
-        # Rows of (ey, i fy ey, -fy^2 ey) split into real and imaginary parts, ey = exp(i fy y).
-        e[0], e[1], e[2], e[3], e[4], e[5] = c, -fs, -fy * fc, s, fc, -fy * fs
-        prod = np.einsum("ki,ij->kj", e, re_im)
-        re, im = prod[:, 0::2], prod[:, 1::2]
-        a = (re[:3] - im[3:]) + 1j * (im[:3] + re[3:])
-        ex = np.exp(fx * x) * weights
-        g = (a @ np.stack([ex, ex * fx, ex * fx * fx]).T).real  # g[i, j] = sum a_i ex fx^j
-        gy, gx, hyy, hxx, hxy = g[1, 0], g[0, 1], g[2, 0], g[0, 2], g[1, 1]
+        # Row blocks small enough that OpenBLAS keeps each on this thread (a threaded product of
+        # this size took milliseconds on a busy machine).
+        cols = (ax.dx * np.exp(ax.ix * x)).astype(np.complex64).T  # (W', 3), phases in float64
+        by_row = spec @ cols if len(ax.blocks) == 1 else np.concatenate([spec[b] @ cols for b in ax.blocks])
+        g = ((ax.dy * np.exp(ax.iy * y)).astype(np.complex64) @ by_row).real  # g[i, j] = N d^i/dy^i d^j/dx^j v
+        gy, gx, hyy, hxx, hxy = float(g[1, 0]), float(g[0, 1]), float(g[2, 0]), float(g[0, 2]), float(g[1, 1])
         det = hyy * hxx - hxy * hxy
         if not (hyy < 0.0 and det > 0.0):
             break
@@ -312,13 +349,13 @@ def refine_peak(cross: C64, shape: tuple[int, int], row: float, col: float, iter
     return float(y), float(x)
 
 
-@dataclass(frozen=True, slots=True)
-class Peak:
+class Peak(NamedTuple):
     """The Dirac peak of a POMF surface and its section II-B statistics.
 
     ``row``/``col`` are the subpixel location as signed shifts (cyclic, in bins);
     ``cov`` the 2x2 covariance of eq. (10) over (row, col) in bins^2; ``s`` the peak's
     share of the normalized intensity (eqs. 11-12) and ``pnr = s / (1 - s)`` (eq. 13).
+    (A named tuple: built several times per registration, faster than a frozen dataclass.)
     """
 
     row: float
@@ -365,13 +402,14 @@ def find_peak(surface: F32, k: int, col_limit: int | None = None, cross: C64 | N
         if high_neg > high:
             c0, r0 = cols - col_limit + cn, rn
     half = k // 2
-    if half <= r0 < rows - half and half <= c0 < cols - half:
-        patch = surface[r0 - half:r0 + half + 1, c0 - half:c0 + half + 1]
-    else:  # the neighbourhood wraps around the cyclic surface
-        ri = np.arange(r0 - half, r0 + half + 1) % rows
-        patch = surface[ri].take(np.arange(c0 - half, c0 + half + 1), axis=1, mode="wrap")
     # Python floats (float64) from here: a K x K neighbourhood is faster in plain Python than in NumPy calls.
-    cells: list[list[float]] = patch.tolist()
+    if half <= r0 < rows - half and half <= c0 < cols - half:
+        cells: list[list[float]] = surface[r0 - half:r0 + half + 1, c0 - half:c0 + half + 1].tolist()
+    else:  # the neighbourhood wraps around the cyclic surface (the translation peak, near 0, always does):
+        # element by element, 5 % of a registration faster than fancy indexing with take(mode="wrap")
+        item = surface.item
+        wrapped = [(c0 + d) % cols for d in range(-half, half + 1)]
+        cells = [[item(r, c) for c in wrapped] for r in [(r0 + d) % rows for d in range(-half, half + 1)]]
     centre = cells[half][half]
     up, down, left, right = cells[half - 1][half], cells[half + 1][half], cells[half][half - 1], cells[half][half + 1]
     if cross is None:
@@ -380,19 +418,29 @@ def find_peak(surface: F32, k: int, col_limit: int | None = None, cross: C64 | N
         dr, dc = _parabola_offset(up, centre, down), _parabola_offset(left, centre, right)
         y, x = refine_peak(cross, (rows, cols), r0 + dr, c0 + dc)
         dr, dc = y - r0, x - c0
-    energy = [[v * v for v in line] for line in cells]
     total = float(cv2.norm(surface, cv2.NORM_L2SQR))  # accumulated in float64
-    local = sum(map(sum, energy))
+    # Intensities and their moments about the subpixel peak in one loop (a PMF after dividing by their sum).
+    local = m_rr = m_cc = m_rc = 0.0
+    for i, line in enumerate(cells):
+        dy = i - half - dr
+        row_sum = row_x = 0.0
+        for j, v in enumerate(line):
+            dx = j - half - dc
+            e = v * v
+            row_sum += e
+            row_x += e * dx
+            m_cc += e * dx * dx
+        local += row_sum
+        m_rr += row_sum * dy * dy
+        m_rc += row_x * dy
     s = min(local / total, 1.0 - 1e-12) if total > 0 else 0.0
     if local > 0:
-        p = [[v / local for v in line] for line in energy]
-    else:
-        p = [[1.0 / (k * k)] * k for _ in range(k)]
-    yr = [i - half - dr for i in range(k)]
-    xc = [j - half - dc for j in range(k)]
-    crr = sum(sum(line) * d * d for line, d in zip(p, yr, strict=True)) + 1.0 / 12.0
-    ccc = sum(sum(column) * d * d for column, d in zip(zip(*p, strict=True), xc, strict=True)) + 1.0 / 12.0
-    crc = sum(dy * sum(v * dx for v, dx in zip(line, xc, strict=True)) for line, dy in zip(p, yr, strict=True))
+        crr, ccc, crc = m_rr / local + 1.0 / 12.0, m_cc / local + 1.0 / 12.0, m_rc / local
+    else:  # no energy: a uniform PMF
+        d2r = sum((i - half - dr) ** 2 for i in range(k)) / k
+        d2c = sum((j - half - dc) ** 2 for j in range(k)) / k
+        crc = sum(i - half - dr for i in range(k)) * sum(j - half - dc for j in range(k)) / (k * k)
+        crr, ccc = d2r + 1.0 / 12.0, d2c + 1.0 / 12.0
     row = r0 + dr
     col = c0 + dc
     row = row - rows if row > rows / 2 else row

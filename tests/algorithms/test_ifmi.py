@@ -210,7 +210,31 @@ def test_opencv_packed_fft_matches_scipy(shape: tuple[int, int]) -> None:
     fa = spectral.rfft2(a)
     np.testing.assert_allclose(fa, scipy.fft.rfft2(a), atol=1e-3)
     cross = spectral.rfft2(b) * np.conj(fa)
+    kept = cross.copy()
     np.testing.assert_allclose(spectral.irfft2(cross, shape), scipy.fft.irfft2(cross, s=shape), atol=1e-4)
+    np.testing.assert_array_equal(cross, kept)  # packed in place for the DFT, then restored
+
+
+def test_descriptor_spectrum_is_the_mean_free_tapered_descriptor() -> None:
+    """The descriptor's mean, removed in its spectrum's row 0, equals removing it before the taper."""
+    rng = np.random.default_rng(1)
+    polar = rng.uniform(0.0, 50.0, (64, 64)).astype(np.float32)
+    weight = rng.uniform(0.1, 2.0, (1, 32)).astype(np.float32)
+    taper = np.hanning(34)[1:-1].astype(np.float32)[None, :]
+    desc = polar[:, :32].astype(np.float64) * weight
+    expected = scipy.fft.rfft2((desc - desc.mean()) * taper)
+    got = spectral.descriptor_spectrum(polar, spectral.radius_taper(weight, taper))
+    np.testing.assert_allclose(got, expected, atol=1e-4 * np.abs(expected).max())
+
+
+def test_prepared_keeps_the_image(texture: np.ndarray) -> None:
+    """``Prepared`` holds the image minus its mean; ``image`` gives it back, and the input is not written."""
+    img = texture[:64, :96].astype(np.float32)
+    before = img.copy()
+    prep = prepare(img)
+    np.testing.assert_allclose(prep.image, before, atol=1e-4)
+    np.testing.assert_array_equal(img, before)
+    assert prep.image.dtype == np.float32 and abs(float(prep.centred.mean())) < 1e-3
 
 
 def perturbed(texture: np.ndarray, rng: np.random.Generator, noise: float, blur: float
