@@ -311,14 +311,13 @@ class _Problem:
         self.robust = np.ones(graph.n_edges, dtype=bool) if cfg.robust_all_edges else np.abs(graph.i - graph.j) != 1
         self.kernel = cfg.kernel
         self.kparam = cfg.kernel_parameter or DEFAULT_PARAMETER[cfg.kernel]
-        self.keep: F64 | None = None  # 1 for kept edges, 0 for rejected ones (None: all kept)
         self.info = np.ascontiguousarray(graph.information.transpose(1, 2, 0))  # (3, 3, m)
         self.fixed = tuple(int(v) for v in np.unique(gauge))
         self.system = BlockSystem(n, graph.i, graph.j, self.fixed, order=order) if n > len(self.fixed) else None
         self.chol = SparseCholesky(cfg.linear_solver)
 
     def evaluate(self, poses: F64) -> tuple[F64, F64, float]:
-        """Per-edge chi2, IRLS weights and the total robust cost (kept edges only)."""
+        """Per-edge chi2, IRLS weights and the total robust cost."""
         g = self.graph
         e = linearize(poses, g.i, g.j, g.measurements, jacobians=False)[0]
         c2 = np.einsum("im,ijm,jm->m", e, self.info, e)
@@ -330,9 +329,6 @@ class _Problem:
         cost = c2.copy()
         if self.kernel is not Kernel.NONE and np.any(self.robust):
             w[self.robust], cost[self.robust] = weights_and_cost(self.kernel, c2[self.robust], self.kparam)
-        if self.keep is not None:
-            w *= self.keep
-            cost *= self.keep
         return w, float(cost.sum())
 
     def normal_equations(self, poses: F64, w: F64) -> tuple[F64, F64]:
@@ -515,8 +511,7 @@ def _run(prob: _Problem, poses: F64, cfg: OptimizerConfig, phi0: float | None = 
     if graduating:
         prob.kparam = float(phi0)  # type: ignore[arg-type]
     c2, w, cost = prob.evaluate(poses)
-    kept = prob.keep
-    chi2_hist, cost_hist = [_kept_sum(c2, kept)], [cost]
+    chi2_hist, cost_hist = [float(c2.sum())], [cost]
     best = (cost, poses, c2, w)
     status, iters, nfact = Status.MAX_ITERATIONS, 0, 0
     lam = cfg.lm_lambda
@@ -559,7 +554,7 @@ def _run(prob: _Problem, poses: F64, cfg: OptimizerConfig, phi0: float | None = 
             break
         rel = (cost - costn) / cost if cost > 0.0 else 0.0
         poses, c2, w, cost = new, c2n, wn, costn
-        chi2_hist.append(_kept_sum(c2, kept))
+        chi2_hist.append(float(c2.sum()))
         cost_hist.append(cost)
         if graduating:  # costs under different parameters do not compare: restart the tests
             prob.kparam = max(target, prob.kparam * cfg.graduated_factor)
@@ -576,13 +571,9 @@ def _run(prob: _Problem, poses: F64, cfg: OptimizerConfig, phi0: float | None = 
     prob.kparam = target
     _, poses, c2, w = best
     return OptimizationResult(
-        poses=poses, status=status, iterations=iters, chi2_initial=chi2_hist[0], chi2_final=_kept_sum(c2, kept),
+        poses=poses, status=status, iterations=iters, chi2_initial=chi2_hist[0], chi2_final=float(c2.sum()),
         chi2_history=np.array(chi2_hist), cost_history=np.array(cost_hist), edge_chi2=c2, weights=w,
         n_factorizations=nfact, linear_solver=prob.chol.backend, lm_lambda=lam,
-        inliers=np.ones(c2.size, dtype=bool) if kept is None else kept > 0.0,
+        inliers=np.ones(c2.size, dtype=bool),
     )
 
-
-def _kept_sum(c2: F64, kept: F64 | None) -> float:
-    """Plain chi2 over the kept edges."""
-    return float(c2.sum()) if kept is None else float(np.einsum("m,m->", c2, kept))

@@ -364,12 +364,12 @@ class DSlam:
         scan_features = features.copy()
         for j in usable:
             scan_features[j] = by_id.get(int(ids[j]), -1)
+        for j in np.flatnonzero(features >= 0).tolist():  # seen now, whenever its reading is mapped
+            self.last_seen[int(features[j])] = self.scans
         if result is None:
             note = (f"scan {self.scans}: fewer than two mapped features in the composite window "
                     f"({len(window)} scan(s)): localization only")
             self.observer.log("dslam/log", Text(note))
-            for j in np.flatnonzero(features >= 0).tolist():
-                self.last_seen[int(features[j])] = self.scans
             self._leave()
             return self._result(ScanStatus.LOCALIZATION_ONLY, pred, pred_cov, scan_features, np.full(len(r), -1),
                                 measurement, omega, note=note)
