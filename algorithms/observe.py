@@ -80,7 +80,21 @@ class Image:
     pixels: NDArray[np.generic]
 
 
-Observation = Points | Pose | LineStrips | Segments | CovarianceEllipses | Scalar | Text | Image
+@dataclass(frozen=True, slots=True, eq=False)
+class Bars:
+    """A bar chart: one bar per entry of ``values`` (e.g. a posterior over locations)."""
+
+    values: NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class Markdown:
+    """A document (tables of results), shown as rendered markdown."""
+
+    text: str
+
+
+Observation = Points | Pose | LineStrips | Segments | CovarianceEllipses | Scalar | Text | Image | Bars | Markdown
 
 
 class Observer(Protocol):

@@ -278,7 +278,7 @@ def cmd_diff(args: argparse.Namespace) -> int:
 
     diff = diff_runs(args.run_a, args.run_b, parse_tolerances(args.tolerance))
     if args.rrd:
-        write_comparison_rrd(args.run_a, args.run_b, args.rrd)
+        write_comparison_rrd(args.run_a, args.run_b, args.rrd, diff)
     if args.json:
         print(json.dumps(diff.to_json(), indent=2))
     else:
@@ -286,6 +286,15 @@ def cmd_diff(args: argparse.Namespace) -> int:
         if args.rrd:
             print(f"comparison recording: rerun {args.rrd}")
     return EXIT_CHECK_FAILED if diff.worse else EXIT_OK
+
+
+def cmd_snapshot(args: argparse.Namespace) -> int:
+    from replay.snapshot import parse_at, parse_size, snapshot
+
+    shots = snapshot(Path(args.source), Path(args.out), size=parse_size(args.size), at=parse_at(args.at))
+    for shot in shots:
+        print(f"{shot.tab}: {shot.path}")
+    return EXIT_OK
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -470,6 +479,17 @@ def build_parser() -> argparse.ArgumentParser:
     df.add_argument("--rrd", metavar="OUT.rrd", help="write one recording with both runs under runs/A and runs/B")
     df.add_argument("--json", action="store_true", help="machine-readable output")
     df.set_defaults(func=cmd_diff)
+
+    snap = sub.add_parser("snapshot", help="render a run's tabs in the real Rerun viewer to PNG files (headless)",
+                          description="Open a run (or a diff's .rrd) in a headless Rerun viewer and save one PNG per "
+                                      "tab of its layout, with the time cursor at the end (or --at). Needs a Vulkan "
+                                      "driver; without a GPU, Mesa's software one (Debian: mesa-vulkan-drivers).")
+    snap.add_argument("source", metavar="RUN_DIR_OR_RRD", help="a run directory or an .rrd file")
+    snap.add_argument("--out", required=True, metavar="DIR", help="folder for the PNG files (created if needed)")
+    snap.add_argument("--size", default="1600x900", metavar="WxH", help="viewer size in pixels (default: 1600x900)")
+    snap.add_argument("--at", default="end", metavar="end|start|STEP",
+                      help="where the time cursor stands (default: end, the run's outcome)")
+    snap.set_defaults(func=cmd_snapshot)
 
     demo = sub.add_parser("demo", parents=[quiet], help="record the built-in simulations, replay them, print metrics")
     demo.add_argument("--out", default="runs/demo", help="where recordings and runs go (default: runs/demo)")

@@ -132,7 +132,7 @@ def main() -> None:
             ("engine, odometry pipeline, null observer", *best_of(args.repeat, engine(odometry,
                                                                                        lambda i: NullObserver()))),
             ("engine, odometry pipeline, Rerun .rrd", *best_of(args.repeat, engine(
-                odometry, lambda i: RerunObserver(Path(tmp) / f"r{i}.rrd", f"bench{i}", None)))),
+                odometry, lambda i: RerunObserver(Path(tmp) / f"r{i}.rrd", f"bench{i}")))),
         ]
     print(f"recording: {total} messages ({args.poses} poses), best of {args.repeat}")
     base = rows[0][1]

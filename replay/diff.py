@@ -20,12 +20,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import rerun as rr
-import rerun.blueprint as rrb
-from rerun.chunk import Chunk, RrdReader
-
 from replay.errors import ReplayError
-from replay.observer import APPLICATION_ID, deterministic_batcher
 
 MANIFEST_FIELDS = ("pipeline", "recording.sha256", "seed", "config_hash", "slamreplay.version",
                    "slamreplay.git_commit", "window_ns", "status")
@@ -185,40 +180,11 @@ def rrd_content_equal(a: Path, b: Path) -> tuple[bool | None, str]:
     return False, last[:500]
 
 
-def write_comparison_rrd(a_dir: str | Path, b_dir: str | Path, out: str | Path) -> None:
-    """One ``.rrd`` with run A under ``runs/A/...`` and run B under ``runs/B/...``, side by side."""
-    a_dir, b_dir, out = Path(a_dir), Path(b_dir), Path(out)
-    if out.exists():
-        raise ReplayError(f"{out} already exists; choose another --rrd")
-    for d in (a_dir, b_dir):
-        if not (d / "run.rrd").is_file():
-            raise ReplayError(f"{d} has no run.rrd")
-    tmp = out.with_name(f".{out.name}.partial")
-    rec = rr.RecordingStream(APPLICATION_ID, recording_id=f"diff-{a_dir.name}-{b_dir.name}", send_properties=False,
-                             batcher_config=deterministic_batcher())
-    rec.set_log_time_enabled(False)
-    blueprint = rrb.Blueprint(
-        rrb.Vertical(
-            rrb.Horizontal(rrb.Spatial2DView(name=f"A: {a_dir.name}", origin="/runs/A/world"),
-                           rrb.Spatial2DView(name=f"B: {b_dir.name}", origin="/runs/B/world")),
-            rrb.Horizontal(rrb.TimeSeriesView(name="A metrics", origin="/runs/A/metrics"),
-                           rrb.TimeSeriesView(name="B metrics", origin="/runs/B/metrics")),
-            row_shares=[3, 2],
-        ),
-        collapse_panels=True,
-    )
-    rec.save(tmp, default_blueprint=blueprint)
-    try:
-        for run_dir, label in ((a_dir, "A"), (b_dir, "B")):
-            stream = RrdReader(run_dir / "run.rrd").stream()
+def write_comparison_rrd(a_dir: str | Path, b_dir: str | Path, out: str | Path, diff: RunDiff | None = None) -> None:
+    """One ``.rrd`` comparing run B with run A, both on the same axes (`replay.diff_view`)."""
+    from replay.diff_view import write_comparison_rrd as write
 
-            def relabel(ch: Chunk, lb: str = label) -> Chunk:
-                return ch.with_entity_path(f"/runs/{lb}{ch.entity_path}")
-
-            rec.send_chunks(stream.map(relabel))
-    finally:
-        rec.disconnect()
-    tmp.replace(out)
+    write(a_dir, b_dir, out, diff)
 
 
 def format_table(diff: RunDiff) -> str:

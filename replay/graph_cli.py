@@ -110,26 +110,27 @@ def _log_rrd(path: Path, source: Path, before: PoseGraph, after: PoseGraph, resu
     import rerun as rr  # deferred: only --rrd needs Rerun
     import rerun.blueprint as rrb
 
-    from replay.observer import APPLICATION_ID, deterministic_batcher
+    from replay import views
+    from replay.observer import deterministic_batcher
 
     digest = hashlib.sha256(source.read_bytes()).hexdigest()
     rec_id = uuid.uuid5(uuid.NAMESPACE_URL, f"slamreplay/graph-optimize/{digest}/{config}")
-    blueprint = rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Spatial2DView(origin="world/graph", name="pose graph"),
-            rrb.TimeSeriesView(origin="metrics", name="chi2"),
-        ),
-        collapse_panels=True,
-    )
+    bounds = views.extend_bounds(views.extend_bounds(None, before.poses[:, :2]), after.poses[:, :2])
+    blueprint = views.layout(views.tab(
+        "Pose graph", rrb.Vertical(views.map_view("Initial", "world/graph/initial", bounds),
+                                   views.map_view("Optimized", "world/graph/optimized", bounds)),
+        views.series_view("chi2 per iteration", "metrics/chi2"), columns=[3, 2]))
     tmp = path.with_name(f".{path.name}.tmp")
-    rec = rr.RecordingStream(APPLICATION_ID, recording_id=rec_id, send_properties=False,
+    rec = rr.RecordingStream(views.app_id("graph"), recording_id=rec_id, send_properties=False,
                              batcher_config=deterministic_batcher())
     rec.set_log_time_enabled(False)
-    rec.save(tmp, default_blueprint=blueprint)
+    rec.save(tmp)
+    rec.send_blueprint(blueprint, make_active=True, make_default=True)
     try:
         loop = np.abs(before.i - before.j) != 1
-        colors = np.where(loop[:, None], [[245, 130, 48]], [[150, 150, 150]]).astype(np.uint8)
+        colors = np.where(loop[:, None], [views.ACCEPTED], [views.TRUTH]).astype(np.uint8)
         for name, g in (("initial", before), ("optimized", after)):
+            rec.log(f"world/graph/{name}", views.MAP_FLIP, static=True)
             rec.log(f"world/graph/{name}/edges", rr.LineStrips2D(_segments(g), colors=colors, radii=-0.5),
                     static=True)
             vertices = rr.Points2D(g.poses[:, :2].astype(np.float32), radii=-1.5)

@@ -75,3 +75,18 @@ def format_metrics(pipeline: str, values: Mapping[str, float], specs: Mapping[st
 def dumps(doc: Mapping[str, Any]) -> str:
     """Deterministic JSON text: sorted keys, full float precision, trailing newline."""
     return json.dumps(doc, sort_keys=True, indent=2, allow_nan=False) + "\n"
+
+
+_ARROW = {"lower": "lower is better", "higher": "higher is better", "none": ""}
+
+
+def metrics_markdown(title: str, values: Mapping[str, float], specs: Mapping[str, MetricSpec]) -> str:
+    """The metrics of a run as a markdown table (value, unit, which way is better, meaning)."""
+    lines = [f"### {title}", "", "| metric | value | unit | better | meaning |", "|---|---:|---|---|---|"]
+    for name, value in sorted(values.items()):
+        spec = specs[name]
+        shown = f"{value:,.0f}" if float(value).is_integer() and abs(value) < 1e15 else f"{value:.4g}"
+        lines.append(f"| `{name}` | {shown} | {spec.unit} | {_ARROW[spec.better]} | {spec.description} |")
+    if not values:
+        lines.append("| (no metric applies to this run) | | | | |")
+    return "\n".join(lines) + "\n"

@@ -1,8 +1,9 @@
 """Observers that replay hands to pipelines and algorithms: Rerun (a run's ``.rrd``) and memory (tests).
 
 Replay sets the time (`set_time`) before each message; algorithms only ``log``. The Rerun
-observer turns observations into archetypes under the DESIGN.md entity conventions and
-colours them by role: truth green, odometry orange, estimates blue, measurements purple.
+observer turns observations into archetypes under the entity conventions of `replay.views`
+(which owns frames, colours and timelines) and, at the end, mirrors the final state of the
+map into the static ``summary/`` subtree that a run's first tab shows.
 """
 
 from __future__ import annotations
@@ -18,9 +19,11 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from algorithms.observe import (
+    Bars,
     CovarianceEllipses,
     Image,
     LineStrips,
+    Markdown,
     Observation,
     Points,
     Pose,
@@ -28,31 +31,14 @@ from algorithms.observe import (
     Segments,
     Text,
 )
-
-APPLICATION_ID = "slamreplay"
-
+from replay import views
+from replay.views import role_color
 
 
 def deterministic_batcher() -> rr.ChunkBatcherConfig:
     """Chunks cut by row count only, never by the batcher's wall-clock tick: the same run gives
     the same chunks, so `rerun rrd compare` can tell two runs apart by content."""
     return rr.ChunkBatcherConfig(flush_tick=timedelta(hours=1), flush_num_bytes=1 << 40, flush_num_rows=4096)
-
-_COLORS = (  # first match on the entity path wins
-    ("truth", (60, 180, 75)),
-    ("odometry", (245, 130, 48)),
-    ("prediction", (245, 130, 48)),
-    ("measurement", (145, 30, 180)),
-    ("association", (145, 30, 180)),
-    ("tentative", (170, 170, 170)),
-    ("estimate", (0, 110, 220)),
-    ("robot", (0, 110, 220)),
-)
-
-
-def role_color(path: str) -> tuple[int, int, int] | None:
-    """The conventional colour of an entity, from its path."""
-    return next((c for key, c in _COLORS if key in path), None)
 
 
 def ellipse_points(mean: np.ndarray, cov: np.ndarray, n_sigma: float = 2.0, n: int = 32) -> np.ndarray:
@@ -73,39 +59,75 @@ class RerunObserver:
     content is the same as logging row by row, and flushing depends on row counts only.
     """
 
-    def __init__(self, path: Path, recording_id: str, blueprint: rrb.Blueprint | None,
-                 recording_name: str | None = None, flush_rows: int = 1024) -> None:
-        self.stream = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id, send_properties=False,
+    def __init__(self, path: Path, recording_id: str, recording_name: str | None = None, flush_rows: int = 1024,
+                 *, kind: str = "run", time_origin_ns: int = 0) -> None:
+        self.stream = rr.RecordingStream(views.app_id(kind), recording_id=recording_id, send_properties=False,
                                          batcher_config=deterministic_batcher())
         self.stream.set_log_time_enabled(False)
-        self.stream.save(path, default_blueprint=blueprint)
+        self.stream.save(path)
         self.step, self.sensor_time_ns = 0, 0
+        self.time_origin_ns = time_origin_ns
         self.flush_rows = flush_rows
         self._buffers: dict[tuple[str, type], list[tuple[int, int, Observation]]] = {}
+        self._last: dict[str, Observation] = {}  # the latest item of each map entity (for the summary)
+        self._series: set[str] = set()
         if recording_name:
             self.stream.send_recording_name(recording_name)
+        for root in views.MAP_ROOTS:
+            self.stream.log(root, views.MAP_FLIP, static=True)
 
     def set_time(self, step: int, sensor_time_ns: int) -> None:
         self.step, self.sensor_time_ns = step, sensor_time_ns
-        self.stream.set_time("step", sequence=step)
-        self.stream.set_time("sensor_time", timestamp=np.datetime64(sensor_time_ns, "ns"))
+        self.stream.set_time(views.STEP, sequence=step)
+        self.stream.set_time(views.SENSOR_TIME, duration=np.timedelta64(sensor_time_ns - self.time_origin_ns, "ns"))
 
     def log(self, path: str, item: Observation) -> None:
-        if isinstance(item, (Text, Image)):
+        if path.startswith("world/"):
+            self._last[path] = item
+        if isinstance(item, (Text, Image, Bars, Markdown)):
             self.stream.log(path, *to_archetypes(path, item))
             return
+        if isinstance(item, Scalar):
+            self._style_series(path)
         rows = self._buffers.setdefault((path, type(item)), [])
         rows.append((self.step, self.sensor_time_ns, item))
         if len(rows) >= self.flush_rows:
             self._flush(path, type(item))
 
     def log_static(self, path: str, item: Observation) -> None:
+        if path.startswith("world/"):
+            self._last[path] = item
         self.stream.log(path, *to_archetypes(path, item), static=True)
 
     def send_series(self, path: str, steps: np.ndarray, times_ns: np.ndarray, values: np.ndarray) -> None:
         """A whole scalar time series in one call (computed after the replay)."""
+        self._style_series(path)
         columns = [rr.Scalars.columns(scalars=np.asarray(values, float))]
         self._send(path, np.asarray(steps), np.asarray(times_ns), columns)
+
+    def write_summary(self, metrics_markdown: str, skip: tuple[str, ...] = views.SUMMARY_SKIP
+                      ) -> views.Bounds | None:
+        """The run's outcome as static data: the last state of every map entity under ``summary/``
+        (but the momentary ones in ``skip``), and the metrics table; returns the final map's bounds."""
+        bounds: views.Bounds | None = None
+        for path, item in sorted(self._last.items()):
+            if any(s in path for s in skip) or _empty(item):
+                continue
+            self.stream.log(f"summary/{path}", *to_archetypes(path, item), static=True)
+            bounds = views.extend_bounds(bounds, _points_of(item))
+        self.stream.log(views.SUMMARY_METRICS, rr.TextDocument(metrics_markdown, media_type="text/markdown"),
+                        static=True)
+        return bounds
+
+    def send_layout(self, blueprint: rrb.Blueprint) -> None:
+        """The run's blueprint, as the default and active layout of its application id."""
+        self.stream.send_blueprint(blueprint, make_active=True, make_default=True)
+
+    def _style_series(self, path: str) -> None:
+        if path not in self._series:
+            self._series.add(path)
+            self.stream.log(path, rr.SeriesLines(names=views.series_label(path), colors=views.series_color(path),
+                                                 widths=1.5), static=True)
 
     def send_property(self, name: str, values: dict[str, Any]) -> None:
         self.stream.send_property(name, rr.AnyValues(**values))
@@ -117,8 +139,9 @@ class RerunObserver:
         self.stream.disconnect()
 
     def _send(self, path: str, steps: np.ndarray, times_ns: np.ndarray, columns: list[Any]) -> None:
-        indexes = [rr.TimeColumn("step", sequence=steps.astype(np.int64)),
-                   rr.TimeColumn("sensor_time", timestamp=times_ns.astype(np.int64).astype("datetime64[ns]"))]
+        since = (times_ns.astype(np.int64) - self.time_origin_ns).astype("timedelta64[ns]")
+        indexes = [rr.TimeColumn(views.STEP, sequence=steps.astype(np.int64)),
+                   rr.TimeColumn(views.SENSOR_TIME, duration=since)]
         for cols in columns:
             self.stream.send_columns(path, indexes=indexes, columns=cols)
 
@@ -132,7 +155,7 @@ class RerunObserver:
 
 def to_columns(path: str, items: list[Any]) -> list[Any]:
     """Column batches (one row per item) drawing a list of same-typed observations."""
-    color = role_color(path) or (200, 200, 200)
+    color = role_color(path) or views.NEUTRAL
     first = items[0]
     if isinstance(first, Scalar):
         return [rr.Scalars.columns(scalars=np.array([i.value for i in items], float))]
@@ -191,7 +214,33 @@ def to_archetypes(path: str, item: Observation) -> list[Any]:
         return [rr.TextLog(item.text, level=item.level)]
     if isinstance(item, Image):
         return [rr.Image(item.pixels)]
+    if isinstance(item, Bars):
+        return [rr.BarChart(np.asarray(item.values, float), color=color or views.ESTIMATE)]
+    if isinstance(item, Markdown):
+        return [rr.TextDocument(item.text, media_type="text/markdown")]
     raise TypeError(f"unknown observation type {type(item).__name__}")
+
+
+def _points_of(item: Observation) -> np.ndarray:
+    """Every 2D point an observation draws (for bounds), (n, 2)."""
+    if isinstance(item, Points):
+        return np.asarray(item.positions, float).reshape(-1, 2)
+    if isinstance(item, Pose):
+        return np.asarray(item.pose, float)[None, :2]
+    if isinstance(item, (LineStrips, Segments, CovarianceEllipses)):
+        strips = _strips(item)
+        return np.concatenate(strips).reshape(-1, 2) if strips else np.empty((0, 2))
+    return np.empty((0, 2))
+
+
+def _empty(item: Observation) -> bool:
+    if isinstance(item, LineStrips):
+        return not item.strips
+    if isinstance(item, (Points, Segments)):
+        return not len(item.positions if isinstance(item, Points) else item.starts)
+    if isinstance(item, CovarianceEllipses):
+        return not len(item.means)
+    return False
 
 
 @dataclass

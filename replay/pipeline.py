@@ -21,6 +21,7 @@ import numpy as np
 import rerun.blueprint as rrb
 
 from algorithms.observe import Observation
+from replay import views
 from replay.errors import ReplayError
 from replay.reader import Envelope, RecordingInfo
 
@@ -75,6 +76,7 @@ class Pipeline(ABC):
     start_topic: ClassVar[str]
     Config: ClassVar[type]
     metrics: ClassVar[dict[str, MetricSpec]]
+    summary_skip: ClassVar[tuple[str, ...]] = views.SUMMARY_SKIP  # map entities left out of the static summary
 
     def __init__(self, config: Any, ctx: ReplayContext) -> None:
         self.config = config
@@ -101,16 +103,15 @@ class Pipeline(ABC):
         return {}
 
     @classmethod
-    def blueprint(cls) -> rrb.Blueprint:
-        """The Rerun layout a run of this pipeline opens into."""
-        return rrb.Blueprint(
-            rrb.Horizontal(
-                rrb.Spatial2DView(name="Map", origin="/world"),
-                rrb.Vertical(rrb.TimeSeriesView(name="Metrics", origin="/metrics"),
-                             rrb.TextLogView(name="Log", origin="/log")),
-                column_shares=[3, 2],
-            ),
-            collapse_panels=True,
+    def blueprint(cls, bounds: views.Bounds | None = None) -> rrb.Blueprint:
+        """The Rerun layout a run of this pipeline opens into (`replay.views`): the summary first.
+
+        ``bounds``: the world box the map views show (the run's final map), None to let Rerun fit.
+        """
+        return views.layout(
+            views.summary_tab(bounds, ("metrics/**",), "Metrics over time"),
+            views.tab("Map over time", views.map_view("Map", "world", bounds),
+                      rrb.Vertical(views.series_view("Metrics", "metrics/**"), views.log_view()), columns=[3, 2]),
         )
 
 

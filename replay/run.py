@@ -141,12 +141,17 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
         manifest["recording"]["messages"] = reader.info.message_count
         manifest["recording"]["metadata"] = reader.info.metadata
         timings["open_s"] = time.perf_counter() - tic
-        observer = RerunObserver(rrd_tmp, run_id, pipeline_cls.blueprint(), f"{pipeline} on {reader.path.name}")
+        observer = RerunObserver(rrd_tmp, run_id, f"{pipeline} on {reader.path.name}", kind=pipeline,
+                                 time_origin_ns=reader.info.start_ns)
+        observer.set_time(0, reader.info.start_ns)
         observer.send_property("replay", {"pipeline": pipeline, "seed": seed, "config_hash": manifest["config_hash"],
                                           "recording_sha256": manifest["recording"]["sha256"]})
         tic = time.perf_counter()
+        log = text_logger(observer, lines)
+        log(f"{pipeline} on {reader.path.name} ({reader.info.message_count:,} messages), seed {seed}, "
+            f"config {manifest['config_hash'][:12]}")
         stats = replay(reader, pipeline_cls, cfg, observer, seed=seed, start_ns=start_ns, end_ns=end_ns,
-                       log=text_logger(observer, lines), progress=progress, log_timings=log_timings)
+                       log=log, progress=progress, log_timings=log_timings)
         timings["replay_s"] = time.perf_counter() - tic
         values = stats.metrics
         timings.update({f"pipeline_{k}": v for k, v in stats.timings.items()})
@@ -154,6 +159,11 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
             observer.send_series("timings/step_ms", np.arange(len(stats.step_durations_s)), stats.step_times_ns,
                                  stats.step_durations_s * 1e3)
         manifest["messages_replayed"] = stats.messages
+        log(f"finished: {stats.messages:,} messages replayed; " + (", ".join(
+            f"{k} {v:.4g}" for k, v in sorted(values.items())) or "no metric applies"))
+        bounds = observer.write_summary(metrics_mod.metrics_markdown(f"{pipeline} on {reader.path.name}", values,
+                                                                     pipeline_cls.metrics), pipeline_cls.summary_skip)
+        observer.send_layout(pipeline_cls.blueprint(bounds))
         tic = time.perf_counter()
         observer.close()
         observer = None
