@@ -198,7 +198,7 @@ def _strips(item: Any) -> list[np.ndarray]:
 
 def to_archetypes(path: str, item: Observation) -> list[Any]:
     """The Rerun archetypes that draw an observation."""
-    color = role_color(path)
+    color = role_color(path) or views.NEUTRAL
     if isinstance(item, Points):
         return [rr.Points2D(item.positions, labels=list(item.labels) if item.labels else None,
                             radii=item.radius if item.radius is not None else 0.08, colors=color)]
@@ -215,7 +215,7 @@ def to_archetypes(path: str, item: Observation) -> list[Any]:
     if isinstance(item, Image):
         return [rr.Image(item.pixels)]
     if isinstance(item, Bars):
-        return [rr.BarChart(np.asarray(item.values, float), color=color or views.ESTIMATE)]
+        return [rr.BarChart(np.asarray(item.values, float), color=role_color(path) or views.ESTIMATE)]
     if isinstance(item, Markdown):
         return [rr.TextDocument(item.text, media_type="text/markdown")]
     raise TypeError(f"unknown observation type {type(item).__name__}")

@@ -83,7 +83,7 @@ def app_id(kind: str) -> str:
 
 # Entities whose last value is a moment, not the outcome: not mirrored into the summary.
 SUMMARY_SKIP = ("/tail", "associations", "observed", "anchors", "prediction", "measurement", "tentative",
-                "current", "/nav/local_path", "/nav/target", "matched_node")
+                "information", "/nav/local_path", "/nav/target", "matched_node")
 
 MAP_FLIP = rr.Transform3D(scale=[1.0, -1.0, 1.0])  # world y up on a y-down 2D canvas
 

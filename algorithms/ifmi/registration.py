@@ -339,7 +339,10 @@ def _log_surface(observer: Observer, path: str, surface: F32, peak: spectral.Pea
     """A POMF surface (of band ``band``: one cell per ``band`` pixels), fftshifted so zero shift is at the centre,
     with its peak marked."""
     rows, cols = surface.shape
-    observer.log(path, Image(np.fft.fftshift(surface).astype(np.float32)))
+    # Drawn on a log scale (decades below the peak, floored at 1e-4): the matched filter's Dirac
+    # is one bright pixel on a linear scale, and the noise floor that the PNR measures is invisible.
+    mag = np.abs(np.fft.fftshift(surface)).astype(np.float32)
+    observer.log(path, Image(np.log10(np.maximum(mag, 1e-4 * float(mag.max()) + 1e-30))))
     observer.log(f"{path}/peak", Points(np.array([[peak.col / band + cols // 2, peak.row / band + rows // 2]]),
                                         radius=2.0))
 

@@ -16,10 +16,12 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
+import rerun.blueprint as rrb
 
 from algorithms.dslam import DSlam, DSlamConfig, ScanStatus
 from algorithms.dslam.localization import PoseStatus
 from algorithms.observe import CovarianceEllipses, Image, Points, Pose, Scalar, Segments
+from replay import views
 from replay.pipeline import MetricSpec, ReplayContext, register
 from replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, LandmarkSlamPipeline
 
@@ -118,6 +120,12 @@ class DSlamPipeline(LandmarkSlamPipeline):
             self.ctx.log(f"{alone} of {self.scans} scans saw fewer than two mapped features and were not used for "
                          f"the map (the paper's rule); composite scans (config composite_max_scans, e.g. 400) map "
                          f"such scans together: see the README's D-SLAM section for what they gain and cost")
+
+    @classmethod
+    def internals(cls) -> tuple[rrb.View | rrb.Container, ...]:
+        return (views.image_view("Information matrix sparsity (paper Fig. 3d)", "/dslam/information"),
+                rrb.Vertical(views.series_view("Covariance-intersection weight ω (eq. 14)", "metrics/ci_omega"),
+                             views.series_view("Covariance recovery: CG iterations", "metrics/cg_iterations")))
 
     def extra_metrics(self) -> dict[str, float]:
         n = self.filter.n

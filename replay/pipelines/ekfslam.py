@@ -11,8 +11,11 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import rerun.blueprint as rrb
 
 from algorithms.ekfslam import EkfSlam, EkfSlamConfig
+from algorithms.observe import Image
+from replay import views
 from replay.pipeline import register
 from replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, LandmarkSlamPipeline
 
@@ -40,3 +43,26 @@ class EkfSlamPipeline(LandmarkSlamPipeline):
 
     def observed_covariances(self, features: list[int]) -> np.ndarray | None:
         return self.filter.marginal_covariances()[features] if features else None
+
+    def draw_map(self, world_xy: np.ndarray) -> None:
+        super().draw_map(world_xy)
+        self.ctx.observer.log("ekfslam/covariance/correlation", Image(correlation_image(self.filter.P)))
+
+    @classmethod
+    def internals(cls) -> tuple[rrb.View | rrb.Container, ...]:
+        return (views.image_view("Covariance |correlation| (robot, then landmarks; white = 1)",
+                                 "/ekfslam/covariance"),)
+
+
+def correlation_image(p: np.ndarray, max_pixels: int = 512) -> np.ndarray:
+    """|correlation| of a covariance matrix as a uint8 image (255 = fully correlated); larger
+    matrices are reduced to ``max_pixels`` a side, each pixel the largest value of its block."""
+    d = np.sqrt(np.maximum(np.diag(p), 1e-300))
+    corr = np.abs(p) / np.outer(d, d)
+    scale = max(1, -(-len(p) // max_pixels))
+    if scale > 1:
+        n = -(-len(p) // scale) * scale
+        padded = np.zeros((n, n))
+        padded[: len(p), : len(p)] = corr
+        corr = padded.reshape(n // scale, scale, n // scale, scale).max(axis=(1, 3))
+    return np.asarray(np.clip(corr, 0.0, 1.0) * 255.0 + 0.5, dtype=np.uint8)

@@ -33,6 +33,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import rerun.blueprint as rrb
 
 from algorithms.common import se2
 from algorithms.common.posegraph import OptimizerConfig, PoseGraph, chi2, optimize
@@ -41,6 +42,7 @@ from algorithms.ifmi import IfmiConfig, Prepared, Registration, Status, prepare,
 from algorithms.ifmi.mapping import edge_from_registration, flatten_illumination, render_mosaic, solve_log_scales
 from algorithms.observe import CovarianceEllipses, Image, LineStrips, Points, Scalar, Segments, Text
 from recorder.messages import TOPIC_CAMERA_IMAGE, TOPIC_GROUND_TRUTH_POSE, CameraImage, GroundTruthPose
+from replay import views
 from replay.pipeline import MetricSpec, Pipeline, ReplayContext, register
 from replay.reader import Envelope
 
@@ -68,6 +70,7 @@ class IfmiPipelineConfig:
     min_gap: int = 3  # loop candidates are at least this many images back
     metres_per_pixel: float = 0.0  # 0: from the recording's metadata, else 1 (pixel units)
     mosaic_max_px: int = 1600
+    mosaic_every: int = 10  # draw the growing (dead-reckoned) mosaic every this many images; 0: only at the end
     loop_gate_deg: float = 30.0  # a loop closure further than this from the estimated relative heading is rejected
     loop_gate_footprints: float = 0.5  # ... or further than this many footprints from the estimated offset
 
@@ -78,6 +81,8 @@ class IfmiPipelineConfig:
             raise ValueError(f"loop_radius must be >= 0, got {self.loop_radius}")
         if self.max_candidates < 0 or self.min_gap < 2:
             raise ValueError("max_candidates must be >= 0 and min_gap >= 2")
+        if self.mosaic_every < 0:
+            raise ValueError(f"mosaic_every must be >= 0, got {self.mosaic_every}")
         if not self.metres_per_pixel >= 0 or self.mosaic_max_px < 64:
             raise ValueError("metres_per_pixel must be >= 0 and mosaic_max_px >= 64")
         if not (self.loop_gate_deg > 0 and self.loop_gate_footprints > 0):
@@ -107,6 +112,34 @@ class IfmiPipeline(Pipeline):
         "translation_error_px_median": MetricSpec("lower", "px", "median translation error of accepted edges "
                                                   "(scaled by the ATE alignment)", 1e-9),
     }
+
+    summary_skip = (*views.SUMMARY_SKIP, "graph/before", "graph/estimate")
+
+    @classmethod
+    def blueprint(cls, bounds: views.Bounds | None = None) -> rrb.Blueprint:
+        pnr = ("ifmi/pnr", "ifmi/pnr_threshold")
+        return views.layout(
+            views.summary_tab(bounds, pnr, "PNR of consecutive pairs (eq. 13) and the acceptance threshold",
+                              side=views.image_view("Mosaic at the optimized poses", "/ifmi/mosaic/after")),
+            views.tab("Registration",
+                      rrb.Vertical(views.image_view("Image pair: previous | current", "/camera/pair"),
+                                   rrb.Horizontal(views.image_view("POMF rotation-scale (log-polar, log scale), peak",
+                                                                   "/ifmi/pomf/rotation_scale"),
+                                                  views.image_view("POMF translation (log scale), peak",
+                                                                   "/ifmi/pomf/translation"))),
+                      rrb.Vertical(views.series_view("PNR and threshold", *pnr),
+                                   views.log_view("Decisions", "ifmi/decision")), columns=[3, 2]),
+            views.tab("Pose graph",
+                      views.map_view("Before optimization: accepted (green), rejected (red), 2-sigma", "world", bounds,
+                                     exclude=["graph/after/**", "graph/estimate/**"]),
+                      views.map_view("After optimization", "world", bounds,
+                                     exclude=["graph/before/**", "graph/estimate/**"])),
+            views.tab("Mosaic",
+                      views.image_view("Growing mosaic (dead-reckoned poses)", "/ifmi/mosaic/growing"),
+                      views.image_view("Before optimization", "/ifmi/mosaic/before"),
+                      views.image_view("After optimization", "/ifmi/mosaic/after")),
+            views.tab("Log", views.log_view("Log", "log", "ifmi/decision")),
+        )
 
     def __init__(self, config: IfmiPipelineConfig, ctx: ReplayContext) -> None:
         super().__init__(config, ctx)
@@ -143,6 +176,9 @@ class IfmiPipeline(Pipeline):
         self.stamps.append(env.log_time_ns)
         self.prepared.append(prepare(flatten_illumination(gray), self.reg_config, "image"))
         obs.log("camera/image", Image(gray))
+        obs.log("ifmi/pnr_threshold", Scalar(self.config.min_pnr))
+        if k:
+            obs.log("camera/pair", Image(np.hstack([self.images[k - 1], gray])))
         if k == 0:
             self.poses.append(np.asarray(self.start, float))
             self.log_scale.append(0.0)
@@ -161,6 +197,11 @@ class IfmiPipeline(Pipeline):
         self.poses.append(se2.compose(self.poses[-1], z))
         self._loop_candidates(k)
         obs.log("world/graph/estimate/nodes", Points(np.array(self.poses)[:, :2], radius=self._radius()))
+        every = self.config.mosaic_every
+        if every and (k + 1) % every == 0:
+            res = self.mpp * np.exp(-np.asarray(self.log_scale))
+            obs.log("ifmi/mosaic/growing", Image(render_mosaic(self.images, np.array(self.poses), res,
+                                                               min(512, self.config.mosaic_max_px))))
 
     def _count(self, reg: Registration, i: int, j: int, ok: bool, prior: tuple[float, float, float] | None = None,
                why: str = "") -> None:
@@ -252,7 +293,9 @@ class IfmiPipeline(Pipeline):
         """Edges, 2-sigma ellipses and the paper's Fig. 6 conflicts (a vertex projected through an edge)."""
         obs = self.ctx.observer
         p = g.poses
-        obs.log(f"world/graph/{tag}/edges", Segments(p[g.i, :2], p[g.j, :2]))
+        ok = np.array([e.ok for e in self.edges], dtype=bool)
+        obs.log(f"world/graph/{tag}/edges/accepted", Segments(p[g.i[ok], :2], p[g.j[ok], :2]))
+        obs.log(f"world/graph/{tag}/edges/rejected", Segments(p[g.i[~ok], :2], p[g.j[~ok], :2]))
         obs.log(f"world/graph/{tag}/nodes", Points(p[:, :2], radius=self._radius()))
         try:
             cov = marginal_covariances(g, np.arange(g.n_vertices))

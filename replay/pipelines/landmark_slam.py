@@ -22,6 +22,7 @@ from typing import Any, ClassVar, Literal, cast
 import numpy as np
 import rerun.blueprint as rrb
 from scipy.optimize import linear_sum_assignment
+from scipy.stats import chi2
 
 from algorithms.common import se2
 from algorithms.common.association import AssociationConfig
@@ -37,6 +38,7 @@ from recorder.messages import (
     OdometryPose,
     RangeBearingScan,
 )
+from replay import views
 from replay.metrics import position_errors, rmse
 from replay.pipeline import MetricSpec, Pipeline, ReplayContext
 from replay.reader import Envelope
@@ -93,6 +95,9 @@ METRICS = {
     "data_association_errors": MetricSpec("lower", "", "unknown ids: observations given the wrong feature"),
     "steps": MetricSpec("none", "", "scans processed"),
 }
+
+
+ROBOT_NEES_BAND = (float(chi2.ppf(0.025, 3)), float(chi2.ppf(0.975, 3)))  # one pose NEES, 3 dof, 95 %
 
 
 class LandmarkSlamPipeline(Pipeline):
@@ -278,7 +283,10 @@ class LandmarkSlamPipeline(Pipeline):
             return
         e = se2.between(self.T, truth) - res.pose
         e[2] = se2.wrap_angle(e[2])
-        self.ctx.observer.log("metrics/robot_nees", Scalar(float(e @ np.linalg.solve(res.pose_cov, e))))
+        obs = self.ctx.observer
+        obs.log("metrics/robot_nees", Scalar(float(e @ np.linalg.solve(res.pose_cov, e))))
+        obs.log("metrics/nees_band/robot_95_low", Scalar(ROBOT_NEES_BAND[0]))
+        obs.log("metrics/nees_band/robot_95_high", Scalar(ROBOT_NEES_BAND[1]))
 
     def _landmark_nees(self, seen: list[int], world_xy: np.ndarray, covs: np.ndarray, res: Any) -> None:
         truth = self._truth_of(seen)
@@ -288,8 +296,12 @@ class LandmarkSlamPipeline(Pipeline):
         if ok.any():
             e = (world_xy[seen] - truth)[ok]
             c = self.to_world_cov(covs[ok])
-            self.ctx.observer.log("metrics/landmark_nees", Scalar(float(np.mean(np.einsum("ni,nij,nj->n", e,
-                                                                                           np.linalg.inv(c), e)))))
+            obs = self.ctx.observer
+            obs.log("metrics/landmark_nees", Scalar(float(np.mean(np.einsum("ni,nij,nj->n", e, np.linalg.inv(c), e)))))
+            # The mean of k independent chi2(2) NEES values is chi2(2k) / k when the filter is consistent.
+            k = int(ok.sum())
+            obs.log("metrics/nees_band/landmark_95_low", Scalar(float(chi2.ppf(0.025, 2 * k) / k)))
+            obs.log("metrics/nees_band/landmark_95_high", Scalar(float(chi2.ppf(0.975, 2 * k) / k)))
 
     def _truth_of(self, features: list[int]) -> np.ndarray | None:
         """True world positions (k, 2) of features by id or label (NaN where unknown); None without a truth map."""
@@ -386,20 +398,22 @@ class LandmarkSlamPipeline(Pipeline):
         return out
 
     @classmethod
-    def blueprint(cls) -> rrb.Blueprint:
-        return rrb.Blueprint(
-            rrb.Horizontal(
-                rrb.Spatial2DView(name="Map", origin="/world"),
-                rrb.Vertical(
-                    rrb.TimeSeriesView(name="NEES and solver", origin="/metrics"),
-                    rrb.Spatial2DView(name="Information matrix", origin=f"/{cls.prefix}/information"),
-                    rrb.TextLogView(name="Log", origin="/"),
-                    row_shares=[2, 2, 1],
-                ),
-                column_shares=[3, 2],
-            ),
-            collapse_panels=True,
+    def blueprint(cls, bounds: views.Bounds | None = None) -> rrb.Blueprint:
+        nees = ("metrics/landmark_nees", "metrics/nees_band/landmark_95_low", "metrics/nees_band/landmark_95_high")
+        robot = ("metrics/robot_nees", "metrics/nees_band/robot_95_low", "metrics/nees_band/robot_95_high")
+        return views.layout(
+            views.summary_tab(bounds, nees, "Landmark NEES (2 when consistent) and its 95 % band"),
+            views.tab("Map over time", views.map_view("Map: estimate, truth, 2-sigma ellipses", "world", bounds),
+                      rrb.Vertical(views.series_view("Landmark NEES of the observed features", *nees),
+                                   views.series_view("Robot NEES (3 when consistent)", *robot)), columns=[3, 2]),
+            views.tab("Filter internals", *cls.internals()),
+            views.tab("Log", views.log_view("Log", "log", cls.prefix)),
         )
+
+    @classmethod
+    def internals(cls) -> tuple[rrb.View | rrb.Container, ...]:
+        """The views of the ``Filter internals`` tab."""
+        return (views.image_view("Information matrix sparsity", f"/{cls.prefix}/information"),)
 
 
 # Noise settings for MRCLAM recordings (`slamreplay record mrclam`): its odometry and camera measured

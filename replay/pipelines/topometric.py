@@ -36,7 +36,7 @@ import numpy as np
 import rerun.blueprint as rrb
 
 from algorithms.common import se2
-from algorithms.observe import Image, LineStrips, Points, Scalar, Segments, Text
+from algorithms.observe import Bars, Image, LineStrips, Points, Scalar, Segments, Text
 from algorithms.topometric import Candidate, MapperConfig, MapperStep, StepStatus, TopoMetricMapper
 from recorder.messages import (
     TOPIC_CAMERA_IMAGE,
@@ -46,6 +46,7 @@ from recorder.messages import (
     GroundTruthPose,
     OdometryPose,
 )
+from replay import views
 from replay.pipeline import MetricSpec, Pipeline, ReplayContext, register
 from replay.reader import Envelope
 from replay.topomap_io import save_map
@@ -165,7 +166,7 @@ class TopometricPipeline(Pipeline):
         if res.filter is not None:
             post = res.filter.posterior
             n = len(post) - 1
-            obs.log("topo/posterior", LineStrips((np.stack([np.arange(n + 1, dtype=float), post], axis=1),)))
+            obs.log("topo/posterior", Bars(np.asarray(post, dtype=np.float64)))
             obs.log("metrics/posterior_new", Scalar(float(post[n])))
             obs.log("metrics/posterior_max_location", Scalar(float(post[:n].max()) if n else 0.0))
         for c in res.candidates:
@@ -297,23 +298,22 @@ class TopometricPipeline(Pipeline):
             topomap = replace(topomap, truth_poses=self.truth_poses)
         return {"map.npz": save_map(topomap)}
 
+    summary_skip = (*views.SUMMARY_SKIP, "graph/before", "graph/after")
+
     @classmethod
-    def blueprint(cls) -> rrb.Blueprint:
-        return rrb.Blueprint(
-            rrb.Horizontal(
-                rrb.Spatial2DView(name="Map", origin="/world"),
-                rrb.Vertical(
-                    rrb.Spatial2DView(name="Image and keypoints", origin="/camera/image"),
-                    rrb.Spatial2DView(name="Candidate: map | current", origin="/camera/candidate"),
-                    row_shares=[1, 1],
-                ),
-                rrb.Vertical(
-                    rrb.TimeSeriesView(name="Posterior", origin="/metrics"),
-                    rrb.Spatial2DView(name="Posterior over locations", origin="/topo/posterior"),
-                    rrb.TextLogView(name="Log", origin="/"),
-                    row_shares=[1, 1, 1],
-                ),
-                column_shares=[2, 2, 1],
-            ),
-            collapse_panels=True,
+    def blueprint(cls, bounds: views.Bounds | None = None) -> rrb.Blueprint:
+        posterior = ("metrics/posterior_new", "metrics/posterior_max_location")
+        return views.layout(
+            views.summary_tab(bounds, posterior, "Posterior: new location vs best known location"),
+            views.tab("Loop closure",
+                      rrb.Vertical(views.image_view("Current image and keypoints", "/camera/image"),
+                                   views.image_view("Candidate: map location | current; inliers green, outliers red",
+                                                    "/camera/candidate")),
+                      rrb.Vertical(rrb.BarChartView(name="Posterior over locations (last bar: a new location)",
+                                                    origin="/topo/posterior"),
+                                   views.series_view("Posterior", *posterior)), columns=[3, 2]),
+            views.tab("Map over time", views.map_view("Graph: odometry edges, loop closures (green)", "world", bounds),
+                      rrb.Vertical(views.series_view("Locations", "metrics/locations"),
+                                   views.log_view("Loop closures and relaxations", "topo/log")), columns=[3, 2]),
+            views.tab("Log", views.log_view("Log", "log", "topo/log")),
         )

@@ -65,6 +65,7 @@ from replay.navigate import (
     nav_code_fingerprint,
     reference_path,
 )
+from replay import views
 from replay.pipeline import MetricSpec, Pipeline, ReplayContext, register
 from replay.reader import Envelope
 from replay.trajectory import TrajectoryLog
@@ -117,20 +118,16 @@ class TopometricNavPipeline(Pipeline):
     }
 
     @classmethod
-    def blueprint(cls) -> rrb.Blueprint:
-        return rrb.Blueprint(
-            rrb.Horizontal(
-                rrb.Spatial2DView(name="Map: nodes, global and local path, target, trajectories", origin="/world"),
-                rrb.Vertical(
-                    rrb.Spatial2DView(name="Current image", origin="/camera/image"),
-                    rrb.TimeSeriesView(name="Heading correction (deg)", origin="/topo/nav/heading_correction_deg"),
-                    rrb.TimeSeriesView(name="Cross-track error (m)", origin="/metrics/cross_track_error_m"),
-                    rrb.TextLogView(name="Log", contents=["/log", "/topo/nav/log"]),
-                    row_shares=[3, 2, 2, 2],
-                ),
-                column_shares=[3, 2],
-            ),
-            collapse_panels=True,
+    def blueprint(cls, bounds: views.Bounds | None = None) -> rrb.Blueprint:
+        return views.layout(
+            views.summary_tab(bounds, ("metrics/cross_track_error_m",), "Cross-track error (m)"),
+            views.tab("Navigation", views.map_view("Map: nodes, global and local path, target, trajectories",
+                                                   "world", bounds),
+                      rrb.Vertical(views.image_view("Current image", "/camera/image"),
+                                   views.series_view("Heading correction (deg)", "topo/nav/heading_correction_deg"),
+                                   views.series_view("Cross-track error (m)", "metrics/cross_track_error_m")),
+                      columns=[3, 2]),
+            views.tab("Log", views.log_view("Log", "log", "topo/nav/log")),
         )
 
     def __init__(self, config: TopometricNavConfig, ctx: ReplayContext) -> None:
@@ -179,6 +176,7 @@ class TopometricNavPipeline(Pipeline):
         self.mismatches = 0
         self.gt_xy: list[np.ndarray] = []
         self.gt_t: list[int] = []
+        self.gt_step: list[int] = []  # replay step of each ground-truth pose (the series' step axis)
         self.gt: list[np.ndarray] = []
         self.est_t: list[int] = []
         self.est: list[np.ndarray] = []
@@ -187,6 +185,7 @@ class TopometricNavPipeline(Pipeline):
         msg, obs = env.msg, self.ctx.observer
         if isinstance(msg, GroundTruthPose):
             self.gt_t.append(env.log_time_ns)
+            self.gt_step.append(env.index)
             self.gt.append(msg.xy_yaw)
             self.truth.append(msg.x_m, msg.y_m)
             obs.log("world/robot_truth", Pose(msg.xy_yaw))
@@ -264,7 +263,7 @@ class TopometricNavPipeline(Pipeline):
         self.ctx.log(f"cross-track error and goal distance {scored.describe()}")
         self.ctx.observer.log_static("world/nav/reference_path", LineStrips((scored.xy,)))
         xt = distance_to_polyline(gt[:, :2], scored.xy)
-        self.ctx.observer.send_series("metrics/cross_track_error_m", np.arange(len(xt)), np.array(self.gt_t), xt)
+        self.ctx.observer.send_series("metrics/cross_track_error_m", np.array(self.gt_step), np.array(self.gt_t), xt)
         goal_d = float(np.hypot(*(gt[-1, :2] - scored.goal_xy)))
         metrics.update(cross_track_error_m_mean=float(xt.mean()), cross_track_error_m_max=float(xt.max()),
                        cross_track_error_m_final=float(xt[-1]),
