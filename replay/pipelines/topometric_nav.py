@@ -55,6 +55,7 @@ from recorder.messages import (
     VelocityCommand,
 )
 from recorder.writer import METADATA_NAME
+from replay import views
 from replay.errors import ReplayError
 from replay.navigate import (
     SOURCE,
@@ -65,7 +66,6 @@ from replay.navigate import (
     nav_code_fingerprint,
     reference_path,
 )
-from replay import views
 from replay.pipeline import MetricSpec, Pipeline, ReplayContext, register
 from replay.reader import Envelope
 from replay.trajectory import TrajectoryLog
