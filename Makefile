@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 DATA   ?= ../shared/data
 ARGS   ?=
 
-.PHONY: venv demo serve test test-ray lint bench cholmod clean
+.PHONY: venv demo serve test test-ray test-viewer snapshots viewer-deps lint bench cholmod clean
 
 venv: $(STAMP)
 
@@ -26,7 +26,20 @@ serve: $(STAMP)
 	$(BIN)/slamreplay serve --data-dir . $(ARGS)
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -n 2 -q -m "not ray" $(ARGS)
+	$(BIN)/python -m pytest -n 2 -q -m "not ray and not viewer" $(ARGS)
+
+# The headless Rerun viewer draws with Vulkan; without a GPU, Mesa's software rasterizer (lavapipe).
+VIEWER_DEBS := mesa-vulkan-drivers libvulkan1 libegl1
+viewer-deps:
+	@dpkg -s $(VIEWER_DEBS) >/dev/null 2>&1 || { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q $(VIEWER_DEBS); }
+
+# Runs drawn by the real Rerun viewer: orientation from pixels, no blank view in any pipeline (about 2 min).
+test-viewer: $(STAMP) viewer-deps
+	$(BIN)/python -m pytest -q -m viewer tests/viewer $(ARGS)
+
+# The README's pictures: every demo pipeline and a diff, rendered by `slamreplay snapshot` into docs/images/.
+snapshots: $(STAMP) viewer-deps
+	$(BIN)/python docs/make_snapshots.py --out docs/images $(ARGS)
 
 # The Ray executor against a local Ray instance: installs the ray extra (about 20 s, 290 MB), then about
 # a minute of tests, most of it Ray's start-up; apart from `make test` so that it needs no Ray. CI runs both.

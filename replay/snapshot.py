@@ -148,11 +148,25 @@ def _tabs(bp: dict[str, Any]) -> tuple[str | None, list[tuple[str, str]]]:
     if container.get("container_kind") != "Tabs":
         return None, [("", "layout")]
     out = []
-    for child in container.get("contents", []):
+    for child in _as_list(container.get("contents", [])):
         kind = "ContainerBlueprint" if child.startswith("container/") else "ViewBlueprint"
         name = bp.get(f"/{child}", {}).get(kind, {}).get("display_name") or child.split("/")[-1][:8]
         out.append((child, str(name)))
     return key, out
+
+
+def _views_in(bp: dict[str, Any], child: str) -> list[tuple[str, str]]:
+    """(view id, display name) of every view inside a blueprint node (``view/<id>`` or ``container/<id>``)."""
+    if child.startswith("view/"):
+        name = bp.get(f"/{child}", {}).get("ViewBlueprint", {}).get("display_name", "")
+        return [(child.removeprefix("view/"), str(name))]
+    kids = _as_list(bp.get(f"/{child}", {}).get("ContainerBlueprint", {}).get("contents", []))
+    return [v for k in kids for v in _views_in(bp, k)]
+
+
+def _as_list(value: Any) -> list[str]:
+    """A blueprint's list field (the viewer writes a one-element list as a bare string)."""
+    return [value] if isinstance(value, str) else list(value)
 
 
 def _slug(name: str) -> str:
@@ -160,8 +174,11 @@ def _slug(name: str) -> str:
 
 
 def snapshot(source: Path, out_dir: Path, *, size: tuple[int, int] = (1600, 900), at: str | int = "end",
-             timeline: str = STEP) -> list[Shot]:
-    """Render every tab of a run's layout to ``out_dir/NN-<tab>.png``; the shots, in tab order."""
+             timeline: str = STEP, per_view: bool = False) -> list[Shot]:
+    """Render every tab of a run's layout to ``out_dir/NN-<tab>.png``; the shots, in tab order.
+
+    With ``per_view`` each view of each tab is saved too, as ``NN-<tab>--MM-<view>.png``.
+    """
     rrd = resolve_rrd(source)
     out_dir.mkdir(parents=True, exist_ok=True)
     shots: list[Shot] = []
@@ -188,6 +205,13 @@ def snapshot(source: Path, out_dir: Path, *, size: tuple[int, int] = (1600, 900)
             tmp.write_bytes(_settled_screenshot(viewer))
             os.replace(tmp, path)
             shots.append(Shot(name, path))
+            if per_view and key is not None:
+                for j, (view_id, view_name) in enumerate(_views_in(bp, child)):
+                    vpath = out_dir / f"{i + 1:02d}-{_slug(name)}--{j + 1:02d}-{_slug(view_name)}.png"
+                    vtmp = vpath.with_name(f".{vpath.name}.partial")
+                    vtmp.write_bytes(bytes(viewer.take_screenshot(view_id)))
+                    os.replace(vtmp, vpath)
+                    shots.append(Shot(f"{name} / {view_name}", vpath))
     return shots
 
 
