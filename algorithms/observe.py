@@ -88,13 +88,21 @@ class Bars:
 
 
 @dataclass(frozen=True, slots=True)
+class State:
+    """A discrete state entered at this time (a scan's status, a loop closure): one lane of a state timeline."""
+
+    state: str
+
+
+@dataclass(frozen=True, slots=True)
 class Markdown:
     """A document (tables of results), shown as rendered markdown."""
 
     text: str
 
 
-Observation = Points | Pose | LineStrips | Segments | CovarianceEllipses | Scalar | Text | Image | Bars | Markdown
+Observation = (Points | Pose | LineStrips | Segments | CovarianceEllipses | Scalar | Text | Image | Bars | State
+               | Markdown)
 
 
 class Observer(Protocol):

@@ -82,7 +82,9 @@ _ARROW = {"lower": "lower is better", "higher": "higher is better", "none": ""}
 
 def metrics_markdown(title: str, values: Mapping[str, float], specs: Mapping[str, MetricSpec]) -> str:
     """The metrics of a run as a markdown table (value, unit, which way is better, meaning)."""
-    lines = [f"### {title}", "", "| metric | value | unit | better | meaning |", "|---|---:|---|---|---|"]
+    lines = [f"### {title}", "", "Map: ground truth grey, estimate blue, dead reckoning orange, accepted green, "
+             "rejected red; ellipses at 2 sigma.", "",
+             "| metric | value | unit | better | meaning |", "|---|---:|---|---|---|"]
     for name, value in sorted(values.items()):
         spec = specs[name]
         shown = f"{value:,.0f}" if float(value).is_integer() and abs(value) < 1e15 else f"{value:.4g}"

@@ -29,6 +29,7 @@ from algorithms.observe import (
     Pose,
     Scalar,
     Segments,
+    State,
     Text,
 )
 from replay import views
@@ -71,6 +72,7 @@ class RerunObserver:
         self._buffers: dict[tuple[str, type], list[tuple[int, int, Observation]]] = {}
         self._last: dict[str, Observation] = {}  # the latest item of each map entity (for the summary)
         self._series: set[str] = set()
+        self._states: dict[str, set[str]] = {}  # state-timeline entity -> the states it entered
         if recording_name:
             self.stream.send_recording_name(recording_name)
         for root in views.MAP_ROOTS:
@@ -84,7 +86,9 @@ class RerunObserver:
     def log(self, path: str, item: Observation) -> None:
         if path.startswith("world/"):
             self._last[path] = item
-        if isinstance(item, (Text, Image, Bars, Markdown)):
+        if isinstance(item, State):
+            self._states.setdefault(path, set()).add(item.state)
+        if isinstance(item, (Text, Image, Bars, Markdown, State)):
             self.stream.log(path, *to_archetypes(path, item))
             return
         if isinstance(item, Scalar):
@@ -136,6 +140,10 @@ class RerunObserver:
         """Flush and write the footer; the file is complete after this."""
         for path, kind in list(self._buffers):
             self._flush(path, kind)
+        for path, states in sorted(self._states.items()):
+            values = sorted(states)
+            self.stream.log(path, rr.StateConfiguration(values=values, labels=[v.replace("_", " ") for v in values],
+                                                        colors=[views.state_color(v) for v in values]), static=True)
         self.stream.disconnect()
 
     def _send(self, path: str, steps: np.ndarray, times_ns: np.ndarray, columns: list[Any]) -> None:
@@ -218,6 +226,8 @@ def to_archetypes(path: str, item: Observation) -> list[Any]:
         return [rr.BarChart(np.asarray(item.values, float), color=role_color(path) or views.ESTIMATE)]
     if isinstance(item, Markdown):
         return [rr.TextDocument(item.text, media_type="text/markdown")]
+    if isinstance(item, State):
+        return [rr.StateChange(state=item.state)]
     raise TypeError(f"unknown observation type {type(item).__name__}")
 
 

@@ -112,6 +112,7 @@ class Pipeline(ABC):
             views.summary_tab(bounds, ("metrics/**",), "Metrics over time"),
             views.tab("Map over time", views.map_view("Map", "world", bounds),
                       rrb.Vertical(views.series_view("Metrics", "metrics/**"), views.log_view()), columns=[3, 2]),
+            views.tab("Data", views.data_view()),
         )
 
 

@@ -60,6 +60,19 @@ _ROLES: tuple[tuple[str, Color], ...] = (
 )
 
 
+# States of state timelines, coloured like the map: what worked green, what was refused red.
+_STATE_ROLES: tuple[tuple[str, Color], ...] = (
+    ("reject", REJECTED), ("ambiguous", REJECTED), ("flat", REJECTED), ("no_features", REJECTED),
+    ("loop", ACCEPTED), ("accepted", ACCEPTED), ("mapped", ACCEPTED), ("ok", ACCEPTED),
+    ("new", ESTIMATE), ("phase_i", ESTIMATE), ("bootstrap", MEASUREMENT),
+    ("localization", DEAD_RECKONING), ("skipped", NEUTRAL), ("empty", NEUTRAL),
+)
+
+
+def state_color(state: str) -> Color:
+    return next((c for key, c in _STATE_ROLES if key in state), series_color(state))
+
+
 def role_color(path: str) -> Color | None:
     """The palette colour of an entity, from its path (None: no role)."""
     padded = f"/{path.strip('/')}/"
@@ -150,6 +163,17 @@ def series_view(name: str, *paths: str) -> rrb.TimeSeriesView:
 
 def log_view(name: str = "Log", *paths: str) -> rrb.TextLogView:
     return rrb.TextLogView(name=name, origin="/", contents=[f"+ /{p.strip('/')}/**" for p in (paths or ("log",))])
+
+
+def state_view(name: str, *paths: str) -> rrb.StateTimelineView:
+    """Lanes of discrete states over the whole run (scan status, loop closures, accept/reject)."""
+    return rrb.StateTimelineView(name=name, origin="/", contents=[f"+ /{p.strip('/')}" for p in paths],
+                                 time_ranges=whole_run())
+
+
+def data_view(name: str = "Per-step metrics", origin: str = "/metrics") -> rrb.DataframeView:
+    """A table of every series under ``origin``, one row per step."""
+    return rrb.DataframeView(name=name, origin=origin)
 
 
 def markdown_view(name: str, path: str) -> rrb.TextDocumentView:

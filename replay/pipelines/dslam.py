@@ -20,7 +20,7 @@ import rerun.blueprint as rrb
 
 from algorithms.dslam import DSlam, DSlamConfig, ScanStatus
 from algorithms.dslam.localization import PoseStatus
-from algorithms.observe import CovarianceEllipses, Image, Points, Pose, Scalar, Segments
+from algorithms.observe import CovarianceEllipses, Image, Points, Pose, Scalar, Segments, State
 from replay import views
 from replay.pipeline import MetricSpec, ReplayContext, register
 from replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, LandmarkSlamPipeline
@@ -86,6 +86,7 @@ class DSlamPipeline(LandmarkSlamPipeline):
     def draw_scan(self, result: Any, world_xy: np.ndarray) -> None:
         obs = self.ctx.observer
         self.statuses[result.status] = self.statuses.get(result.status, 0) + 1
+        obs.log("dslam/scan_status", State(result.status.value))
         m = result.measurement
         if m is not None and m.status is PoseStatus.OK:
             pose_w = self.to_world_pose(m.pose)
@@ -124,8 +125,10 @@ class DSlamPipeline(LandmarkSlamPipeline):
     @classmethod
     def internals(cls) -> tuple[rrb.View | rrb.Container, ...]:
         return (views.image_view("Information matrix sparsity (paper Fig. 3d)", "/dslam/information"),
-                rrb.Vertical(views.series_view("Covariance-intersection weight ω (eq. 14)", "metrics/ci_omega"),
-                             views.series_view("Covariance recovery: CG iterations", "metrics/cg_iterations")))
+                rrb.Vertical(views.state_view("Scan status: how each scan was used", "dslam/scan_status"),
+                             views.series_view("Covariance-intersection weight ω (eq. 14)", "metrics/ci_omega"),
+                             views.series_view("Covariance recovery: CG iterations", "metrics/cg_iterations"),
+                             row_shares=[1, 2, 2]))
 
     def extra_metrics(self) -> dict[str, float]:
         n = self.filter.n

@@ -40,7 +40,7 @@ from algorithms.common.posegraph import OptimizerConfig, PoseGraph, chi2, optimi
 from algorithms.common.posegraph_analysis import marginal_covariances
 from algorithms.ifmi import IfmiConfig, Prepared, Registration, Status, prepare, register_prepared
 from algorithms.ifmi.mapping import edge_from_registration, flatten_illumination, render_mosaic, solve_log_scales
-from algorithms.observe import CovarianceEllipses, Image, LineStrips, Points, Scalar, Segments, Text
+from algorithms.observe import CovarianceEllipses, Image, LineStrips, Points, Scalar, Segments, State, Text
 from recorder.messages import TOPIC_CAMERA_IMAGE, TOPIC_GROUND_TRUTH_POSE, CameraImage, GroundTruthPose
 from replay import views
 from replay.pipeline import MetricSpec, Pipeline, ReplayContext, register
@@ -128,6 +128,8 @@ class IfmiPipeline(Pipeline):
                                                   views.image_view("POMF translation (log scale), peak",
                                                                    "/ifmi/pomf/translation"))),
                       rrb.Vertical(views.series_view("PNR and threshold", *pnr),
+                                   views.state_view("Registrations: consecutive, loop candidates",
+                                                    "ifmi/state/consecutive", "ifmi/state/loop_candidates"),
                                    views.log_view("Decisions", "ifmi/decision")), columns=[3, 2]),
             views.tab("Pose graph",
                       views.map_view("Before optimization: accepted (green), rejected (red), 2-sigma", "world", bounds,
@@ -210,6 +212,8 @@ class IfmiPipeline(Pipeline):
         if ok or prior is not None:
             self.edges.append(_Edge(i, j, reg, ok, prior or (0.0, 0.0, 0.0)))
         why = why or reg.status.value
+        lane = "consecutive" if j == i + 1 else "loop_candidates"
+        self.ctx.observer.log(f"ifmi/state/{lane}", State("accepted" if ok else f"rejected: {why}"[:40]))
         self.ctx.observer.log("ifmi/decision", Text(f"{i}->{j}: PNR {reg.pnr:.3f} (band {reg.band}) "
                                                     f"{'accepted' if ok else 'rejected'} ({why}), angle "
                                                     f"{reg.angle_deg:.2f} deg, scale {reg.scale:.4f}, shift "

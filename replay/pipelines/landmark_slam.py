@@ -407,6 +407,7 @@ class LandmarkSlamPipeline(Pipeline):
                       rrb.Vertical(views.series_view("Landmark NEES of the observed features", *nees),
                                    views.series_view("Robot NEES (3 when consistent)", *robot)), columns=[3, 2]),
             views.tab("Filter internals", *cls.internals()),
+            views.tab("Data", views.data_view()),
             views.tab("Log", views.log_view("Log", "log", cls.prefix)),
         )
 

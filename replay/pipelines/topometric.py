@@ -36,7 +36,7 @@ import numpy as np
 import rerun.blueprint as rrb
 
 from algorithms.common import se2
-from algorithms.observe import Bars, Image, LineStrips, Points, Scalar, Segments, Text
+from algorithms.observe import Bars, Image, LineStrips, Points, Scalar, Segments, State, Text
 from algorithms.topometric import Candidate, MapperConfig, MapperStep, StepStatus, TopoMetricMapper
 from recorder.messages import (
     TOPIC_CAMERA_IMAGE,
@@ -148,6 +148,7 @@ class TopometricPipeline(Pipeline):
         obs = self.ctx.observer
         gray = self.mapper.extractor.prepare(env.msg.pixels)  # type: ignore[union-attr]
         obs.log("camera/image", Image(gray))
+        obs.log("topo/status", State(res.status.value))
         if res.features is not None:
             obs.log("camera/image/keypoints", Points(res.features.xy, radius=2.0))
         if res.status is StepStatus.NO_FEATURES:
@@ -311,9 +312,11 @@ class TopometricPipeline(Pipeline):
                                                     "/camera/candidate")),
                       rrb.Vertical(rrb.BarChartView(name="Posterior over locations (last bar: a new location)",
                                                     origin="/topo/posterior"),
-                                   views.series_view("Posterior", *posterior)), columns=[3, 2]),
+                                   views.series_view("Posterior", *posterior),
+                                   views.state_view("Image status", "topo/status")), columns=[3, 2]),
             views.tab("Map over time", views.map_view("Graph: odometry edges, loop closures (green)", "world", bounds),
                       rrb.Vertical(views.series_view("Locations", "metrics/locations"),
                                    views.log_view("Loop closures and relaxations", "topo/log")), columns=[3, 2]),
+            views.tab("Data", views.data_view()),
             views.tab("Log", views.log_view("Log", "log", "topo/log")),
         )

@@ -127,6 +127,7 @@ class TopometricNavPipeline(Pipeline):
                                    views.series_view("Heading correction (deg)", "topo/nav/heading_correction_deg"),
                                    views.series_view("Cross-track error (m)", "metrics/cross_track_error_m")),
                       columns=[3, 2]),
+            views.tab("Data", views.data_view()),
             views.tab("Log", views.log_view("Log", "log", "topo/nav/log")),
         )
 
