@@ -52,7 +52,7 @@ _ROLES: tuple[tuple[str, Color], ...] = (
     ("reference", TRUTH),
     ("odometry", DEAD_RECKONING), ("prediction", DEAD_RECKONING), ("dead_reckoning", DEAD_RECKONING),
     ("rejected", REJECTED), ("outlier", REJECTED), ("conflict", REJECTED), ("threshold", REJECTED),
-    ("accepted", ACCEPTED), ("inlier", ACCEPTED), ("loops", ACCEPTED), ("matched", ACCEPTED),
+    ("accepted", ACCEPTED), ("inlier", ACCEPTED), ("peak", ACCEPTED), ("loops", ACCEPTED), ("matched", ACCEPTED),
     ("target", ACCEPTED),
     ("measurement", MEASUREMENT), ("association", MEASUREMENT), ("anchors", MEASUREMENT),
     ("tentative", TENTATIVE),

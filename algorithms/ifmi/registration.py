@@ -344,7 +344,7 @@ def _log_surface(observer: Observer, path: str, surface: F32, peak: spectral.Pea
     mag = np.abs(np.fft.fftshift(surface)).astype(np.float32)
     observer.log(path, Image(np.log10(np.maximum(mag, 1e-4 * float(mag.max()) + 1e-30))))
     observer.log(f"{path}/peak", Points(np.array([[peak.col / band + cols // 2, peak.row / band + rows // 2]]),
-                                        radius=2.0))
+                                        radius=4.0))
 
 
 class SequentialRegistrar:

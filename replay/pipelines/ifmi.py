@@ -212,8 +212,8 @@ class IfmiPipeline(Pipeline):
         if ok or prior is not None:
             self.edges.append(_Edge(i, j, reg, ok, prior or (0.0, 0.0, 0.0)))
         why = why or reg.status.value
-        lane = "consecutive" if j == i + 1 else "loop_candidates"
-        self.ctx.observer.log(f"ifmi/state/{lane}", State("accepted" if ok else f"rejected: {why}"[:40]))
+        if j == i + 1:
+            self.ctx.observer.log("ifmi/state/consecutive", State("accepted" if ok else "rejected"))
         self.ctx.observer.log("ifmi/decision", Text(f"{i}->{j}: PNR {reg.pnr:.3f} (band {reg.band}) "
                                                     f"{'accepted' if ok else 'rejected'} ({why}), angle "
                                                     f"{reg.angle_deg:.2f} deg, scale {reg.scale:.4f}, shift "
@@ -233,6 +233,7 @@ class IfmiPipeline(Pipeline):
         p = np.array(self.poses[: k - self.config.min_gap + 1])
         d = np.hypot(*(p[:, :2] - self.poses[k][:2]).T)
         near = np.flatnonzero(d <= self.config.loop_radius * self._footprint())
+        closed = False
         for i in near[np.argsort(d[near], kind="stable")][: self.config.max_candidates]:
             reg = register_prepared(self.prepared[int(i)], self.prepared[k], self.reg_config)
             ok, why = reg.status is Status.OK, ""
@@ -247,6 +248,9 @@ class IfmiPipeline(Pipeline):
                 if turn > self.config.loop_gate_deg or off > self.config.loop_gate_footprints:
                     ok, why = False, f"inconsistent with the estimate: {turn:.0f} deg, {off:.2f} footprints off"
             self._count(reg, int(i), k, ok, why=why)
+            closed = closed or ok
+        if len(near):
+            self.ctx.observer.log("ifmi/state/loop_candidates", State("loop accepted" if closed else "all rejected"))
 
     def _graph(self) -> tuple[PoseGraph, np.ndarray]:
         """The planar graph at the dead-reckoned poses, and each node's metres per pixel."""
