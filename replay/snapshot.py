@@ -19,6 +19,7 @@ import glob
 import os
 import re
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -112,7 +113,9 @@ def headless_viewer(size: tuple[int, int], timeout_s: float = 30.0) -> Iterator[
     port = _free_port()
     cmd = [str(rerun_executable()), "--headless", "--port", str(port), "--window-size", f"{size[0]}x{size[1]}",
            "--hide-welcome-screen", "--memory-limit", "4GB"]
-    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    # Its own session: the `rerun` entry point starts the viewer binary as a child, and both must go at the end.
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            start_new_session=True)
     started = time.monotonic()
     try:
         client = None
@@ -132,12 +135,30 @@ def headless_viewer(size: tuple[int, int], timeout_s: float = 30.0) -> Iterator[
                 time.sleep(0.1)
         yield client
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        _stop_group(proc)
+
+
+def _stop_group(proc: subprocess.Popen[bytes]) -> None:
+    """Terminate the viewer's whole process group; SIGKILL what is left after 10 s."""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGTERM)
+    deadline = time.monotonic() + 10.0
+    while _group_alive(proc.pid) and time.monotonic() < deadline:
+        proc.poll()  # reaps the leader: the group lives on while the viewer binary does
+        time.sleep(0.05)
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    if proc.stderr is not None:
+        proc.stderr.close()
+
+
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    return True
 
 
 def _tabs(bp: dict[str, Any]) -> tuple[str | None, list[tuple[str, str]]]:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import psutil
 import pytest
 
 from algorithms.observe import LineStrips
@@ -77,7 +78,10 @@ def test_no_view_is_blank_at_the_end(runs: dict[str, Path], pipeline: str, tmp_p
 def test_snapshot_cli_and_bad_input(runs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
                                     ) -> None:
     """The command writes one PNG per tab; bad arguments are one-line errors with exit 2."""
-    assert cli(["snapshot", str(runs["odometry"]), "--out", str(tmp_path / "s"), "--size", "960x540"]) == 0
-    assert sorted(p.name for p in (tmp_path / "s").glob("*.png")) == ["01-summary.png", "02-map-over-time.png"]
+    assert cli(["snapshot", str(runs["odometry"]), "--out", str(tmp_path / "s"), "--size", "961x541"]) == 0
+    assert sorted(p.name for p in (tmp_path / "s").glob("*.png")) == ["01-summary.png", "02-map-over-time.png",
+                                                                       "03-data.png"]
+    left = [p for p in psutil.process_iter(["cmdline"]) if "961x541" in " ".join(p.info["cmdline"] or [])]
+    assert not left, "the headless viewer (and its child binary) must be gone after a snapshot"
     assert cli(["snapshot", str(runs["odometry"]), "--out", str(tmp_path / "t"), "--at", "99999999"]) == 2
     assert "the run's steps are" in capsys.readouterr().err
