@@ -41,6 +41,7 @@ TENTATIVE: Color = (200, 200, 200)
 RUN_A: Color = (0, 180, 200)
 RUN_B: Color = (230, 90, 180)
 NEUTRAL: Color = (200, 200, 200)
+MAP_PRIOR: Color = (95, 110, 150)  # a map made earlier that a run navigates on
 SERIES_CYCLE: tuple[Color, ...] = ((40, 120, 230), (245, 130, 48), (40, 170, 70), (150, 60, 200),
                                    (140, 86, 75), (0, 180, 200), (230, 90, 180), (188, 189, 34))
 
@@ -53,10 +54,11 @@ _ROLES: tuple[tuple[str, Color], ...] = (
     ("odometry", DEAD_RECKONING), ("prediction", DEAD_RECKONING), ("dead_reckoning", DEAD_RECKONING),
     ("rejected", REJECTED), ("outlier", REJECTED), ("conflict", REJECTED), ("threshold", REJECTED),
     ("accepted", ACCEPTED), ("inlier", ACCEPTED), ("peak", ACCEPTED), ("loops", ACCEPTED), ("matched", ACCEPTED),
-    ("target", ACCEPTED),
+    ("target", ACCEPTED), ("global_path", ACCEPTED), ("route", ACCEPTED), ("local_path", MEASUREMENT),
+    ("/map/", MAP_PRIOR),
     ("measurement", MEASUREMENT), ("association", MEASUREMENT), ("anchors", MEASUREMENT),
     ("tentative", TENTATIVE),
-    ("estimate", ESTIMATE), ("robot", ESTIMATE), ("graph", ESTIMATE), ("nav", ESTIMATE), ("map", ESTIMATE),
+    ("estimate", ESTIMATE), ("robot", ESTIMATE), ("graph", ESTIMATE), ("nav", ESTIMATE),
 )
 
 

@@ -37,6 +37,8 @@ def test_role_colors_follow_the_palette() -> None:
     assert views.role_color("world/graph/after/edges/rejected") == views.REJECTED
     assert views.role_color("metrics/nees_band/robot_95_low") == views.TRUTH
     assert views.role_color("runs/A/world/trajectory/estimate") == views.RUN_A
+    assert views.role_color("world/nav/global_path") == views.ACCEPTED
+    assert views.role_color("world/map/edges") == views.MAP_PRIOR
     assert views.role_color("ifmi/pnr") is None
     assert views.series_color("ifmi/pnr") == views.series_color("ifmi/pnr")  # stable
 
