@@ -107,8 +107,11 @@ def _free_port() -> int:
 @contextlib.contextmanager
 def headless_viewer(size: tuple[int, int], timeout_s: float = 30.0) -> Iterator[Any]:
     """A headless Rerun viewer of ``size`` pixels and a client connected to it; stopped on exit."""
-    from rerun.experimental import ViewerClient
-
+    try:
+        from rerun.experimental import ViewerClient
+    except ImportError:
+        raise ReplayError("snapshot drives the viewer through rerun-sdk 0.41's ViewerClient, which this "
+                          "install lacks (rerun-sdk 0.39 on Python 3.10): run it from Python 3.11+") from None
     check_graphics()
     port = _free_port()
     cmd = [str(rerun_executable()), "--headless", "--port", str(port), "--window-size", f"{size[0]}x{size[1]}",
