@@ -20,7 +20,7 @@ import traceback
 import uuid
 from collections.abc import Mapping
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import datetime, timezone
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -119,7 +119,7 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
     cfg = resolve_config(pipeline_cls, config)
     prepare_run_dir(out_dir)
     run_id = run_id or uuid.uuid4().hex
-    started = datetime.now(UTC)
+    started = datetime.now(timezone.utc)
     t_wall, t_cpu = time.perf_counter(), time.process_time()
     timings: dict[str, float] = {}
     manifest: dict[str, Any] = {
@@ -179,7 +179,7 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
         usage = resource.getrusage(resource.RUSAGE_SELF)
         timings.update(wall_s=time.perf_counter() - t_wall, cpu_s=time.process_time() - t_cpu,
                        max_rss_mib=usage.ru_maxrss / 1024.0)
-        manifest["timings"] = {"started_at": started.isoformat(), "finished_at": datetime.now(UTC).isoformat(),
+        manifest["timings"] = {"started_at": started.isoformat(), "finished_at": datetime.now(timezone.utc).isoformat(),
                                **{k: round(v, 6) for k, v in timings.items()}}
         atomic_write(out_dir / "log.txt", "\n".join(lines) + "\n")
         atomic_write(out_dir / "manifest.json", json.dumps(manifest, indent=2, sort_keys=True, default=str) + "\n")

@@ -8,8 +8,8 @@ from numpy.typing import NDArray
 
 from algorithms.common import se2
 from algorithms.common.motion import OdometryNoise
-from algorithms.dslam import DSlam, DSlamConfig, ScanStatus
 from algorithms.common.rangebearing import to_points
+from algorithms.dslam import DSlam, DSlamConfig, ScanStatus
 from algorithms.dslam.composite import CompositeScan, _move
 
 F64 = NDArray[np.float64]
