@@ -11,6 +11,7 @@ import shutil
 import sys
 from pathlib import Path
 
+from api.hints import has_display, tool, view_hint
 from replay.run import RunResult, run_recording
 
 MARKER = ".slamreplay-demo"
@@ -129,10 +130,15 @@ def run_demo(out: Path, data: Path | None, quiet: bool = False) -> int:
             shown = f"{value:,.0f}" if float(value).is_integer() else f"{value:.4f}"
             print(f"{rec_name:<24} {pipe:<15} {metric:<28} {shown:>12}")
     print()
-    print("Open a run in the Rerun viewer:")
+    rerun = tool("rerun")
+    print(f"Open a run in the Rerun viewer{'' if has_display() else ' (no display here: see the last lines)'}:")
     for _, _, result in results:
-        print(f"  rerun {result.run_dir / 'run.rrd'}")
-    if len(results) >= 1:
-        first = results[0][2].run_dir
-        print(f"Compare two runs: slamreplay diff {first} <another run dir>")
+        print(f"  {rerun} {result.run_dir / 'run.rrd'}")
+    if not has_display():
+        print("\n".join(view_hint(results[0][2].run_dir / "run.rrd")))
+    if len(results) >= 2:
+        a, b = results[0][2].run_dir, results[1][2].run_dir
+        print(f"Compare two runs of one recording (exit 1 when a metric got worse): {tool('slamreplay')} diff {a} {b}")
+    if tool("slamreplay") != "slamreplay":
+        print(f"To type slamreplay and rerun without the path: source {Path(tool('slamreplay')).parent / 'activate'}")
     return 0

@@ -12,6 +12,7 @@ from conftest import write_tiny_recording
 from mcap.writer import Writer
 
 from api.cli import main
+from api.hints import view_hint
 from recorder import OdometryPose, Recorder, codec
 
 
@@ -51,7 +52,7 @@ def test_run_success_and_diff_exit_codes(rec: Path, tmp_path: Path, capsys: pyte
     code, out, _ = run_cli(["run", str(rec), "--pipeline", "odometry", "--out", str(tmp_path / "a"), "-q"], capsys)
     assert code == 0
     code, out, _ = run_cli(["run", str(rec), "--pipeline", "odometry", "--out", str(tmp_path / "b")], capsys)
-    assert code == 0 and f"rerun {tmp_path / 'b' / 'run.rrd'}" in out
+    assert code == 0 and "\n".join(view_hint(tmp_path / "b" / "run.rrd")) in out
     code, out, _ = run_cli(["diff", str(tmp_path / "a"), str(tmp_path / "b"), "--json"], capsys)
     assert code == 0 and json.loads(out)["rrd_equal"] is True
     worse = write_tiny_recording(tmp_path / "worse.mcap", drift=0.2)
