@@ -36,7 +36,7 @@ serve: $(STAMP)
 	$(BIN)/slamreplay serve --data-dir . $(ARGS)
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -n 2 -q -m "not ray" $(ARGS)
+	$(BIN)/python -m pytest -n 2 -q -m "not ray and not docs" $(ARGS)
 
 # The Ray executor against a local Ray instance: installs the ray extra (about 20 s, 290 MB), then about
 # a minute of tests, most of it Ray's start-up; apart from `make test` so that it needs no Ray. CI runs both.
