@@ -51,10 +51,12 @@ test-docs: $(STAMP)
 
 # The oldest and newest supported Pythons (3.10, 3.13), each in its own .venv-3.X: found as
 # python3.X on PATH or a pyenv install (or PYTHON_3_10=/path...); one that is missing is skipped
-# with a message. Runs PYTHONS_TESTS (default: the suite but its slow tests, about 4 min each).
+# with a message. In each: the suite but its slow tests (PYTHONS_TESTS, about 3 min) and the
+# README's blocks (about 3 min); then the same cells run under both must pass `slamreplay diff`
+# (.ci/cross-python-diff.sh, about 2 min). About 15 minutes in all on 2 cores.
 PYTHONS_TESTS ?= -m "not ray and not docs and not slow"
 test-pythons:
-	@for v in 3.10 3.13; do \
+	@found=""; for v in 3.10 3.13; do \
 		py=""; for c in "$$(eval echo \$${PYTHON_$$(echo $$v | tr . _)})" python$$v \
 			$$(ls -d $${PYENV_ROOT:-$$HOME/.pyenv}/versions/$$v.*/bin/python$$v 2>/dev/null | sort -rV); do \
 			if [ -n "$$c" ] && "$$c" -c 'import sys; sys.exit(sys.version_info[:2] != tuple(map(int, "'$$v'".split("."))))' 2>/dev/null; \
@@ -63,7 +65,11 @@ test-pythons:
 		echo "test-pythons: Python $$v at $$py"; \
 		$(MAKE) --no-print-directory venv VENV=.venv-$$v PYTHON=$$py || exit 1; \
 		.venv-$$v/bin/python -m pytest -n 2 -q $(PYTHONS_TESTS) $(ARGS) || exit 1; \
-	done
+		.venv-$$v/bin/python -m pytest -q -m docs tests/test_readme.py || exit 1; \
+		found="$$found .venv-$$v"; \
+	done; \
+	set -- $$found; if [ $$# -eq 2 ]; then .ci/cross-python-diff.sh $$1 $$2 || exit 1; \
+	else echo "test-pythons: the cross-interpreter diff needs both 3.10 and 3.13: skipped"; fi
 
 lint: $(STAMP)
 	$(BIN)/ruff check recorder replay algorithms api tests benchmarks

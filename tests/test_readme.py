@@ -164,6 +164,8 @@ def _script(b: Block) -> list[str]:
 def test_block_runs_as_written(block: Block, workspaces: dict[Path, Path],
                                tmp_path_factory: pytest.TempPathFactory) -> None:
     """The block exits 0 in the copy, after the blocks before it in the same file."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        pytest.skip("the blocks run in order, in one process: make test-docs (pytest -m docs, without -n)")
     if block.kind == "skip":
         pytest.skip(f"{block.label} marked: skip {block.arg}")
     repo = _workspace(workspaces, block.path, tmp_path_factory)
