@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from api.graph_cli import add_graph_parser
-from api.hints import tool, view_hint
+from api.hints import spell_commands, tool, view_hint
 from recorder.errors import RecorderError
 from replay.errors import ReplayError
 
@@ -489,7 +489,7 @@ def build_parser() -> argparse.ArgumentParser:
     srv.add_argument("--workers", type=int, default=None,
                      help="jobs running at once, each in its own process (default: SLAMREPLAY_WORKERS, else 2)")
     srv.add_argument("--executor", choices=["local", "ray"], default=None,
-                     help="where jobs run: local worker processes, or Ray tasks (slamreplay[ray]) "
+                     help="where jobs run: local worker processes, or Ray tasks (the ray extra) "
                           "(default: SLAMREPLAY_EXECUTOR, else local)")
     srv.add_argument("--ray-address", default=None, metavar="ADDR",
                      help="Ray cluster to join, e.g. ray://head:10001 or auto (default: SLAMREPLAY_RAY_ADDRESS, "
@@ -517,7 +517,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (CliError, ReplayError, RecorderError) as err:
         if args.debug:
             traceback.print_exc()
-        _eprint(f"slamreplay: error: {err}")
+        _eprint(f"slamreplay: error: {spell_commands(str(err))}")
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         _eprint("slamreplay: interrupted")

@@ -10,6 +10,7 @@ native viewer cannot open, so the viewing hint gives the headless ways too.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import sys
 from importlib import metadata
@@ -37,6 +38,15 @@ def tool(name: str) -> str:
     except ValueError:  # another drive on Windows
         return str(beside)
     return rel if not rel.startswith("..") else str(beside)
+
+
+_COMMAND = re.compile(r"(?<![\w/.-])(slamreplay|rerun|pip)(?= (record|run|recover|pipelines|navigate|inspect|diff|"
+                      r"serve|demo|graph|rrd|install)\b)")
+
+
+def spell_commands(text: str) -> str:
+    """``text`` (an error message from any layer) with the commands it suggests spelled to run as printed here."""
+    return _COMMAND.sub(lambda m: tool(m.group(1)), text)
 
 
 def has_display() -> bool:

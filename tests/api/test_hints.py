@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import write_tiny_recording
 
 from api.hints import has_display, rerun_sdk_version, tool, view_hint
 
@@ -63,3 +64,27 @@ def test_view_hint_headless(monkeypatch: pytest.MonkeyPatch) -> None:
     assert f"rerun-sdk {rerun_sdk_version()} " in text and rerun_sdk_version().startswith("0.")
     helptext = _run_as_printed(f"{tool('rerun')} --help", Path.cwd(), os.environ["PATH"]).stdout
     assert "--web-viewer" in helptext and "[default: 9090]" in helptext
+
+
+def test_error_messages_suggest_commands_that_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """A library error suggesting `slamreplay recover ...` is printed with the command as it runs here."""
+    from api.cli import main
+    from api.hints import spell_commands
+
+    monkeypatch.setenv("PATH", "/usr/bin:/bin")
+    monkeypatch.chdir(tmp_path)
+    assert spell_commands("salvage it with `slamreplay recover a.mcap --out b.mcap`") == (
+        f"salvage it with `{tool('slamreplay')} recover a.mcap --out b.mcap`")
+    assert spell_commands("`pip install -e '.[ray]'`").startswith(f"`{tool('pip')} install")
+    prose = "slamreplay reads MCAP storage; ~/slamreplay run"
+    assert spell_commands(prose) == prose
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(write_tiny_recording(tmp_path / "tiny.mcap").read_bytes()[:3000])
+    assert main(["run", str(cut), "--pipeline", "odometry", "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    suggested = err.split("`")[1]
+    assert suggested.startswith(tool("slamreplay") + " recover"), err
+    fixed = suggested.replace("FIXED.mcap", str(tmp_path / "fixed.mcap"))
+    proc = _run_as_printed(fixed, tmp_path, "/usr/bin:/bin")
+    assert "Traceback" not in proc.stderr and (proc.returncode == 0 or "slamreplay: error:" in proc.stderr)
