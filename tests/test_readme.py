@@ -29,7 +29,6 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.docs
 
 REPO = Path(__file__).resolve().parents[1]
 DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
@@ -83,7 +82,7 @@ BLOCKS = [b for doc in DOCS for b in parse(doc)]
 
 
 def test_markers_are_understood() -> None:
-    """Every block names its language, every marker is known and explains itself, and a given is provided."""
+    """(Part of make test.) Every block names its language, every marker is known and explains itself, and a given is provided."""
     for b in BLOCKS:
         assert b.lang, f"{b.label}: name the block's language (```sh, ```python ...)"
         if b.kind is None:
@@ -160,6 +159,7 @@ def _script(b: Block) -> list[str]:
     return ["bash", "-eo", "pipefail", "-c", code]
 
 
+@pytest.mark.docs
 @pytest.mark.parametrize("block", [b for b in BLOCKS if b.lang in RUN], ids=lambda b: b.label)
 def test_block_runs_as_written(block: Block, workspaces: dict[Path, Path],
                                tmp_path_factory: pytest.TempPathFactory) -> None:
@@ -182,6 +182,7 @@ def test_block_runs_as_written(block: Block, workspaces: dict[Path, Path],
                                   f"{proc.stdout[-3000:]}\n--- stderr\n{proc.stderr[-3000:]}")
 
 
+@pytest.mark.docs
 @pytest.mark.parametrize("doc", sorted({b.path for b in BLOCKS if b.lang in RUN and b.kind != "skip"}),
                          ids=lambda d: str(d.relative_to(REPO)))
 def test_blocks_leave_the_repository_clean(doc: Path, workspaces: dict[Path, Path]) -> None:
