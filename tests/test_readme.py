@@ -29,7 +29,6 @@ from pathlib import Path
 
 import pytest
 
-
 REPO = Path(__file__).resolve().parents[1]
 DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 SHELLS = {"sh", "bash", "console", "shell"}
@@ -82,7 +81,7 @@ BLOCKS = [b for doc in DOCS for b in parse(doc)]
 
 
 def test_markers_are_understood() -> None:
-    """(Part of make test.) Every block names its language, every marker is known and explains itself, and a given is provided."""
+    """(In make test.) Every block names its language, each marker is known and explained, a given is provided."""
     for b in BLOCKS:
         assert b.lang, f"{b.label}: name the block's language (```sh, ```python ...)"
         if b.kind is None:
