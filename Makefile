@@ -1,23 +1,33 @@
 # slamreplay: every target builds the virtualenv first when needed, so any of them
-# works as the very first command on a fresh machine.
+# works as the very first command on a fresh machine. Python 3.10 to 3.13 (PYTHON=... picks one).
 PYTHON ?= python3
-VENV   := .venv
+VENV   ?= .venv
 BIN    := $(VENV)/bin
-STAMP  := $(VENV)/.installed
+# The interpreter's version is part of the stamp: a .venv made by another interpreter (a failed
+# attempt with an old Python, or PYTHON=... changed) is rebuilt, never silently reused.
+PY_VERSION := $(shell $(PYTHON) -c 'import sys; print("%d.%d.%d" % sys.version_info[:3])' 2>/dev/null)
+STAMP  := $(VENV)/.installed-py$(PY_VERSION)
 DATA   ?= ../shared/data
 ARGS   ?=
 
-.PHONY: venv demo serve test test-ray test-viewer snapshots viewer-deps lint bench cholmod clean
+.PHONY: venv demo serve test test-ray test-docs test-pythons test-viewer snapshots viewer-deps lint bench cholmod clean
 
 venv: $(STAMP)
 
 $(STAMP): pyproject.toml
+	@test -n "$(PY_VERSION)" || { echo "make: '$(PYTHON)' does not run: install Python 3.10-3.13 or pass PYTHON=/path/to/python3"; exit 2; }
+	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info[:2] < (3, 10))' || { echo "make: $(PYTHON) is Python $(PY_VERSION); slamreplay needs 3.10 to 3.13: pass PYTHON=/path/to/python3.X"; exit 2; }
+	@if test -x $(BIN)/python && test "$$($(BIN)/python -c 'import sys; print("%d.%d.%d" % sys.version_info[:3])' 2>/dev/null)" != "$(PY_VERSION)"; then \
+		echo "$(VENV) was made by another Python; rebuilding it with $(PYTHON) ($(PY_VERSION))"; rm -rf $(VENV); fi
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e ".[dev]"
+	@rm -f $(VENV)/.installed*
 	@touch $(STAMP)
+	@echo "$(VENV) is ready (Python $(PY_VERSION)). To type slamreplay and rerun without the $(BIN)/ prefix: source $(BIN)/activate"
 
 demo: $(STAMP)
+	@echo "Tip: source $(BIN)/activate puts slamreplay and rerun on your PATH; without it, type $(BIN)/slamreplay and $(BIN)/rerun"
 	$(BIN)/slamreplay demo --data $(DATA) $(ARGS)
 
 # The HTTP service on the built-in defaults: SQLite job store and local worker processes,
@@ -26,7 +36,7 @@ serve: $(STAMP)
 	$(BIN)/slamreplay serve --data-dir . $(ARGS)
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -n 2 -q -m "not ray and not viewer" $(ARGS)
+	$(BIN)/python -m pytest -n 2 -q -m "not ray and not docs and not viewer" $(ARGS)
 
 # The headless Rerun viewer draws with Vulkan; without a GPU, Mesa's software rasterizer (lavapipe).
 VIEWER_DEBS := mesa-vulkan-drivers libvulkan1 libegl1
@@ -47,6 +57,33 @@ test-ray: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[dev,ray]"
 	$(BIN)/python -m pytest -q -m ray tests/api/test_ray_executor.py $(ARGS)
 
+# Every ```sh/```bash/```console block of README.md, run in a fresh copy of the repository with
+# $(BIN) on PATH (tests/test_readme.py); blocks marked <!-- docs-test: skip (why) --> are reported.
+test-docs: $(STAMP)
+	$(BIN)/python -m pytest -q -m docs tests/test_readme.py $(ARGS)
+
+# The oldest and newest supported Pythons (3.10, 3.13), each in its own .venv-3.X: found as
+# python3.X on PATH or a pyenv install (or PYTHON_3_10=/path...); one that is missing is skipped
+# with a message. In each: the suite but its slow tests (PYTHONS_TESTS, about 3 min) and the
+# README's blocks (about 3 min); then the same cells run under both must pass `slamreplay diff`
+# (.ci/cross-python-diff.sh, about 2 min). About 15 minutes in all on 2 cores.
+PYTHONS_TESTS ?= -m "not ray and not docs and not slow and not viewer"
+test-pythons:
+	@found=""; for v in 3.10 3.13; do \
+		py=""; for c in "$$(eval echo \$${PYTHON_$$(echo $$v | tr . _)})" python$$v \
+			$$(ls -d $${PYENV_ROOT:-$$HOME/.pyenv}/versions/$$v.*/bin/python$$v 2>/dev/null | sort -rV); do \
+			if [ -n "$$c" ] && "$$c" -c 'import sys; sys.exit(sys.version_info[:2] != tuple(map(int, "'$$v'".split("."))))' 2>/dev/null; \
+			then py=$$(command -v "$$c"); break; fi; done; \
+		if [ -z "$$py" ]; then echo "test-pythons: Python $$v not found (python$$v on PATH, a pyenv install, or PYTHON_$$(echo $$v | tr . _)=...): skipped"; continue; fi; \
+		echo "test-pythons: Python $$v at $$py"; \
+		$(MAKE) --no-print-directory venv VENV=.venv-$$v PYTHON=$$py || exit 1; \
+		.venv-$$v/bin/python -m pytest -n 2 -q $(PYTHONS_TESTS) $(ARGS) || exit 1; \
+		.venv-$$v/bin/python -m pytest -q -m docs tests/test_readme.py || exit 1; \
+		found="$$found .venv-$$v"; \
+	done; \
+	set -- $$found; if [ $$# -eq 2 ]; then .ci/cross-python-diff.sh $$1 $$2 || exit 1; \
+	else echo "test-pythons: the cross-interpreter diff needs both 3.10 and 3.13: skipped"; fi
+
 lint: $(STAMP)
 	$(BIN)/ruff check recorder replay algorithms api tests benchmarks
 
@@ -62,4 +99,4 @@ cholmod: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[dev,cholmod]"
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache .ruff_cache .hypothesis
+	rm -rf $(VENV) .venv-3.* runs .pytest_cache .ruff_cache .hypothesis

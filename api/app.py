@@ -24,6 +24,7 @@ from api.executor import Executor, LocalExecutor
 from api.jobs import JobService
 from api.models import JOB_ID, SHA256, DiffOut, ErrorOut, HealthOut, JobOut, JobSpec, JobStatusName, RecordingOut
 from api.monitoring import CONTENT_TYPE, prometheus_text
+from api.multipart import FILE_FIELD, form_file, is_form
 from api.recordings import RecordingService
 from api.settings import Settings, get_settings
 from api.store import Store
@@ -93,9 +94,14 @@ def prometheus_metrics(jobs: JobsDep) -> PlainTextResponse:
 
 # -- recordings ------------------------------------------------------------------------------
 
-UPLOAD_BODY = {"requestBody": {"required": True, "description": "the .mcap file, as the raw request body",
-                               "content": {"application/octet-stream": {"schema": {"type": "string",
-                                                                                   "format": "binary"}}}}}
+UPLOAD_BODY = {"requestBody": {
+    "required": True,
+    "description": "the .mcap file: the raw request body (curl --data-binary @run.mcap), or the field `file` of a "
+                   "form (curl -F file=@run.mcap)",
+    "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}},
+                "multipart/form-data": {"schema": {"type": "object", "required": [FILE_FIELD],
+                                                   "properties": {FILE_FIELD: {"type": "string",
+                                                                               "format": "binary"}}}}}}}
 
 
 @router.post("/recordings", status_code=201, tags=["recordings"], openapi_extra=UPLOAD_BODY,
@@ -107,10 +113,15 @@ async def upload_recording(request: Request, response: Response, recordings: Rec
                            filename: Annotated[str | None, Query(max_length=255, description="a label")] = None,
                            recover: Annotated[bool, Query(description="salvage a damaged file at once")] = False,
                            ) -> RecordingOut:
-    """Upload a recording as the raw body (streamed to disk); 201 new, 200 when already stored."""
-    length = request.headers.get("content-length")
-    declared = int(length) if length is not None and length.isdigit() else None
-    stored = await recordings.upload(request.stream(), filename, declared, recover)
+    """Upload a recording, raw body or form field `file` (streamed to disk); 201 new, 200 when already stored."""
+    content_type = request.headers.get("content-type", "")
+    if is_form(content_type):  # the form's own bytes make Content-Length larger than the file: not a size
+        name, chunks = await form_file(request.stream(), content_type, recordings.settings.max_upload_bytes)
+        stored = await recordings.upload(chunks, filename or name, None, recover)
+    else:
+        length = request.headers.get("content-length")
+        declared = int(length) if length is not None and length.isdigit() else None
+        stored = await recordings.upload(request.stream(), filename, declared, recover)
     response.status_code = 201 if stored.created else 200
     return RecordingOut.of(stored.recording, stored.report, stored.recovered_from)
 

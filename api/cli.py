@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from api.graph_cli import add_graph_parser
+from api.hints import spell_commands, tool, view_hint
 from recorder.errors import RecorderError
 from replay.errors import ReplayError
 
@@ -250,7 +251,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         for name, value in sorted(result.metrics.items()):
             print(f"  {name:<28} {value:.6g}")
         wall = result.manifest["timings"]["wall_s"]
-        print(f"run {result.run_id} succeeded in {wall:.2f} s; open it with: rerun {Path(args.out) / 'run.rrd'}")
+        print(f"run {result.run_id} succeeded in {wall:.2f} s")
+        print("\n".join(view_hint(Path(args.out) / "run.rrd")))
     return EXIT_OK
 
 
@@ -269,7 +271,7 @@ def cmd_navigate(args: argparse.Namespace) -> int:
                 f"{s.loop_closures} loop closures, {s.visual_corrections} visual corrections; cross-track error "
                 f"(true position to the {'true' if s.scored_against == 'truth' else 'map (no ground truth in it)'} "
                 f"path) mean {s.cross_track_mean_m:.3f} m, max {s.cross_track_max_m:.3f} m")
-        _eprint(f"replay it with: slamreplay run {args.out} --pipeline topometric-nav --out RUN_DIR")
+        _eprint(f"replay it with: {tool('slamreplay')} run {args.out} --pipeline topometric-nav --out RUN_DIR")
     return EXIT_OK
 
 
@@ -284,7 +286,7 @@ def cmd_diff(args: argparse.Namespace) -> int:
     else:
         print(format_table(diff))
         if args.rrd:
-            print(f"comparison recording: rerun {args.rrd}")
+            print(f"comparison recording {args.rrd}: " + "\n".join(view_hint(args.rrd)))
     return EXIT_CHECK_FAILED if diff.worse else EXIT_OK
 
 
@@ -507,7 +509,7 @@ def build_parser() -> argparse.ArgumentParser:
     srv.add_argument("--workers", type=int, default=None,
                      help="jobs running at once, each in its own process (default: SLAMREPLAY_WORKERS, else 2)")
     srv.add_argument("--executor", choices=["local", "ray"], default=None,
-                     help="where jobs run: local worker processes, or Ray tasks (slamreplay[ray]) "
+                     help="where jobs run: local worker processes, or Ray tasks (the ray extra) "
                           "(default: SLAMREPLAY_EXECUTOR, else local)")
     srv.add_argument("--ray-address", default=None, metavar="ADDR",
                      help="Ray cluster to join, e.g. ray://head:10001 or auto (default: SLAMREPLAY_RAY_ADDRESS, "
@@ -535,7 +537,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (CliError, ReplayError, RecorderError) as err:
         if args.debug:
             traceback.print_exc()
-        _eprint(f"slamreplay: error: {err}")
+        _eprint(f"slamreplay: error: {spell_commands(str(err))}")
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         _eprint("slamreplay: interrupted")

@@ -11,6 +11,7 @@ import shutil
 import sys
 from pathlib import Path
 
+from api.hints import has_display, tool, view_hint
 from replay.run import RunResult, run_recording
 
 MARKER = ".slamreplay-demo"
@@ -129,10 +130,21 @@ def run_demo(out: Path, data: Path | None, quiet: bool = False) -> int:
             shown = f"{value:,.0f}" if float(value).is_integer() else f"{value:.4f}"
             print(f"{rec_name:<24} {pipe:<15} {metric:<28} {shown:>12}")
     print()
-    print("Open a run in the Rerun viewer:")
-    for _, _, result in results:
-        print(f"  rerun {result.run_dir / 'run.rrd'}")
-    if len(results) >= 1:
-        first = results[0][2].run_dir
-        print(f"Compare two runs: slamreplay diff {first} <another run dir>")
+    print("\n".join(next_steps([r for _, _, r in results], {(rec, pipe): r.run_dir for rec, pipe, r in results})))
     return 0
+
+
+def next_steps(results: list[RunResult], runs: dict[tuple[str, str], Path]) -> list[str]:
+    """What to type next, spelled to work as printed here: open the runs, compare D-SLAM with EKF-SLAM."""
+    rerun, slamreplay = tool("rerun"), tool("slamreplay")
+    lines = [f"Open a run in the Rerun viewer{'' if has_display() else ' (no display here: see below)'}:"]
+    lines += [f"  {rerun} {r.run_dir / 'run.rrd'}" for r in results]
+    if not has_display() and results:
+        lines += view_hint(results[0].run_dir / "run.rrd")
+    pair = runs.get(("sim-landmarks", "ekfslam")), runs.get(("sim-landmarks", "dslam"))
+    if pair[0] is not None and pair[1] is not None:
+        lines.append(f"Compare D-SLAM with EKF-SLAM on one recording (exit 1 when a metric is worse): "
+                     f"{slamreplay} diff {pair[0]} {pair[1]}")
+    if slamreplay != "slamreplay":
+        lines.append(f"To type slamreplay and rerun without the path: source {Path(slamreplay).parent / 'activate'}")
+    return lines

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from datetime import UTC, datetime
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Literal
 
@@ -18,7 +18,7 @@ JobStatusName = Literal["queued", "running", "succeeded", "failed", "cancelled",
 
 
 def _time(t: float) -> datetime:
-    return datetime.fromtimestamp(t, UTC)
+    return datetime.fromtimestamp(t, timezone.utc)
 
 
 def _maybe_time(t: float | None) -> datetime | None:

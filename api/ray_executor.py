@@ -1,6 +1,6 @@
 """``RayExecutor``: each job is a Ray task running the same ``run_task`` as ``LocalExecutor``.
 
-Ray is an optional extra (``pip install slamreplay[ray]``) imported only when this executor
+Ray is an optional extra (``pip install -e '.[ray]'``) imported only when this executor
 is built. Without an address it starts a local Ray instance with one CPU per slot; with one
 (``ray://head:10001``, ``auto``) it joins that cluster. Each job asks for one CPU and is never
 retried by Ray (a job that crashed its worker fails, as it does locally).
@@ -31,7 +31,7 @@ from api.executor import PROGRESS_INTERVAL_S, WORKER_NICENESS, Job, Outcome, Tas
 from api.limits import GRACE_S, JobLimits
 
 log = logging.getLogger("slamreplay.ray")
-INSTALL_HINT = "the ray executor needs `pip install slamreplay[ray]`"
+INSTALL_HINT = "the ray executor needs the ray extra: `pip install -e '.[ray]'` in the slamreplay checkout"
 
 
 class RayMissingError(ImportError):

@@ -54,6 +54,18 @@ def clean_filename(name: str | None) -> str:
     return base or "recording.mcap"
 
 
+def _not_mcap_hint(head: bytes) -> str:
+    """What to do about an upload that does not start like an MCAP, guessed from how it starts."""
+    if head[:6] == MCAP_MAGIC[:6]:
+        return ("; its line breaks were removed, as `curl -d`/`--data` does: send the file unchanged with "
+                "curl --data-binary @run.mcap URL/recordings or curl -F file=@run.mcap URL/recordings")
+    if head.startswith(b"--"):
+        return ("; it looks like a multipart form sent without its Content-Type: let curl build it, "
+                "curl -F file=@run.mcap URL/recordings")
+    return ("; upload an .mcap recording, raw (curl --data-binary @run.mcap 'URL/recordings?filename=run.mcap') "
+            "or as a form (curl -F file=@run.mcap URL/recordings); ROS 2 bags in MCAP storage: the .mcap inside")
+
+
 def _topics(reader: RecordingReader) -> list[dict[str, Any]]:
     return [{"topic": t.file_topic, "read_as": t.logical_topic, "schema_name": t.schema_name,
              "encoding": t.message_encoding, "messages": t.message_count} for t in reader.info.topics]
@@ -127,8 +139,7 @@ class RecordingService:
         with open(tmp, "rb") as f:
             head = f.read(len(MCAP_MAGIC))
         if head != MCAP_MAGIC:
-            raise NotMcapError(f"{label} is not an MCAP file (it starts with {head!r}); upload an .mcap recording "
-                          f"(ROS 2 bags in MCAP storage: upload the .mcap inside)")
+            raise NotMcapError(f"{label} is not an MCAP file (it starts with {head!r}){_not_mcap_hint(head)}")
         try:
             reader = RecordingReader(tmp)
         except ReplayError as err:

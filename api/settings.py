@@ -8,7 +8,7 @@
 | ``SLAMREPLAY_WORKERS`` | ``2`` | worker processes, i.e. jobs running at once |
 | ``SLAMREPLAY_MAX_UPLOAD_BYTES`` | 2 GiB | larger uploads are refused with 413 |
 | ``SLAMREPLAY_EXECUTOR`` | ``local`` | where jobs run: ``local`` (spawned worker processes) or ``ray`` |
-| | | (Ray tasks; ``pip install slamreplay[ray]``) |
+| | | (Ray tasks; ``pip install -e '.[ray]'``) |
 | ``SLAMREPLAY_RAY_ADDRESS`` | unset | the Ray cluster to join (``ray://host:10001``, ``auto``); unset: start a |
 | | | local Ray instance with ``workers`` CPUs |
 | ``SLAMREPLAY_STORAGE_URL`` | unset | where workers find recordings and write runs (``s3://bucket/prefix``, |

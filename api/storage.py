@@ -5,7 +5,7 @@ copied to a temporary file first (the MCAP reader seeks), and a remote run direc
 written locally and uploaded, file by file, when the run ends (failed runs too: their
 manifest and log say why). Local locations are used in place, so the default set-up needs
 no fsspec. Other schemes (``s3://``, ``gs://``, ``memory://`` ...) need fsspec, which comes
-with ``slamreplay[ray]``, plus the scheme's own fsspec package (``s3fs`` for ``s3://``).
+with the ray extra (``pip install -e '.[ray]'``), plus the scheme's own fsspec package (``s3fs`` for ``s3://``).
 Nothing here downloads code or data at import time.
 """
 
@@ -54,7 +54,7 @@ def _fs(url: str) -> tuple[Any, str]:
     try:
         import fsspec  # type: ignore[import-untyped]
     except ImportError as err:
-        msg = f"{url}: object-store locations need fsspec: `pip install slamreplay[ray]`"
+        msg = f"{url}: object-store locations need fsspec: `pip install -e '.[ray]'` in the slamreplay checkout"
         raise StorageError(msg) from err
     try:
         fs, path = fsspec.core.url_to_fs(url)

@@ -106,7 +106,8 @@ def main() -> None:
             rec = args.out / f"mrclam-robot{robot}.mcap"
             if not rec.exists():
                 import_mrclam(DATA, robot, rec)
-            runs = [("odometry", "odometry", None), ("dslam", "dslam", MRCLAM_CONFIG), ("ekfslam", "ekfslam", MRCLAM_CONFIG)]
+            runs = [("odometry", "odometry", None), ("dslam", "dslam", MRCLAM_CONFIG),
+                    ("ekfslam", "ekfslam", MRCLAM_CONFIG)]
             if args.composite:
                 runs.append(("dslam-composite", "dslam", {**MRCLAM_CONFIG, "composite_max_scans": 400}))
             for label, pipeline, config in runs:

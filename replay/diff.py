@@ -3,7 +3,9 @@
 - Manifests: pipeline, recording, configuration (key by key), seed, code version and
   commit, library versions.
 - Metrics: a delta per metric, judged by its direction (lower or higher is better) and a
-  tolerance (absolute, or ``N%`` of run A's value); ``worse`` lists those that regressed.
+  tolerance (``metric_tolerance``: by default relative to run A's value with an absolute floor,
+  so numerical noise between environments is "same"; a user's absolute value or ``N%`` of run
+  A's value replaces it); ``worse`` lists those that regressed.
 - Content: whether the two ``run.rrd`` files hold the same data (``rerun rrd compare``).
 - Optionally one comparison ``.rrd`` with both runs under ``runs/A/...`` and ``runs/B/...``.
 """
@@ -90,12 +92,31 @@ def parse_tolerances(items: list[str]) -> dict[str, str]:
     return out
 
 
-def _tolerance(spec: str | None, default: float, a: float | None) -> float:
-    if spec is None:
-        return default
-    if spec.endswith("%"):
-        return abs(a or 0.0) * float(spec[:-1]) / 100.0
-    return float(spec)
+def metric_tolerance(entry: Mapping[str, Any], a: float | None, override: str | None = None) -> float:
+    """The change of a metric that still counts as "same": ``|B - A| <= metric_tolerance(...)``.
+
+    The one place that decides it (``diff`` and comparisons of suites alike).
+
+    Parameters
+    ----------
+    entry : a metric's entry in metrics.json: ``tolerance`` (absolute floor) and ``rel_tolerance``
+        (fraction of the baseline's value; absent in runs made before it existed: 0)
+    a : the baseline's (run A's) value
+    override : a user's ``--tolerance`` value, absolute (``"0.01"``) or a percentage of A (``"1%"``);
+        it replaces the default
+
+    The default is ``max(tolerance, rel_tolerance * |A|)``: relative, so that floating-point
+    noise between environments (other numpy/scipy/BLAS, another summation order) is absorbed at
+    any scale, with an absolute floor for values near zero. Measured metrics get 0.1 % and 1e-6
+    (``replay.pipeline.MEASURED_REL_TOLERANCE``: a 1 % change is still worse); counts get 0.
+    """
+    if override is not None:
+        if override.endswith("%"):
+            return abs(a or 0.0) * float(override[:-1]) / 100.0
+        return float(override)
+    floor = float(entry.get("tolerance", 0.0))
+    rel = float(entry.get("rel_tolerance", 0.0))
+    return max(floor, rel * abs(a or 0.0))
 
 
 def _verdict(a: float | None, b: float | None, better: str, tol: float) -> tuple[float | None, str]:
@@ -150,7 +171,7 @@ def diff_runs(a_dir: str | Path, b_dir: str | Path, tolerances: Mapping[str, str
         if eb is None:
             out.metrics.append(MetricDelta(name, ea["value"], None, None, spec["better"], 0.0, "removed"))
             continue
-        tol = _tolerance(tolerances.get(name, tolerances.get("*")), float(spec.get("tolerance", 0.0)), ea["value"])
+        tol = metric_tolerance(spec, ea["value"], tolerances.get(name, tolerances.get("*")))
         delta, verdict = _verdict(ea["value"], eb["value"], spec["better"], tol)
         out.metrics.append(MetricDelta(name, ea["value"], eb["value"], delta, spec["better"], tol, verdict))
     if compare_rrd:

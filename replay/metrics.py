@@ -50,7 +50,10 @@ def rmse(x: F64) -> float:
 
 
 def format_metrics(pipeline: str, values: Mapping[str, float], specs: Mapping[str, MetricSpec]) -> dict[str, Any]:
-    """The metrics.json document: values with their direction, unit and tolerance.
+    """The metrics.json document: values with their direction, unit and diff tolerance.
+
+    ``tolerance`` (absolute floor) and ``rel_tolerance`` (relative to the baseline's value)
+    are the defaults ``replay.diff.metric_tolerance`` applies.
 
     A metric that does not apply to a run is absent (the pipeline leaves it out); a value
     that is not finite is an error of the pipeline.
@@ -65,8 +68,8 @@ def format_metrics(pipeline: str, values: Mapping[str, float], specs: Mapping[st
         "format": METRICS_FORMAT,
         "pipeline": pipeline,
         "metrics": {
-            name: {"value": float(v), "better": specs[name].better,
-                   "unit": specs[name].unit, "tolerance": specs[name].tolerance}
+            name: {"value": float(v), "better": specs[name].better, "unit": specs[name].unit,
+                   "tolerance": specs[name].tolerance, "rel_tolerance": specs[name].rel_tolerance}
             for name, v in sorted(values.items())
         },
     }

@@ -38,14 +38,38 @@ class ReplayObserver(Protocol):
     def send_series(self, path: str, steps: np.ndarray, times_ns: np.ndarray, values: np.ndarray) -> None: ...
 
 
+# Default diff tolerance of a measured (floating-point) metric: a change within
+# max(MEASURED_ABS_TOLERANCE, MEASURED_REL_TOLERANCE * |A|) is "same" (replay.diff.metric_tolerance).
+# Why these values: the same recording, code and seed on another Python/numpy/scipy/BLAS sums in
+# another order, and iterative solvers (Gauss-Newton, PCG) that stop at a relative decrease of
+# 1e-6 then stop at slightly different points: differences of 1e-7..1e-5 relative were seen
+# (chi2_final +6.2e-6 on 22.2 between Python 3.11 and 3.12). 0.1 % is 100x above that and 10x
+# below a 1 % change, which a diff must still call worse (an ATE of 0.400 m -> 0.404 m is WORSE).
+# The absolute floor (1e-6 of the unit: 1 um, 1e-6 px or degree) covers values near zero,
+# where a relative tolerance vanishes.
+MEASURED_REL_TOLERANCE = 1e-3
+MEASURED_ABS_TOLERANCE = 1e-6
+
+
 @dataclass(frozen=True, slots=True)
 class MetricSpec:
-    """How to read a metric: which direction is better, its unit, and the default diff tolerance."""
+    """How to read a metric: which direction is better, its unit, and the default diff tolerance.
+
+    A change of at most ``max(tolerance, rel_tolerance * |A|)`` is "same". Counts keep the
+    defaults (0, 0): any change of a count is reported. ``MetricSpec.measured`` gives the
+    tolerance of floating-point measurements (see MEASURED_REL_TOLERANCE).
+    """
 
     better: Literal["lower", "higher", "none"]
     unit: str
     description: str
-    tolerance: float = 0.0  # absolute; a change within it is "same"
+    tolerance: float = 0.0  # absolute floor
+    rel_tolerance: float = 0.0  # relative to run A's value
+
+    @classmethod
+    def measured(cls, better: Literal["lower", "higher", "none"], unit: str, description: str) -> MetricSpec:
+        """A floating-point metric: numerical noise between environments is "same", a 1 % change is not."""
+        return cls(better, unit, description, MEASURED_ABS_TOLERANCE, MEASURED_REL_TOLERANCE)
 
 
 @dataclass

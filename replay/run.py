@@ -4,7 +4,8 @@
 deterministic values: two runs give byte-identical files), ``manifest.json`` (what ran,
 on what, with which code, how it ended, timings) and ``log.txt``. Every file is written
 under a temporary name and renamed when complete; the manifest is written last. A failed
-run leaves a manifest with ``status: failed`` and the reason, never a metrics.json.
+run leaves a manifest with ``status: failed`` and the reason, never a metrics.json; a retry
+into the same directory replaces it (``prepare_run_dir``), a succeeded run is never replaced.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import traceback
 import uuid
 from collections.abc import Mapping
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import datetime, timezone
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -92,13 +93,57 @@ def write_artifacts(out_dir: Path, artifacts: Mapping[str, bytes]) -> dict[str, 
     return listed
 
 
+def _failed_run_files(out_dir: Path, manifest: Mapping[str, Any]) -> list[Path]:
+    """The files a failed run wrote in ``out_dir`` (its own files, listed artifacts, temporary names);
+    ReplayError naming any other file, which is not the run's to delete."""
+    artifacts = manifest.get("artifacts")
+    own = set(RUN_FILES) | (set(artifacts) if isinstance(artifacts, Mapping) else set())
+    ours, foreign = [], []
+    for entry in sorted(out_dir.iterdir()):
+        name = entry.name
+        temporary = name.startswith(".") and (name.endswith(".tmp") or name.endswith(".partial"))
+        if entry.is_file() and not entry.is_symlink() and (name in own or temporary):
+            ours.append(entry)
+        else:
+            foreign.append(name)
+    if foreign:
+        raise ReplayError(f"{out_dir} holds a failed run and files it did not write ({', '.join(foreign[:5])}); "
+                          f"move them away to retry into it, or choose a new --out")
+    return ours
+
+
+def _what_is_there(out_dir: Path, manifest: Any) -> str:
+    if isinstance(manifest, dict):
+        return f"a run with status {manifest.get('status')!r}"
+    if all(p.name.startswith(".") and p.name.endswith((".partial", ".tmp")) for p in out_dir.iterdir()):
+        return "an unfinished run (no manifest.json: running now, or killed; delete it if nothing writes it)"
+    return "files that are not a run (no manifest.json)"
+
+
 def prepare_run_dir(out_dir: Path) -> None:
-    """Create ``out_dir``; ReplayError when it exists and is not empty (runs are never overwritten)."""
-    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
-        raise ReplayError(f"{out_dir} already exists; a run never overwrites another: choose a new --out")
-    if not out_dir.parent.is_dir():
-        raise ReplayError(f"{out_dir.parent} does not exist: create it first")
-    out_dir.mkdir(exist_ok=True)
+    """Create ``out_dir`` (and its parents) for a new run.
+
+    A run never overwrites another: ReplayError when ``out_dir`` holds a succeeded or running run,
+    or anything that is not a run. A failed run (manifest ``status: failed``) never blocks its
+    retry: its files are removed and the directory reused, so the same ``--out`` works once the
+    cause is fixed.
+    """
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ReplayError(f"{out_dir} exists and is not a directory: choose a new --out")
+    if out_dir.is_dir() and any(out_dir.iterdir()):
+        try:
+            manifest = json.loads((out_dir / "manifest.json").read_text())
+        except (OSError, ValueError):
+            manifest = None
+        if not isinstance(manifest, dict) or manifest.get("status") != "failed":
+            raise ReplayError(f"{out_dir} already exists and holds {_what_is_there(out_dir, manifest)}; a run never "
+                              f"overwrites another: choose a new --out")
+        for path in _failed_run_files(out_dir, manifest):
+            path.unlink()
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ReplayError(f"cannot create the run directory {out_dir}: {err.strerror}") from err
 
 
 def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, seed: int = 0,
@@ -119,7 +164,7 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
     cfg = resolve_config(pipeline_cls, config)
     prepare_run_dir(out_dir)
     run_id = run_id or uuid.uuid4().hex
-    started = datetime.now(UTC)
+    started = datetime.now(timezone.utc)
     t_wall, t_cpu = time.perf_counter(), time.process_time()
     timings: dict[str, float] = {}
     manifest: dict[str, Any] = {
@@ -189,7 +234,7 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
         usage = resource.getrusage(resource.RUSAGE_SELF)
         timings.update(wall_s=time.perf_counter() - t_wall, cpu_s=time.process_time() - t_cpu,
                        max_rss_mib=usage.ru_maxrss / 1024.0)
-        manifest["timings"] = {"started_at": started.isoformat(), "finished_at": datetime.now(UTC).isoformat(),
+        manifest["timings"] = {"started_at": started.isoformat(), "finished_at": datetime.now(timezone.utc).isoformat(),
                                **{k: round(v, 6) for k, v in timings.items()}}
         atomic_write(out_dir / "log.txt", "\n".join(lines) + "\n")
         atomic_write(out_dir / "manifest.json", json.dumps(manifest, indent=2, sort_keys=True, default=str) + "\n")

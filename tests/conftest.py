@@ -33,9 +33,11 @@ def update_golden(request: pytest.FixtureRequest) -> bool:
     return bool(request.config.getoption("--update-golden"))
 
 
-def write_tiny_recording(path: Path, n: int = 100, *, drift: float = 0.05, seed: int = 0) -> Path:
+def write_tiny_recording(path: Path, n: int = 100, *, drift: float = 0.05, seed: int = 0,
+                         perturb: float = 0.0) -> Path:
     """A small synthetic recording: a robot on an arc, odometry with a scale/heading drift,
-    ground truth at the same times, a landmark map and range-bearing scans with true ids."""
+    ground truth at the same times, a landmark map and range-bearing scans with true ids.
+    ``perturb`` scales odometry and ranges by ``1 + perturb`` (numerical noise, e.g. 1e-12)."""
     import numpy as np
 
     from recorder import GroundTruthPose, LandmarkMap, OdometryPose, RangeBearingScan, Recorder
@@ -49,12 +51,13 @@ def write_tiny_recording(path: Path, n: int = 100, *, drift: float = 0.05, seed:
         for k in range(n):
             t = 1_000_000_000 + k * 100_000_000
             rec.write("/ground_truth/pose", GroundTruthPose(t, *x))
-            rec.write("/odom", OdometryPose(t, *o))
+            rec.write("/odom", OdometryPose(t, o[0] * (1 + perturb), o[1] * (1 + perturb), o[2]))
             if k % 5 == 0:
                 d = landmarks - x[:2]
                 r = np.hypot(d[:, 0], d[:, 1]) + rng.normal(0, 0.01, 4)
                 b = np.arctan2(d[:, 1], d[:, 0]) - x[2]
-                rec.write("/landmarks/range_bearing", RangeBearingScan(t, r, b, np.arange(4), 0.01, 0.01))
+                rec.write("/landmarks/range_bearing",
+                          RangeBearingScan(t, r * (1 + perturb), b, np.arange(4), 0.01, 0.01))
             v, w = 0.1, 0.02
             x = x + [v * np.cos(x[2]), v * np.sin(x[2]), w]
             o = o + [(1 + drift) * v * np.cos(o[2]), (1 + drift) * v * np.sin(o[2]), w * (1 + drift)]

@@ -69,7 +69,7 @@ class DSlamPipeline(LandmarkSlamPipeline):
     metrics = {
         **METRICS,
         "info_nnz_blocks": MetricSpec("none", "", "nonzero 2x2 blocks of the final information matrix"),
-        "info_nnz_blocks_per_landmark": MetricSpec("none", "", "nonzero blocks per mapped feature", 1e-9),
+        "info_nnz_blocks_per_landmark": MetricSpec.measured("none", "", "nonzero blocks per mapped feature"),
     }
 
     def __init__(self, config: DSlamPipelineConfig, ctx: ReplayContext) -> None:

@@ -101,16 +101,16 @@ class IfmiPipeline(Pipeline):
         "images": MetricSpec("none", "", "images (graph nodes)"),
         "registrations": MetricSpec("none", "", "registrations tried (consecutive and loop candidates)"),
         "registrations_accepted": MetricSpec("higher", "", "registrations with PNR >= min_pnr"),
-        "pnr_median": MetricSpec("higher", "", "median PNR (eq. 13) of all registrations", 1e-9),
+        "pnr_median": MetricSpec.measured("higher", "", "median PNR (eq. 13) of all registrations"),
         "loop_closures": MetricSpec("none", "", "accepted non-consecutive edges"),
-        "chi2_initial": MetricSpec("none", "", "squared Mahalanobis sum over all edges before optimization", 1e-6),
-        "chi2_final": MetricSpec("lower", "", "squared Mahalanobis sum over all edges after optimization", 1e-6),
-        "ate_rmse_px_initial": MetricSpec("lower", "px", "node position RMSE before optimization (similarity-aligned)",
-                                          1e-6),
-        "ate_rmse_px": MetricSpec("lower", "px", "node position RMSE after optimization (similarity-aligned)", 1e-6),
-        "rotation_error_deg_median": MetricSpec("lower", "deg", "median |rotation error| of accepted edges", 1e-9),
-        "translation_error_px_median": MetricSpec("lower", "px", "median translation error of accepted edges "
-                                                  "(scaled by the ATE alignment)", 1e-9),
+        "chi2_initial": MetricSpec.measured("none", "", "squared Mahalanobis sum over all edges before optimization"),
+        "chi2_final": MetricSpec.measured("lower", "", "squared Mahalanobis sum over all edges after optimization"),
+        "ate_rmse_px_initial": MetricSpec.measured("lower", "px",
+                                                   "node position RMSE before optimization (similarity-aligned)"),
+        "ate_rmse_px": MetricSpec.measured("lower", "px", "node position RMSE after optimization (similarity-aligned)"),
+        "rotation_error_deg_median": MetricSpec.measured("lower", "deg", "median |rotation error| of accepted edges"),
+        "translation_error_px_median": MetricSpec.measured("lower", "px", "median translation error of accepted edges "
+                                                                          "(scaled by the ATE alignment)"),
     }
 
     summary_skip = (*views.SUMMARY_SKIP, "graph/before", "graph/estimate")

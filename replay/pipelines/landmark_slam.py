@@ -83,12 +83,14 @@ class LandmarkSlamConfig:
 
 
 METRICS = {
-    "landmark_rmse_m": MetricSpec("lower", "m", "RMS error of the matched landmarks (world frame, known start)", 1e-9),
-    "landmark_nees_mean": MetricSpec("none", "", "mean landmark NEES (2 when consistent, less when conservative)",
-                                     1e-9),
-    "robot_ate_rmse_m": MetricSpec("lower", "m", "RMS robot position error against ground truth, no alignment", 1e-9),
-    "robot_final_error_m": MetricSpec("lower", "m", "robot position error at the last estimate", 1e-9),
-    "robot_nees_mean": MetricSpec("none", "", "mean robot pose NEES at scans (3 when consistent)", 1e-9),
+    "landmark_rmse_m": MetricSpec.measured("lower", "m",
+                                           "RMS error of the matched landmarks (world frame, known start)"),
+    "landmark_nees_mean": MetricSpec.measured("none", "",
+                                              "mean landmark NEES (2 when consistent, less when conservative)"),
+    "robot_ate_rmse_m": MetricSpec.measured("lower", "m",
+                                            "RMS robot position error against ground truth, no alignment"),
+    "robot_final_error_m": MetricSpec.measured("lower", "m", "robot position error at the last estimate"),
+    "robot_nees_mean": MetricSpec.measured("none", "", "mean robot pose NEES at scans (3 when consistent)"),
     "landmarks_mapped": MetricSpec("higher", "", "features in the final map"),
     "landmarks_true": MetricSpec("none", "", "landmarks in the ground-truth map"),
     "false_landmarks": MetricSpec("lower", "", "mapped features matching no true landmark"),

@@ -34,11 +34,11 @@ class OdometryPipeline(Pipeline):
     start_topic = TOPIC_ODOM
     Config = OdometryConfig
     metrics = {
-        "robot_ate_rmse_m": MetricSpec("lower", "m", "RMS position error against ground truth (no alignment)", 1e-9),
-        "robot_final_error_m": MetricSpec("lower", "m", "position error at the last scored pose", 1e-9),
-        "robot_max_error_m": MetricSpec("lower", "m", "largest position error", 1e-9),
-        "robot_heading_rmse_deg": MetricSpec("lower", "deg", "RMS heading error", 1e-9),
-        "path_length_m": MetricSpec("none", "m", "length of the estimated path", 1e-9),
+        "robot_ate_rmse_m": MetricSpec.measured("lower", "m", "RMS position error against ground truth (no alignment)"),
+        "robot_final_error_m": MetricSpec.measured("lower", "m", "position error at the last scored pose"),
+        "robot_max_error_m": MetricSpec.measured("lower", "m", "largest position error"),
+        "robot_heading_rmse_deg": MetricSpec.measured("lower", "deg", "RMS heading error"),
+        "path_length_m": MetricSpec.measured("none", "m", "length of the estimated path"),
         "poses_scored": MetricSpec("none", "", "estimates inside the ground truth's time span"),
     }
 

@@ -99,11 +99,12 @@ class TopometricPipeline(Pipeline):
         "images": MetricSpec("none", "", "images taken (every sample_distance_m or sample_angle_deg)"),
         "locations": MetricSpec("none", "", "locations (graph nodes)"),
         "loop_closures": MetricSpec("none", "", "accepted loop closures"),
-        "loop_closure_precision": MetricSpec("higher", "", "correct / accepted loop closures (truth rule in the "
-                                             "module docstring)", 1e-9),
-        "loop_closure_recall": MetricSpec("higher", "", "images that closed a loop / images that should have", 1e-9),
-        "trajectory_ate_rmse_m": MetricSpec("lower", "m", "RMS position error of the relaxed locations", 1e-9),
-        "odometry_ate_rmse_m": MetricSpec("lower", "m", "RMS position error of odometry at the same images", 1e-9),
+        "loop_closure_precision": MetricSpec.measured("higher", "",
+                                                      "correct / accepted loop closures (truth rule in the "
+                                                      "module docstring)"),
+        "loop_closure_recall": MetricSpec.measured("higher", "", "images that closed a loop / images that should have"),
+        "trajectory_ate_rmse_m": MetricSpec.measured("lower", "m", "RMS position error of the relaxed locations"),
+        "odometry_ate_rmse_m": MetricSpec.measured("lower", "m", "RMS position error of odometry at the same images"),
     }
 
     def __init__(self, config: TopometricConfig, ctx: ReplayContext) -> None:

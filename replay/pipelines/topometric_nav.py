@@ -96,21 +96,24 @@ class TopometricNavPipeline(Pipeline):
     metrics = {
         "goal_reached": MetricSpec("higher", "", "1 when the navigator stopped at the goal and the true position "
                                    "is within goal_radius_m of the goal node"),
-        "goal_distance_m": MetricSpec("lower", "m", "true final position to the goal node's true pose (its map "
-                                      "pose when the map has no ground truth; the log says which)", 1e-9),
-        "cross_track_error_m_mean": MetricSpec("lower", "m", "mean distance of the true position to the true path "
-                                               "(route nodes at their mapping ground-truth poses; the map path "
-                                               "when the map has none, as the log says)", 1e-9),
-        "cross_track_error_m_max": MetricSpec("lower", "m", "largest distance of the true position to the true "
-                                              "path (map path fallback, as for the mean)", 1e-9),
-        "cross_track_error_m_final": MetricSpec("lower", "m", "distance of the true final position to the true "
-                                                "path (map path fallback, as for the mean)", 1e-9),
+        "goal_distance_m": MetricSpec.measured("lower", "m",
+                                               "true final position to the goal node's true pose (its map "
+                                               "pose when the map has no ground truth; the log says which)"),
+        "cross_track_error_m_mean": MetricSpec.measured("lower", "m",
+                                                        "mean distance of the true position to the true path "
+                                                        "(route nodes at their mapping ground-truth poses; the map "
+                                                        "path when the map has none, as the log says)"),
+        "cross_track_error_m_max": MetricSpec.measured("lower", "m",
+                                                       "largest distance of the true position to the true "
+                                                       "path (map path fallback, as for the mean)"),
+        "cross_track_error_m_final": MetricSpec.measured("lower", "m",
+                                                         "distance of the true final position to the true "
+                                                         "path (map path fallback, as for the mean)"),
         "visual_corrections": MetricSpec("none", "", "loop closures that reset the position (section IV-B)"),
-        "loop_closure_rate": MetricSpec("higher", "", "images with a loop closure / images", 1e-9),
+        "loop_closure_rate": MetricSpec.measured("higher", "", "images with a loop closure / images"),
         "images": MetricSpec("none", "", "images processed"),
-        "route_length_m": MetricSpec("none", "m", "length of the planned route through the map's nodes", 1e-9),
-        "estimate_error_m_mean": MetricSpec("lower", "m", "mean position error of the estimate at the images",
-                                            1e-9),
+        "route_length_m": MetricSpec.measured("none", "m", "length of the planned route through the map's nodes"),
+        "estimate_error_m_mean": MetricSpec.measured("lower", "m", "mean position error of the estimate at the images"),
         "replay_mismatches": MetricSpec("lower", "", "recorded localizations and commands the replay did not "
                                         "reproduce exactly"),
         "code_matches_recording": MetricSpec("none", "", "1 when this replay runs the navigation code that made "

@@ -12,6 +12,7 @@ from conftest import write_tiny_recording
 from mcap.writer import Writer
 
 from api.cli import main
+from api.hints import view_hint
 from recorder import OdometryPose, Recorder, codec
 
 
@@ -51,7 +52,7 @@ def test_run_success_and_diff_exit_codes(rec: Path, tmp_path: Path, capsys: pyte
     code, out, _ = run_cli(["run", str(rec), "--pipeline", "odometry", "--out", str(tmp_path / "a"), "-q"], capsys)
     assert code == 0
     code, out, _ = run_cli(["run", str(rec), "--pipeline", "odometry", "--out", str(tmp_path / "b")], capsys)
-    assert code == 0 and f"rerun {tmp_path / 'b' / 'run.rrd'}" in out
+    assert code == 0 and "\n".join(view_hint(tmp_path / "b" / "run.rrd")) in out
     code, out, _ = run_cli(["diff", str(tmp_path / "a"), str(tmp_path / "b"), "--json"], capsys)
     assert code == 0 and json.loads(out)["rrd_equal"] is True
     worse = write_tiny_recording(tmp_path / "worse.mcap", drift=0.2)
@@ -215,3 +216,19 @@ def test_graph_optimize(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
     bad.write_text("VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1 oops\n")
     code, _, err = run_cli(["graph", "optimize", str(bad), "--out", str(tmp_path / "b.g2o")], capsys)
     assert_bad_input(code, err, r"bad.g2o:2")
+
+
+def test_failed_run_retry_and_nested_out(rec: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The README's story: a run fails (missing topic), the retry into the same --out works; --out a/b/c is created."""
+    from recorder import GroundTruthPose
+
+    gt_only = tmp_path / "gt.mcap"
+    with Recorder(gt_only, source={}) as r:
+        r.write("/ground_truth/pose", GroundTruthPose(1, 0, 0, 0))
+    out = str(tmp_path / "runs" / "nested" / "odo")
+    code, _, err = run_cli(["run", str(gt_only), "--pipeline", "odometry", "--out", out, "-q"], capsys)
+    assert_bad_input(code, err, "has no /odom topic")
+    code, _, err = run_cli(["run", str(rec), "--pipeline", "odometry", "--out", out, "-q"], capsys)
+    assert code == 0, err
+    code, _, err = run_cli(["run", str(rec), "--pipeline", "odometry", "--out", out, "-q"], capsys)
+    assert_bad_input(code, err, "already exists and holds a run with status 'succeeded'.*choose a new --out")

@@ -105,5 +105,5 @@ def test_ray_executor_without_ray_says_how_to_install(monkeypatch: pytest.Monkey
     from api.ray_executor import RayMissingError
 
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
-    with pytest.raises(RayMissingError, match=r"the ray executor needs `pip install slamreplay\[ray\]`"):
+    with pytest.raises(RayMissingError, match=r"the ray executor needs the ray extra: `pip install -e '\.\[ray\]'`"):
         make_executor(Settings(executor="ray"))

@@ -134,3 +134,11 @@ def test_mrclam_robot1(shared_data: Path, tmp_path: Path) -> None:
     d = run_recording(rec, "dslam", tmp_path / "d", config=config).metrics
     assert d["false_landmarks"] == 0 and d["landmarks_mapped"] >= 5  # a camera seeing 1-2 landmarks starves D-SLAM
     assert d["robot_ate_rmse_m"] < 1.0
+
+
+def test_examples_mrclam_json_is_mrclam_config() -> None:
+    """examples/mrclam.json (the README's --config for MRCLAM) holds exactly MRCLAM_CONFIG."""
+    from replay.pipelines.landmark_slam import MRCLAM_CONFIG
+
+    path = Path(__file__).resolve().parents[2] / "examples" / "mrclam.json"
+    assert json.loads(path.read_text()) == MRCLAM_CONFIG

@@ -99,8 +99,66 @@ def test_bad_input_writes_nothing_or_a_failed_manifest(tiny_recording: Path, tmp
     assert sorted(p.name for p in (tmp_path / "r3").iterdir()) == ["log.txt", "manifest.json"]
     man = json.loads((tmp_path / "r3" / "manifest.json").read_text())
     assert man["status"] == "failed" and "has no /odom topic" in man["error"]
-    with pytest.raises(ReplayError, match="already exists"):
+    retry = run_recording(tiny_recording, "odometry", tmp_path / "r3")  # the fix: a recording with /odom
+    assert retry.status == "succeeded"
+    assert json.loads((tmp_path / "r3" / "manifest.json").read_text())["status"] == "succeeded"
+    with pytest.raises(ReplayError, match="already exists and holds a run with status 'succeeded'"):
         run_recording(tiny_recording, "odometry", tmp_path / "r3")
+
+
+def test_failed_run_never_blocks_its_retry(tiny_recording: Path, tmp_path: Path) -> None:
+    """A failed run's directory is cleared and reused; what it did not write is never deleted."""
+    gt_only = tmp_path / "gt.mcap"
+    with Recorder(gt_only, source={}) as rec:
+        rec.write("/ground_truth/pose", GroundTruthPose(1, 0, 0, 0))
+    out = tmp_path / "a" / "b" / "c"  # parents are created
+    with pytest.raises(ReplayError, match="has no /odom topic"):
+        run_recording(gt_only, "odometry", out)
+    (out / ".run.rrd.partial").write_bytes(b"left by a crash")  # a failed run's temporary file is its own
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["status"] == "failed"
+    res = run_recording(tiny_recording, "odometry", out)
+    assert res.status == "succeeded" and not (out / ".run.rrd.partial").exists()
+    assert {p.name for p in out.iterdir()} == {"run.rrd", "metrics.json", "manifest.json", "log.txt"}
+    assert "has no /odom topic" not in (out / "log.txt").read_text()
+    # a failed run beside a user's file: the file is not the run's to delete
+    other = tmp_path / "other"
+    with pytest.raises(ReplayError, match="has no /odom topic"):
+        run_recording(gt_only, "odometry", other)
+    (other / "notes.txt").write_text("mine")
+    with pytest.raises(ReplayError, match=r"failed run and files it did not write \(notes.txt\)"):
+        run_recording(tiny_recording, "odometry", other)
+    assert (other / "notes.txt").read_text() == "mine" and (other / "manifest.json").exists()
+
+
+def test_run_dir_that_is_not_a_failed_run_is_refused(tiny_recording: Path, tmp_path: Path) -> None:
+    """Not empty and no manifest, an unfinished run, or a file: refused, and nothing in it is touched."""
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "data.csv").write_text("1,2")
+    with pytest.raises(ReplayError, match="already exists and holds files that are not a run"):
+        run_recording(tiny_recording, "odometry", user)
+    assert (user / "data.csv").exists()
+    killed = tmp_path / "killed"
+    killed.mkdir()
+    (killed / ".run.rrd.partial").write_bytes(b"")
+    with pytest.raises(ReplayError, match="unfinished run"):
+        run_recording(tiny_recording, "odometry", killed)
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "manifest.json").write_text("{not json")
+    with pytest.raises(ReplayError, match="files that are not a run"):
+        run_recording(tiny_recording, "odometry", bad)
+    a_file = tmp_path / "file"
+    a_file.write_text("x")
+    with pytest.raises(ReplayError, match="is not a directory"):
+        run_recording(tiny_recording, "odometry", a_file)
+    (tmp_path / "empty").mkdir()
+    assert run_recording(tiny_recording, "odometry", tmp_path / "empty").status == "succeeded"
+    blocker = tmp_path / "blocker"
+    blocker.write_text("x")
+    with pytest.raises(ReplayError, match="cannot create the run directory"):
+        run_recording(tiny_recording, "odometry", blocker / "sub" / "run")
 
 
 def test_window_and_no_ground_truth(tmp_path: Path) -> None:
