@@ -7,11 +7,16 @@ A :class:`TopicDecoder` is made once per channel and turns its raw bytes into me
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable
 from typing import Any
 
+import cv2
+from google.protobuf.message import DecodeError
+from mcap.exceptions import McapError
 from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
+from mcap_ros2._vendor.rosidl_adapter.parser import InvalidSpecification, InvalidValue
 from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 
 from recorder.codec.protobuf import READABLE_SCHEMAS, encode, from_proto, schema_data, schema_name
@@ -20,6 +25,17 @@ from recorder.errors import CodecError
 from recorder.messages import Message
 
 __all__ = ["READABLE_SCHEMAS", "TopicDecoder", "encode", "schema_data", "schema_name"]
+
+# What a damaged schema raises while it is parsed: a FileDescriptorSet that is not protobuf
+# (DecodeError), whose files do not build (TypeError from the descriptor pool), a ros2msg text
+# that is not UTF-8 (UnicodeDecodeError, a ValueError) or not message definitions (rosidl's
+# InvalidSpecification family, NameError for a bad field name).
+_BAD_SCHEMA = (DecodeError, TypeError, ValueError, KeyError, IndexError, NameError, McapError, InvalidSpecification,
+               InvalidValue, RecursionError)
+# What damaged message bytes raise: protobuf's DecodeError, CDR reads past the end (struct.error,
+# IndexError), bad UTF-8 or values the message model refuses (ValueError), an image OpenCV cannot take.
+_BAD_MESSAGE = (CodecError, DecodeError, McapError, struct.error, ValueError, TypeError, IndexError, KeyError,
+                OverflowError, cv2.error)
 
 
 class TopicDecoder:
@@ -40,14 +56,19 @@ class TopicDecoder:
         assert schema is not None
         self.schema_name = name
         self._raw: Callable[[bytes], Any] | None
-        if message_encoding == "protobuf" and schema.encoding == "protobuf":
-            self._raw = ProtobufDecoderFactory().decoder_for(message_encoding, schema)
-            self._ros = False
-        elif message_encoding == "cdr" and schema.encoding == "ros2msg":
-            self._raw = Ros2DecoderFactory().decoder_for(message_encoding, schema)
-            self._ros = True
-        else:
-            self._raw = None
+        try:
+            if message_encoding == "protobuf" and schema.encoding == "protobuf":
+                self._raw = ProtobufDecoderFactory().decoder_for(message_encoding, schema)
+                self._ros = False
+            elif message_encoding == "cdr" and schema.encoding == "ros2msg":
+                self._raw = Ros2DecoderFactory().decoder_for(message_encoding, schema)
+                self._ros = True
+            else:
+                self._raw = None
+        except _BAD_SCHEMA as err:
+            msg = (f"topic {topic}: its schema {name} ({schema.encoding}, {len(schema.data)} bytes) is damaged "
+                   f"and cannot be parsed: {type(err).__name__}: {_one_line(err)}")
+            raise CodecError(msg) from err
         if self._raw is None:
             msg = (f"topic {topic}: schema {name} with schema encoding {schema.encoding!r} and message "
                    f"encoding {message_encoding!r} is not supported (use protobuf, or ROS 2 ros2msg/cdr)")
@@ -60,6 +81,14 @@ class TopicDecoder:
             if self._ros:
                 return from_ros2(self.kind, self.schema_name, obj, log_time_ns)
             return from_proto(self.kind, obj, log_time_ns)
-        except Exception as err:
-            msg = f"{self.topic} message at log_time {log_time_ns} ns is invalid: {err}"
+        except _BAD_MESSAGE as err:
+            msg = (f"{self.topic} message at log_time {log_time_ns} ns is invalid ({len(data)} bytes): "
+                   f"{_one_line(err) or type(err).__name__}")
             raise CodecError(msg) from err
+
+
+def _one_line(err: BaseException, limit: int = 200) -> str:
+    """An exception's text on one line, printable and bounded (damaged bytes can end up in it)."""
+    text = " ".join(str(err).split())
+    text = "".join(c if c.isprintable() else "?" for c in text)
+    return text if len(text) <= limit else text[:limit] + "..."
