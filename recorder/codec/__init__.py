@@ -7,6 +7,8 @@ A :class:`TopicDecoder` is made once per channel and turns its raw bytes into me
 
 from __future__ import annotations
 
+import contextlib
+import io
 import struct
 from collections.abc import Callable
 from typing import Any
@@ -33,9 +35,10 @@ __all__ = ["READABLE_SCHEMAS", "TopicDecoder", "encode", "schema_data", "schema_
 _BAD_SCHEMA = (DecodeError, TypeError, ValueError, KeyError, IndexError, NameError, McapError, InvalidSpecification,
                InvalidValue, RecursionError)
 # What damaged message bytes raise: protobuf's DecodeError, CDR reads past the end (struct.error,
-# IndexError), bad UTF-8 or values the message model refuses (ValueError), an image OpenCV cannot take.
+# IndexError), bad UTF-8 or values the message model refuses (ValueError), an image OpenCV cannot take,
+# and a damaged schema that still parses but lost a field the message model reads (AttributeError).
 _BAD_MESSAGE = (CodecError, DecodeError, McapError, struct.error, ValueError, TypeError, IndexError, KeyError,
-                OverflowError, cv2.error)
+                OverflowError, AttributeError, cv2.error)
 
 
 class TopicDecoder:
@@ -61,7 +64,9 @@ class TopicDecoder:
                 self._raw = ProtobufDecoderFactory().decoder_for(message_encoding, schema)
                 self._ros = False
             elif message_encoding == "cdr" and schema.encoding == "ros2msg":
-                self._raw = Ros2DecoderFactory().decoder_for(message_encoding, schema)
+                # rosidl's parser prints each bad line to stderr before it raises: the error below says it once
+                with contextlib.redirect_stderr(io.StringIO()):
+                    self._raw = Ros2DecoderFactory().decoder_for(message_encoding, schema)
                 self._ros = True
             else:
                 self._raw = None
