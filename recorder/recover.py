@@ -79,7 +79,7 @@ class _Copier:
         self.decoders: dict[int, TopicDecoder | str | None] = {}  # None: not validated; str: why unreadable
         self.messages = 0
         self.rejected = 0
-        self.notes: list[str] = []
+        self._reasons: dict[str, list[Any]] = {}  # what went wrong -> [first full reason, count]
 
     def _decoder(self, channel: Channel) -> TopicDecoder | str | None:
         schema = self.schemas.get(channel.schema_id) if channel.schema_id else None
@@ -121,7 +121,8 @@ class _Copier:
             try:
                 dec(record.data, record.log_time)
             except CodecError as err:
-                self._reject(str(err))
+                cause = type(err.__cause__).__name__ if err.__cause__ is not None else "CodecError"
+                self._reject(f"{err} (the first of them)", key=f"{channel.topic}: {cause}")
                 return
         channel_id = self.channel_ids.get(record.channel_id)
         if channel_id is None:
@@ -137,10 +138,15 @@ class _Copier:
         self.writer.add_message(channel_id, record.log_time, record.data, record.publish_time, record.sequence)
         self.messages += 1
 
-    def _reject(self, why: str) -> None:
+    def _reject(self, why: str, key: str | None = None) -> None:
         self.rejected += 1
-        if why not in self.notes and len(self.notes) < 20:
-            self.notes.append(why)
+        entry = self._reasons.setdefault(key or why, [why, 0])
+        entry[1] += 1
+
+    @property
+    def notes(self) -> list[str]:
+        """One line per reason messages were dropped: how many, and the first one's reason."""
+        return [f"{n} message{'s' if n != 1 else ''}: {why}" for why, n in self._reasons.values()]
 
 
 def _records_of_cut_chunk(tail: bytes) -> list[Any]:
@@ -196,10 +202,13 @@ class _Salvage:
         self.expected: int | None = None
         self.chunk_offsets: list[int] = []
         self.end = f.size
+        self.summary_damage: str | None = None
         try:
             summary = f.summary()
-        except DamageError:
+        except DamageError as err:
             summary = None
+            if f.size >= len(MAGIC) * 2 and f.read_at(f.size - len(MAGIC), len(MAGIC)) == MAGIC:
+                self.summary_damage = str(err)  # closed, but its index is damaged (a cut file has none)
         if summary is not None:
             self.end = summary.start
             if summary.statistics is not None:
@@ -234,6 +243,9 @@ class _Salvage:
                 continue
             dropped_chunk = False
             if opcode in (Opcode.DATA_END, Opcode.FOOTER):
+                if self.summary_damage is not None and opcode == Opcode.DATA_END and after < self.f.size:
+                    self.drop(after, self.f.size, f"the summary section is damaged ({self.summary_damage}); the "
+                                                  f"new file gets a new one", indexed=True)
                 return
             try:
                 record = parse_record(opcode, self.f.read_at(pos + 9, length), f"at byte {pos}")
@@ -359,7 +371,7 @@ def describe(report: RecoveryReport, out: str | Path) -> str:
     for start, end, why in report.dropped:
         lines.append(f"  dropped bytes {start}..{end} ({end - start:,} bytes): {why}")
     for note in report.notes:
-        lines.append(f"  dropped messages: {note}")
+        lines.append(f"  dropped {note}")
     if not report.dropped and not report.notes:
         lines.append("  no damage found")
     return "\n".join(lines)

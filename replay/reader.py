@@ -262,7 +262,10 @@ class RecordingReader:
             return TopicDecoder(logical_topic, TOPIC_TYPES[logical_topic], self._schemas.get(channel.schema_id),
                                 channel.message_encoding)
         except CodecError as err:
-            raise ReplayError(f"{self.path.name}: {err}") from err
+            # a schema that does not parse is damage (recover drops its channel); a schema of the wrong type is not
+            hint = (f". `slamreplay recover {self.path} --out FIXED.mcap` keeps the other topics"
+                    if err.__cause__ is not None else "")
+            raise ReplayError(f"{self.path.name}: {err}{hint}") from err
 
     def messages(self, topics: Iterable[str] | None = None, *, exclude: Iterable[str] = (),
                  start_ns: int | None = None, end_ns: int | None = None) -> Iterator[Envelope]:
@@ -280,7 +283,8 @@ class RecordingReader:
             try:
                 msg = dec(data, log_time)
             except CodecError as err:
-                raise ReplayError(f"{self.path.name}: {err}") from err
+                raise ReplayError(f"{self.path.name}: {err}. `slamreplay recover {self.path} --out FIXED.mcap` "
+                                  f"drops the messages that do not decode") from err
             yield Envelope(dec.topic, log_time, publish_time, index, msg)
 
     def raw(self, file_topics: Iterable[str], *, start_ns: int | None = None,
