@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--kinds", default=",".join(KINDS), help=f"comma-separated subset of {','.join(KINDS)}")
     p.add_argument("--workers", type=int, default=2, help="worker processes")
     p.add_argument("--time-limit-s", type=int, default=30, help="per command")
-    p.add_argument("--memory-headroom-mib", type=int, default=1024,
+    p.add_argument("--memory-headroom-mib", type=int, default=2048,
                    help="address space a worker may add to its warm size (the mutants are < 100 KB)")
     p.add_argument("--json", type=Path, help="write every mutant's outcomes here")
     p.add_argument("--keep", type=Path, help="copy the mutant files of findings here")

@@ -201,7 +201,7 @@ class Campaign:
 
 
 def run_campaign(bases: dict[str, Path], tasks: list[tuple[str, int, int]], work: Path, *, workers: int = 2,
-                 time_limit_s: int = 30, memory_headroom: int = 1 << 30, keep: Path | None = None,
+                 time_limit_s: int = 30, memory_headroom: int = 2 << 30, keep: Path | None = None,
                  progress: Any = None) -> Campaign:
     """Run (kind, seed, index) mutants over ``workers`` processes; a worker that stops answering
     within ``2 * time_limit_s + 10`` seconds per mutant is killed and replaced (the mutant counts
