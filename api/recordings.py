@@ -33,7 +33,7 @@ from replay.errors import ReplayError
 from replay.reader import MCAP_MAGIC, RecordingReader
 from replay.run import sha256_file
 
-_CLI_HINT = re.compile(r"[.;,]? *[Ss]alvage (it|its messages) with `slamreplay recover[^`]*`\.?")
+_CLI_HINT = re.compile(r"[.;,]? *[Ss]alvage (it|its messages|the readable messages) with `slamreplay recover[^`]*`\.?")
 _UNSAFE = re.compile(r"[^A-Za-z0-9._ -]+")
 
 
