@@ -14,6 +14,7 @@ from collections.abc import Callable
 from typing import Any
 
 import cv2
+import numpy as np
 from google.protobuf.message import DecodeError
 from mcap.exceptions import McapError
 from mcap.records import Schema
@@ -24,7 +25,7 @@ from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 from recorder.codec.protobuf import READABLE_SCHEMAS, encode, from_proto, schema_data, schema_name
 from recorder.codec.ros2 import canonical_ros_type, from_ros2
 from recorder.errors import CodecError
-from recorder.messages import Message
+from recorder.messages import LandmarkMap, Message, PlanarPose, RangeBearingScan
 
 __all__ = ["READABLE_SCHEMAS", "TopicDecoder", "encode", "schema_data", "schema_name"]
 
@@ -84,12 +85,36 @@ class TopicDecoder:
         try:
             obj = self._raw(data)
             if self._ros:
-                return from_ros2(self.kind, self.schema_name, obj, log_time_ns)
-            return from_proto(self.kind, obj, log_time_ns)
+                msg = from_ros2(self.kind, self.schema_name, obj, log_time_ns)
+            else:
+                msg = from_proto(self.kind, obj, log_time_ns)
+            _check_plausible(msg)
+            return msg
         except _BAD_MESSAGE as err:
             msg = (f"{self.topic} message at log_time {log_time_ns} ns is invalid ({len(data)} bytes): "
                    f"{_one_line(err) or type(err).__name__}")
             raise CodecError(msg) from err
+
+
+# No robot recording holds a coordinate or range this far out; bytes shifted by damage easily decode into one
+# (1e300 is finite), which then overflows the float32 of the viewer and the algorithms' arithmetic.
+PLAUSIBLE_M = 1e9
+
+
+def _check_plausible(msg: Message) -> None:
+    """CodecError when a decoded position or range is beyond PLAUSIBLE_M metres."""
+    if isinstance(msg, PlanarPose):
+        values = {"x_m": np.array([msg.x_m]), "y_m": np.array([msg.y_m])}
+    elif isinstance(msg, RangeBearingScan):
+        values = {"ranges_m": msg.ranges_m}
+    elif isinstance(msg, LandmarkMap):
+        values = {"positions_m": msg.positions_m}
+    else:
+        return
+    for name, v in values.items():
+        if v.size and float(np.max(np.abs(v))) > PLAUSIBLE_M:
+            raise CodecError(f"{name} holds {float(np.max(np.abs(v))):.3g} m, beyond any plausible "
+                             f"{PLAUSIBLE_M:g} m: the bytes are damaged")
 
 
 def _one_line(err: BaseException, limit: int = 200) -> str:
