@@ -19,13 +19,16 @@ import contextlib
 import io
 import multiprocessing as mp
 import multiprocessing.connection as mpc
+import os
 import re
 import resource
 import shutil
 import signal
+import tempfile
 import time
 import traceback
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -45,26 +48,46 @@ def _on_alarm(signum: int, frame: Any) -> None:
     raise _Timeout
 
 
+@contextlib.contextmanager
+def _fd2_captured() -> Iterator[io.StringIO]:
+    """What C libraries (libpng, zstd...) write straight to file descriptor 2 while the block runs."""
+    got = io.StringIO()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield got
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            got.write(tmp.read().decode(errors="replace"))
+
+
 def _call(argv: list[str], time_limit_s: int) -> tuple[str, int | None, str, str]:
-    """(outcome, exit code, stdout, stderr) of ``slamreplay ARGV`` run in this process."""
+    """(outcome, exit code, stdout, stderr) of ``slamreplay ARGV`` run in this process; stderr holds what
+    Python printed and what C code wrote to file descriptor 2, as a user's terminal would show both."""
     from api.cli import main
 
     out, err = io.StringIO(), io.StringIO()
-    signal.alarm(time_limit_s)
-    try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            rc = main(argv)
-    except _Timeout:
-        return "hang", None, out.getvalue(), err.getvalue()
-    except (Exception, SystemExit, MemoryError) as exc:  # noqa: BLE001 -- anything out of main() is a finding
-        return "internal", None, out.getvalue(), err.getvalue() + "".join(traceback.format_exception(exc))
-    finally:
-        signal.alarm(0)
-    if rc == 0:
-        return "ok", rc, out.getvalue(), err.getvalue()
-    if rc in (1, 2):
-        return "clean", rc, out.getvalue(), err.getvalue()
-    return "internal", rc, out.getvalue(), err.getvalue()
+    rc: int | None = None
+    outcome = ""
+    with _fd2_captured() as raw:
+        signal.alarm(time_limit_s)
+        try:
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                rc = main(argv)
+        except _Timeout:
+            outcome = "hang"
+        except (Exception, SystemExit, MemoryError) as exc:  # noqa: BLE001 -- anything out of main() is a finding
+            outcome = "internal"
+            err.write("".join(traceback.format_exception(exc)))
+        finally:
+            signal.alarm(0)
+    stderr = raw.getvalue() + err.getvalue()
+    if not outcome:
+        outcome = "ok" if rc == 0 else "clean" if rc in (1, 2) else "internal"
+    return outcome, rc, out.getvalue(), stderr
 
 
 def _check_recovered(stdout: str, out: Path) -> str | None:
@@ -122,6 +145,8 @@ def check_mutant(path: Path, pipeline: str, work: Path, time_limit_s: int) -> di
                 entry.update(outcome="wrong", why=why)
         elif outcome == "clean" and rc == 1 and command == "inspect":
             entry["error"] = next((ln.strip() for ln in stdout.splitlines() if "problem:" in ln), "")[:400]
+        if entry["outcome"] in ("ok", "clean") and rc != 2 and stderr.strip():
+            entry.update(outcome="wrong", why=f"exit {rc} with output on stderr: {stderr[:400]!r}")
         result[command] = entry
         for leftover in work.iterdir():
             if leftover.is_dir():
