@@ -364,10 +364,14 @@ def recover(src: str | Path, dst: str | Path) -> RecoveryReport:
 
 def describe(report: RecoveryReport, out: str | Path) -> str:
     """The report as the few lines ``slamreplay recover`` prints."""
-    lost = f"{report.lost}" if report.lost_exact else f"at least {report.lost}"
+    if report.lost_exact:
+        lost = f"{report.lost} messages lost"
+    elif report.lost:
+        lost = f"at least {report.lost} messages lost (more in bytes no index counts)"
+    else:
+        lost = "an unknown number of messages lost in the dropped bytes (no index counts them)"
     of = f" of the {report.expected} the file's statistics count" if report.expected is not None else ""
-    lines = [f"recovered {report.messages} messages{of} on {report.channels} channels into {out}; "
-             f"{lost} messages lost"]
+    lines = [f"recovered {report.messages} messages{of} on {report.channels} channels into {out}; {lost}"]
     for start, end, why in report.dropped:
         lines.append(f"  dropped bytes {start}..{end} ({end - start:,} bytes): {why}")
     for note in report.notes:
