@@ -85,11 +85,11 @@ class TopicDecoder:
         try:
             obj = self._raw(data)
             if self._ros:
-                msg = from_ros2(self.kind, self.schema_name, obj, log_time_ns)
+                decoded = from_ros2(self.kind, self.schema_name, obj, log_time_ns)
             else:
-                msg = from_proto(self.kind, obj, log_time_ns)
-            _check_plausible(msg)
-            return msg
+                decoded = from_proto(self.kind, obj, log_time_ns)
+            _check_plausible(decoded)
+            return decoded
         except _BAD_MESSAGE as err:
             msg = (f"{self.topic} message at log_time {log_time_ns} ns is invalid ({len(data)} bytes): "
                    f"{_one_line(err) or type(err).__name__}")
