@@ -44,6 +44,7 @@ from recorder.errors import DamageError
 MAGIC = b"\x89MCAP0\r\n"
 FOOTER_RECORD = 1 + 8 + 20  # opcode, length, summary_start, summary_offset_start, summary_crc
 MESSAGE_FIXED = 2 + 4 + 8 + 8  # channel_id, sequence, log_time, publish_time
+_MESSAGE_HEAD = struct.Struct("<HIQQ")
 _PIECE = 1 << 20  # decompression output is taken in pieces of this size, never sized by the file
 _CLASSES: dict[int, Any] = {
     Opcode.HEADER: Header, Opcode.FOOTER: Footer, Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel,
@@ -292,6 +293,10 @@ def chunk_records(data: bytes, offset: int) -> Iterator[Schema | Channel | Messa
         if length > len(data) - pos - 9:
             raise DamageError(f"Chunk record at byte {offset}: the {record_name(opcode)} record at byte {pos} of its "
                               f"content claims {length:,} bytes but only {len(data) - pos - 9:,} follow it")
-        if opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
+        if opcode == Opcode.MESSAGE and length >= MESSAGE_FIXED:  # the hot path: fixed fields, then the payload
+            channel_id, sequence, log_time, publish_time = _MESSAGE_HEAD.unpack_from(data, pos + 9)
+            yield Message(channel_id=channel_id, sequence=sequence, log_time=log_time, publish_time=publish_time,
+                          data=data[pos + 9 + MESSAGE_FIXED:pos + 9 + length])
+        elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
             yield parse_record(opcode, data[pos + 9:pos + 9 + length], f"at byte {pos} of the chunk at byte {offset}")
         pos += 9 + length
