@@ -258,6 +258,10 @@ class RecordingReader:
                               f"If the data is there under another name, map it with "
                               f"--topic-map FILE_TOPIC={logical_topic}")
         channel = next(c for c in self._channels.values() if c.topic == info.file_topic)
+        if channel.schema_id and channel.schema_id not in self._schemas:
+            err = DamageError(f"the Channel record of {channel.topic} refers to schema {channel.schema_id}, which "
+                              f"no Schema record defines")
+            raise self._damaged(err, f"topic {logical_topic}")
         try:
             return TopicDecoder(logical_topic, TOPIC_TYPES[logical_topic], self._schemas.get(channel.schema_id),
                                 channel.message_encoding)
