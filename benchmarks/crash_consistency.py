@@ -11,6 +11,8 @@ just after start-up to past the end of the work), then checks what is on disk:
 - run (`odometry` over a 1-hour recording, about 5 s): no ``metrics.json`` or ``run.rrd``
   unless ``manifest.json`` says succeeded; `diff` against the killed run exits 2 saying it is not
   a finished run; a second `run --out DIR` refuses (exit 2, "already exists").
+- disk full (a 2 MiB tmpfs, when this process may mount one): `record` and `run` exit 2 saying no
+  space is left; no FILE, the .partial is recovered; no run.rrd or metrics.json is left.
 
     .venv/bin/python benchmarks/crash_consistency.py --trials 20 [--json out.json]
 
@@ -112,6 +114,47 @@ def run_trial(work: Path, recording: Path, baseline: Path, k: int, delay_s: floa
     return t
 
 
+def disk_full_trials(work: Path, recording: Path) -> list[dict[str, Any]]:
+    """record and run into a 2 MiB tmpfs (needs the right to mount; skipped with a note otherwise)."""
+    small = work / "small"
+    small.mkdir()
+    mount = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(small)], capture_output=True,
+                           text=True)
+    if mount.returncode != 0:
+        print(f"disk full: skipped, cannot mount a small tmpfs ({mount.stderr.strip()[:120]})")
+        return []
+    trials: list[dict[str, Any]] = []
+    try:
+        out = small / "full.mcap"
+        p = cli("record", "sim-landmarks", "--duration-s", "3600", "--seed", "1", "--out", out, "-q")
+        t: dict[str, Any] = {"command": "record (disk full)", "trial": 0, "problems": []}
+        if (why := one_line_error(p, "no space left on the device", "slamreplay recover")) is not None:
+            t["problems"].append(why)
+        if out.exists():
+            t["problems"].append("FILE exists although the disk filled up")
+        rec = cli("recover", out.with_name("full.mcap.partial"), "--out", work / "full-fixed.mcap")
+        t["recovered"] = int(rec.stdout.split()[1]) if rec.returncode == 0 else 0
+        if rec.returncode != 0:
+            t["problems"].append(f"recover of the .partial: exit {rec.returncode}: {rec.stderr.strip()[:200]}")
+        trials.append(t)
+        for f in small.iterdir():
+            f.unlink()
+        run_dir = small / "run"
+        p = cli("run", recording, "--pipeline", "odometry", "--out", run_dir, "-q")
+        t = {"command": "run (disk full)", "trial": 0, "problems": []}
+        lines = [ln for ln in p.stderr.splitlines() if ln.startswith("slamreplay")]
+        if p.returncode != 2 or len(lines) != 1 or "no space left on the device" not in lines[0]:
+            t["problems"].append(f"exit {p.returncode}: {lines}")  # Rerun logs its own sink errors beside ours
+        left = sorted(f.name for f in run_dir.iterdir()) if run_dir.exists() else []
+        if "run.rrd" in left or "metrics.json" in left:
+            t["problems"].append(f"left {left}")
+        t["left"] = left
+        trials.append(t)
+    finally:
+        subprocess.run(["umount", str(small)], check=False)
+    return trials
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--trials", type=int, default=20, help="per command")
@@ -131,6 +174,7 @@ def main(argv: list[str] | None = None) -> int:
         cli("run", recording, "--pipeline", "odometry", "--out", baseline, "-q")
         for k in range(args.trials):
             trials.append(run_trial(work, recording, baseline, k, float(rng.uniform(0.5, 7.0))))
+        trials.extend(disk_full_trials(work, recording))
         wall = time.perf_counter() - t0
     for command in ("record", "run"):
         ts = [t for t in trials if t["command"] == command]
@@ -144,6 +188,11 @@ def main(argv: list[str] | None = None) -> int:
               f"{len(ts) - len(bad)} left nothing that looks whole{extra}")
         for t in bad:
             print(f"  trial {t['trial']} (kill after {t['kill_after_s']} s): " + "; ".join(t["problems"]))
+    for t in trials:
+        if "disk full" in t["command"]:
+            state = "ok" if not t["problems"] else "; ".join(t["problems"])
+            print(f"{t['command']}: {state}" + (f" ({t['recovered']} messages recovered from the .partial)"
+                                               if "recovered" in t else f" (left {t.get('left')})"))
     print(f"{wall:.0f} s")
     if args.json:
         args.json.write_text(json.dumps(trials, indent=1))
