@@ -87,9 +87,12 @@ def record_trial(work: Path, k: int, delay_s: float) -> dict[str, Any]:
             t["problems"].append(f"recover of the .partial: {why}")
         else:
             t["recovered"] = 0
+    existed = out.exists() or partial.exists()
     again = cli("record", "sim-landmarks", "--duration-s", "5", "--out", out, "-q")
-    if (out.exists() or partial.exists()) and (why := one_line_error(again, "already exists")) is not None:
+    if existed and (why := one_line_error(again, "already exists")) is not None:
         t["problems"].append(f"a second record into the same --out: {why}")
+    if not existed and again.returncode != 0:  # killed before it wrote anything: nothing is in the way
+        t["problems"].append(f"a second record after a kill that left nothing: exit {again.returncode}")
     return t
 
 
