@@ -3,12 +3,12 @@
 Each trial starts the command as a process, sends SIGKILL after a seeded random delay (from
 just after start-up to past the end of the work), then checks what is on disk:
 
-- record (`sim-landmarks`, a 2-hour simulation written in about 6 s): no ``FILE`` unless the
+- record (`sim-landmarks`, a 4-hour simulation written in about 8 s): no ``FILE`` unless the
   command finished; ``FILE.partial`` is either absent (killed before it was opened) or reported
   as truncated by `inspect` (exit 1) and salvaged by `recover` (exit 0 with messages, or exit 2
   "holds no readable message" when the kill came before the first chunk was written); never an
   internal error; a second `record --out FILE` refuses (exit 2, "already exists").
-- run (`odometry` over a 1-hour recording, about 5 s): no ``metrics.json`` or ``run.rrd``
+- run (`odometry` over a 2-hour recording, about 9 s): no ``metrics.json`` or ``run.rrd``
   unless ``manifest.json`` says succeeded; `diff` against the killed run exits 2 saying it is not
   a finished run; a second `run --out DIR` refuses (exit 2, "already exists").
 - disk full (a 2 MiB tmpfs, when this process may mount one): `record` and `run` exit 2 saying no
@@ -65,7 +65,7 @@ def one_line_error(p: subprocess.CompletedProcess[str], *needles: str) -> str | 
 def record_trial(work: Path, k: int, delay_s: float) -> dict[str, Any]:
     out = work / f"rec-{k}.mcap"
     partial = out.with_name(out.name + ".partial")
-    finished = killed(["record", "sim-landmarks", "--duration-s", "7200", "--seed", str(k), "--out", out, "-q"],
+    finished = killed(["record", "sim-landmarks", "--duration-s", "14400", "--seed", str(k), "--out", out, "-q"],
                       delay_s)
     t: dict[str, Any] = {"command": "record", "trial": k, "kill_after_s": round(delay_s, 2), "finished": finished == 0,
                          "problems": []}
@@ -170,13 +170,13 @@ def main(argv: list[str] | None = None) -> int:
         work = Path(tmp)
         t0 = time.perf_counter()
         for k in range(args.trials):
-            trials.append(record_trial(work, k, float(rng.uniform(0.5, 8.0))))
+            trials.append(record_trial(work, k, float(rng.uniform(0.5, 7.0))))
         recording = work / "long.mcap"
-        cli("record", "sim-landmarks", "--duration-s", "3600", "--seed", "1", "--out", recording, "-q")
+        cli("record", "sim-landmarks", "--duration-s", "7200", "--seed", "1", "--out", recording, "-q")
         baseline = work / "baseline"
         cli("run", recording, "--pipeline", "odometry", "--out", baseline, "-q")
         for k in range(args.trials):
-            trials.append(run_trial(work, recording, baseline, k, float(rng.uniform(0.5, 7.0))))
+            trials.append(run_trial(work, recording, baseline, k, float(rng.uniform(0.5, 9.0))))
         trials.extend(disk_full_trials(work, recording))
         wall = time.perf_counter() - t0
     for command in ("record", "run"):
