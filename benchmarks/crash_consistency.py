@@ -6,8 +6,9 @@ just after start-up to past the end of the work), then checks what is on disk:
 - record (`sim-landmarks`, a 4-hour simulation written in about 8 s): no ``FILE`` unless the
   command finished; ``FILE.partial`` is either absent (killed before it was opened) or reported
   as truncated by `inspect` (exit 1) and salvaged by `recover` (exit 0 with messages, or exit 2
-  "holds no readable message" when the kill came before the first chunk was written); never an
-  internal error; a second `record --out FILE` refuses (exit 2, "already exists").
+  "holds no readable message" when the kill came before the first chunk was written; "is empty"
+  for a kill between creating the file and writing its header); never an internal error; a second
+  `record --out FILE` refuses (exit 2, "already exists").
 - run (`odometry` over a 2-hour recording, about 9 s): no ``metrics.json`` or ``run.rrd``
   unless ``manifest.json`` says succeeded; `diff` against the killed run exits 2 saying it is not
   a finished run; a second `run --out DIR` refuses (exit 2, "already exists").
@@ -76,10 +77,16 @@ def record_trial(work: Path, k: int, delay_s: float) -> dict[str, Any]:
     if partial.exists():
         t["partial_bytes"] = partial.stat().st_size
         ins = cli("inspect", partial)
-        if ins.returncode != 1 or "health: truncated" not in ins.stdout:
+        empty = t["partial_bytes"] == 0  # killed between creating the file and writing its header
+        if (ins.returncode, "health: truncated" in ins.stdout) != (1, True) and (
+                not empty or one_line_error(ins, "is empty (0 bytes)") is not None):
             t["problems"].append(f"inspect of the .partial: exit {ins.returncode}, {ins.stdout[:200]!r}")
         rec = cli("recover", partial, "--out", work / f"rec-{k}-fixed.mcap")
-        if rec.returncode == 0:
+        if empty:
+            if (why := one_line_error(rec, "is empty (0 bytes)")) is not None:
+                t["problems"].append(f"recover of the empty .partial: {why}")
+            t["recovered"] = 0
+        elif rec.returncode == 0:
             t["recovered"] = int(rec.stdout.split()[1])
             if cli("inspect", work / f"rec-{k}-fixed.mcap").returncode != 0:
                 t["problems"].append("the recovered file is not healthy")

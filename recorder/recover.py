@@ -324,6 +324,8 @@ def recover(src: str | Path, dst: str | Path) -> RecoveryReport:
         raise RecorderError(f"{src}: no such file")
     if dst.exists() or partial_path(dst).exists():
         raise RecorderError(f"{dst} already exists; choose another --out")
+    if src.stat().st_size == 0:
+        raise DamageError(f"{src} is empty (0 bytes): nothing was written to it, so there is nothing to recover")
     with open(src, "rb") as f:
         if f.read(len(MAGIC)) != MAGIC:
             raise RecorderError(f"{src} is not an MCAP file: nothing to recover")

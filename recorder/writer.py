@@ -100,6 +100,9 @@ class Recorder:
                               enable_crcs=True, enable_data_crcs=False)
         self._writer.start(profile="", library=f"slamreplay/{version()}")
         self._writer.add_metadata(METADATA_NAME, self._metadata)
+        # on disk now: a process killed before the first chunk leaves a .partial that says what it was
+        # (header and metadata, no message), not an empty file
+        self._file.flush()
 
     def write(self, topic: str, msg: Message, *, log_time_ns: int | None = None,
               publish_time_ns: int | None = None) -> None:

@@ -228,6 +228,10 @@ def test_recover_errors(tmp_path: Path) -> None:
     """Missing input, non-MCAP input and an existing output are refused."""
     with pytest.raises(RecorderError, match="no such file"):
         recover(tmp_path / "nope.mcap", tmp_path / "o.mcap")
+    empty = tmp_path / "empty.mcap.partial"
+    empty.write_bytes(b"")
+    with pytest.raises(DamageError, match="is empty \\(0 bytes\\): nothing was written to it"):
+        recover(empty, tmp_path / "o.mcap")
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"hello world, not an mcap")
     with pytest.raises(RecorderError, match="not an MCAP"):

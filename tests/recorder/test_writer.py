@@ -118,3 +118,22 @@ def test_full_disk_is_a_clear_error_and_keeps_a_recoverable_partial(tmp_path: Pa
     assert not path.exists() and (tmp_path / "full.mcap.partial").stat().st_size == 300_000
     report = recover(tmp_path / "full.mcap.partial", tmp_path / "fixed.mcap")
     assert report.messages > 1000
+
+
+def test_partial_holds_header_and_metadata_before_any_message(tmp_path: Path) -> None:
+    """While recording, before the first chunk is written, FILE.partial already holds the header and metadata:
+    a process killed then leaves a truncated recording that says what it was, not an empty file."""
+    from recorder.errors import DamageError
+    from recorder.recover import recover
+    from replay.inspect import inspect_recording
+
+    rec = Recorder(tmp_path / "r.mcap", source={"simulator": "test"})
+    rec.open()
+    rec.write("/odom", OdometryPose(5, 0.0, 0.0, 0.0))
+    partial = tmp_path / "r.mcap.partial"
+    data = partial.read_bytes()
+    assert data.startswith(b"\x89MCAP0\r\n") and METADATA_NAME.encode() in data
+    assert inspect_recording(partial)["health"] == "truncated"
+    with pytest.raises(DamageError, match="holds no readable message"):
+        recover(partial, tmp_path / "fixed.mcap")
+    rec.close()
