@@ -186,11 +186,9 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def cmd_recover(args: argparse.Namespace) -> int:
-    from recorder.recover import recover
+    from recorder.recover import describe, recover
 
-    report = recover(args.file, args.out)
-    stop = f"; reading stopped at {report.stopped_at}" if report.stopped_at else "; no damage found"
-    print(f"recovered {report.messages} messages on {report.channels} channels into {args.out}{stop}")
+    print(describe(recover(args.file, args.out), args.out))
     return EXIT_OK
 
 

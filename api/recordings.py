@@ -27,13 +27,13 @@ from starlette.concurrency import run_in_threadpool
 from api.errors import ConflictError, NotFoundError, NotMcapError, TooLargeError, UnreadableError
 from api.settings import Settings
 from api.store import RecordingRow, Store
-from recorder.errors import RecorderError
+from recorder.errors import DamageError, RecorderError
 from recorder.recover import RecoveryReport, recover
 from replay.errors import ReplayError
 from replay.reader import MCAP_MAGIC, RecordingReader
 from replay.run import sha256_file
 
-_CLI_HINT = re.compile(r"[.;,]? *[Ss]alvage (it|its messages) with `slamreplay recover[^`]*`\.?")
+_CLI_HINT = re.compile(r"[.;,]? *[Ss]alvage (it|its messages|the readable messages) with `slamreplay recover[^`]*`\.?")
 _UNSAFE = re.compile(r"[^A-Za-z0-9._ -]+")
 
 
@@ -170,12 +170,12 @@ class RecordingService:
         try:
             try:
                 report = recover(src, out)
+            except DamageError as err:  # not one readable message in it
+                src.unlink(missing_ok=True)
+                raise UnreadableError(f"nothing could be salvaged from {damaged_id}: "
+                                      f"{str(err).replace(str(src), 'it')}") from err
             except RecorderError as err:
                 raise UnreadableError(str(err).replace(str(src), damaged_id)) from err
-            if report.messages == 0:
-                src.unlink(missing_ok=True)
-                raise UnreadableError(f"nothing could be salvaged from {damaged_id}: no complete message before the "
-                                 f"damage ({report.stopped_at})")
             sha = sha256_file(out)
             row = self._row(RecordingReader(out), sha, out.stat().st_size, f"recovered-{damaged_id[:12]}.mcap")
             os.replace(out, self.path(sha))

@@ -9,3 +9,7 @@ class RecorderError(Exception):
 
 class CodecError(RecorderError):
     """A message could not be encoded or decoded."""
+
+
+class DamageError(RecorderError):
+    """A recording's bytes are damaged; the message names the record and its byte offset."""

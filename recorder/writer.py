@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 from collections.abc import Mapping
@@ -76,6 +77,7 @@ class Recorder:
         self._channels: dict[str, tuple[int, str]] = {}
         self._schemas: dict[str, int] = {}
         self._sequence: dict[str, int] = {}
+        self._failed = False  # a write failed: the file is not finished, it stays FILE.partial
         self.message_count = 0
 
     def __enter__(self) -> Recorder:
@@ -98,6 +100,9 @@ class Recorder:
                               enable_crcs=True, enable_data_crcs=False)
         self._writer.start(profile="", library=f"slamreplay/{version()}")
         self._writer.add_metadata(METADATA_NAME, self._metadata)
+        # on disk now: a process killed before the first chunk leaves a .partial that says what it was
+        # (header and metadata, no message), not an empty file
+        self._file.flush()
 
     def write(self, topic: str, msg: Message, *, log_time_ns: int | None = None,
               publish_time_ns: int | None = None) -> None:
@@ -129,19 +134,38 @@ class Recorder:
             raise RecorderError(f"topic {topic} has schema {channel[1]}; cannot write a {name} to it")
         seq = self._sequence.get(topic, 0)
         self._sequence[topic] = seq + 1
-        self._writer.add_message(channel[0], log_time, codec.encode(msg), publish_time, seq)
+        try:
+            self._writer.add_message(channel[0], log_time, codec.encode(msg), publish_time, seq)
+        except OSError as err:  # a full disk, a quota, an I/O error: the file holds what was flushed before
+            self._failed = True
+            raise self._write_error(err) from err
         self.message_count += 1
+
+    def _write_error(self, err: OSError) -> RecorderError:
+        what = "no space left on the device" if err.errno == errno.ENOSPC else (err.strerror or str(err))
+        return RecorderError(f"{what} while writing {self.partial} (after {self.message_count:,} messages): the "
+                             f"recording is incomplete and kept as {self.partial.name}; once the cause is fixed, "
+                             f"salvage it with `slamreplay recover {self.partial} --out FIXED.mcap`")
 
     def close(self, *, keep_partial: bool = False) -> None:
         """Finish the file; rename ``FILE.partial`` to ``FILE`` unless ``keep_partial``."""
         if self._writer is None or self._file is None:
             return
+        error: OSError | None = None
         try:
-            self._writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer.finish is unannotated
-            self._file.flush()
-            os.fsync(self._file.fileno())
+            if not self._failed:
+                self._writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer.finish is unannotated
+                self._file.flush()
+                os.fsync(self._file.fileno())
+        except OSError as err:
+            error = err
         finally:
-            self._file.close()
+            try:
+                self._file.close()
+            except OSError as err:  # the buffer could not be flushed either: the .partial ends where it ends
+                error = error or err
             self._writer, self._file = None, None
-        if not keep_partial:
+        if error is not None and not keep_partial:
+            raise self._write_error(error) from error
+        if error is None and not keep_partial and not self._failed:
             os.replace(self.partial, self.path)

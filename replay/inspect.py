@@ -10,12 +10,26 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from recorder.writer import METADATA_NAME
 from replay.errors import ReplayError
 from replay.reader import RecordingReader, check_framing, resolve_mcap_path
 
 
+def empty_contradiction(metadata: Mapping[str, Mapping[str, str]], topics: list[str]) -> str | None:
+    """Why a recording with no messages cannot be whole (None: nothing says it should hold any)."""
+    if topics:
+        return f"it declares {len(topics)} channel(s) ({', '.join(sorted(topics)[:4])})"
+    source = metadata.get(METADATA_NAME, {}).get("source")
+    if source is not None:
+        return f"its {METADATA_NAME} metadata says it was produced by {source}"
+    return None
+
+
 def inspect_recording(path: str | Path, topic_map: Mapping[str, str] | None = None) -> dict[str, Any]:
-    """A JSON-friendly report; ``health`` is ``ok``, ``truncated`` or ``corrupt`` with ``problems``.
+    """A JSON-friendly report; ``health`` is ``ok``, ``truncated``, ``corrupt`` or ``empty`` with ``problems``.
+
+    ``empty``: no messages although the file declares channels or its ``slamreplay.recording``
+    metadata names what produced it (a recording that was recorded holds messages).
 
     Raises ReplayError when the path is missing, empty or not an MCAP at all.
     """
@@ -45,11 +59,18 @@ def inspect_recording(path: str | Path, topic_map: Mapping[str, str] | None = No
             next(reader.messages([topic]), None)
         except ReplayError as err:
             problems.append(str(err))
+    health = "ok" if not problems else "corrupt"
+    if info.message_count == 0 and not problems:
+        why = empty_contradiction(info.metadata, [t.file_topic for t in info.topics])
+        if why is not None:
+            health = "empty"
+            problems.append(f"the recording holds no messages, yet {why}: it is not a complete recording. If it "
+                            f"came out of `slamreplay recover`, the damage left nothing readable")
     duration_s = (info.end_ns - info.start_ns) / 1e9
     return {
         "path": str(info.path),
         "size_bytes": info.size_bytes,
-        "health": "ok" if not problems else "corrupt",
+        "health": health,
         "problems": problems,
         "profile": info.profile,
         "library": info.library,

@@ -9,18 +9,20 @@ ROS 2 bag a message type that appears on exactly one topic is mapped automatical
 
 from __future__ import annotations
 
+import heapq
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
-from mcap.exceptions import McapError
-from mcap.reader import NonSeekingReader, make_reader
-from mcap.records import Channel, Schema
-from mcap.stream_reader import CRCValidationError
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, ChunkIndex, Metadata, Schema
+from mcap.records import Message as McapMessage
 
 from recorder.codec import TopicDecoder
+from recorder.codec.mcap_io import McapFile, Summary, chunk_records, decompress, record_name
 from recorder.codec.ros2 import canonical_ros_type
-from recorder.errors import CodecError
+from recorder.errors import CodecError, DamageError
 from recorder.messages import TOPIC_TYPES, Message
 from replay.errors import ReplayError
 
@@ -158,18 +160,20 @@ class RecordingReader:
     def __init__(self, path: str | Path, topic_map: Mapping[str, str] | None = None) -> None:
         self.path = resolve_mcap_path(Path(path))
         check_framing(self.path)
+        self._chunk_indexes: list[ChunkIndex] | None = None
         try:
-            with open(self.path, "rb") as f:
-                reader = make_reader(f)
-                summary = reader.get_summary()
-                header = reader.get_header()
-                metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
-        except (McapError, CRCValidationError, ValueError, EOFError) as err:
-            raise ReplayError(f"{self.path} has a corrupt index ({err}); salvage it with "
-                              f"`slamreplay recover {self.path} --out FIXED.mcap`") from err
-        if summary is None:
-            schemas, channels, counts, t0, t1, n, nchunks = self._scan()
-        else:
+            with McapFile(self.path) as f:
+                header = f.header()
+                summary = f.summary()
+                if summary is not None:
+                    metadata = self._metadata(f, summary)
+                    self._chunk_indexes = summary.chunk_indexes or None
+        except DamageError as err:
+            raise self._damaged(err, "its index") from err
+        if summary is None or not summary.chunk_indexes:
+            schemas, channels, counts, t0, t1, n, metadata = self._scan()
+            nchunks = 0
+        if summary is not None:
             schemas, channels = dict(summary.schemas), dict(summary.channels)
             st = summary.statistics
             counts = dict(st.channel_message_counts) if st else {}
@@ -186,22 +190,63 @@ class RecordingReader:
         self.info = RecordingInfo(self.path, self.path.stat().st_size, header.profile, header.library, topics,
                                   n, t0, t1, nchunks, metadata)
 
-    def _scan(self) -> tuple[dict[int, Schema], dict[int, Channel], dict[int, int], int, int, int, int]:
-        """Summary-less file: one linear pass to find schemas, channels and counts."""
+    def _damaged(self, err: DamageError, what: str) -> ReplayError:
+        return ReplayError(f"{self.path} is damaged ({what}): {err}. Salvage the readable messages with "
+                           f"`slamreplay recover {self.path} --out FIXED.mcap`")
+
+    @staticmethod
+    def _metadata(f: McapFile, summary: Summary) -> dict[str, dict[str, str]]:
+        """The Metadata records the summary indexes."""
+        out: dict[str, dict[str, str]] = {}
+        for index in summary.metadata_indexes:
+            opcode, record, _ = f.record_at(index.offset, index.offset + index.length)
+            if not isinstance(record, Metadata):
+                raise DamageError(f"a MetadataIndex points at byte {index.offset}, where a {record_name(opcode)} "
+                                  f"record is, not a Metadata record")
+            out[record.name] = dict(record.metadata)
+        return out
+
+    def _linear(self, f: McapFile) -> Iterator[tuple[int, int, Any]]:
+        """(chunk offset, index in chunk, record) of every schema, channel, message and metadata record, in
+        file order; the chunk offset of a record outside chunks is its own."""
+        for offset, opcode, record in f.records():
+            if isinstance(record, Chunk):
+                data = decompress(record, offset)
+                for i, inner in enumerate(chunk_records(data, offset)):
+                    yield offset, i, inner
+            elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE, Opcode.METADATA):
+                yield offset, 0, record
+            elif opcode in (Opcode.DATA_END, Opcode.FOOTER):
+                return
+
+    def _scan(self) -> tuple[dict[int, Schema], dict[int, Channel], dict[int, int], int, int, int,
+                             dict[str, dict[str, str]]]:
+        """A file without chunk indexes: one linear pass to find schemas, channels, counts and metadata."""
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
         counts: dict[int, int] = {}
+        metadata: dict[str, dict[str, str]] = {}
         t0, t1, n = 0, 0, 0
-        with open(self.path, "rb") as f:
-            for schema, channel, message in NonSeekingReader(f).iter_messages(log_time_order=False):
-                if schema is not None:
-                    schemas[schema.id] = schema
-                channels[channel.id] = channel
-                counts[channel.id] = counts.get(channel.id, 0) + 1
-                t0 = message.log_time if n == 0 else min(t0, message.log_time)
-                t1 = max(t1, message.log_time)
-                n += 1
-        return schemas, channels, counts, t0, t1, n, 0
+        try:
+            with McapFile(self.path) as f:
+                for _, _, record in self._linear(f):
+                    if isinstance(record, Schema):
+                        schemas[record.id] = record
+                    elif isinstance(record, Channel):
+                        channels[record.id] = record
+                    elif isinstance(record, Metadata):
+                        metadata[record.name] = dict(record.metadata)
+                    elif isinstance(record, McapMessage):
+                        if record.channel_id not in channels:
+                            raise DamageError(f"a Message record refers to channel {record.channel_id}, which no "
+                                              f"Channel record before it defines")
+                        counts[record.channel_id] = counts.get(record.channel_id, 0) + 1
+                        t0 = record.log_time if n == 0 else min(t0, record.log_time)
+                        t1 = max(t1, record.log_time)
+                        n += 1
+        except DamageError as err:
+            raise self._damaged(err, "found reading it from the start, as it has no chunk index") from err
+        return schemas, channels, counts, t0, t1, n, metadata
 
     def decoder(self, logical_topic: str) -> TopicDecoder:
         """The decoder of a logical topic; ReplayError when it is absent or unreadable."""
@@ -213,11 +258,18 @@ class RecordingReader:
                               f"If the data is there under another name, map it with "
                               f"--topic-map FILE_TOPIC={logical_topic}")
         channel = next(c for c in self._channels.values() if c.topic == info.file_topic)
+        if channel.schema_id and channel.schema_id not in self._schemas:
+            err = DamageError(f"the Channel record of {channel.topic} refers to schema {channel.schema_id}, which "
+                              f"no Schema record defines")
+            raise self._damaged(err, f"topic {logical_topic}")
         try:
             return TopicDecoder(logical_topic, TOPIC_TYPES[logical_topic], self._schemas.get(channel.schema_id),
                                 channel.message_encoding)
         except CodecError as err:
-            raise ReplayError(f"{self.path.name}: {err}") from err
+            # a schema that does not parse is damage (recover drops its channel); a schema of the wrong type is not
+            hint = (f". `slamreplay recover {self.path} --out FIXED.mcap` keeps the other topics"
+                    if err.__cause__ is not None else "")
+            raise ReplayError(f"{self.path.name}: {err}{hint}") from err
 
     def messages(self, topics: Iterable[str] | None = None, *, exclude: Iterable[str] = (),
                  start_ns: int | None = None, end_ns: int | None = None) -> Iterator[Envelope]:
@@ -235,22 +287,62 @@ class RecordingReader:
             try:
                 msg = dec(data, log_time)
             except CodecError as err:
-                raise ReplayError(f"{self.path.name}: {err}") from err
+                raise ReplayError(f"{self.path.name}: {err}. `slamreplay recover {self.path} --out FIXED.mcap` "
+                                  f"drops the messages that do not decode") from err
             yield Envelope(dec.topic, log_time, publish_time, index, msg)
 
     def raw(self, file_topics: Iterable[str], *, start_ns: int | None = None,
             end_ns: int | None = None) -> Iterator[tuple[Channel, int, int, bytes]]:
-        """Undecoded (channel, log_time, publish_time, data) of file topics in replay order."""
-        names = list(file_topics)
-        with open(self.path, "rb") as f:
-            reader = make_reader(f, validate_crcs=True)
-            try:
-                for _, channel, m in reader.iter_messages(topics=names, log_time_order=True,
-                                                          starting_at=start_ns, ending_before=end_ns):
-                    yield channel, m.log_time, m.publish_time, m.data
-            except CRCValidationError as err:
-                raise ReplayError(f"{self.path} is corrupt: {err}. Salvage the messages before the damage with "
-                                  f"`slamreplay recover {self.path} --out FIXED.mcap`") from err
-            except Exception as err:
-                raise ReplayError(f"{self.path} is damaged ({type(err).__name__}: {err}). Try "
-                                  f"`slamreplay recover {self.path} --out FIXED.mcap`") from err
+        """Undecoded (channel, log_time, publish_time, data) of file topics in replay order.
+
+        Replay order is (log_time, offset of the message's chunk, position in the chunk): chunks
+        are read lazily, merged by their first log time. Raises ReplayError naming the damaged
+        record and its byte offset (CRC mismatch, a length past the end, a bad field...).
+        """
+        names = set(file_topics)
+        wanted = {cid for cid, c in self._channels.items() if c.topic in names}
+        try:
+            with McapFile(self.path) as f:
+                if self._chunk_indexes is None:
+                    yield from self._raw_linear(f, wanted, start_ns, end_ns)
+                else:
+                    yield from self._raw_indexed(f, wanted, start_ns, end_ns)
+        except DamageError as err:
+            raise self._damaged(err, "while reading its messages") from err
+
+    def _keep(self, m: McapMessage, wanted: set[int], start_ns: int | None, end_ns: int | None, where: str) -> bool:
+        if m.channel_id not in self._channels:
+            raise DamageError(f"a Message record {where} refers to channel {m.channel_id}, which the file does "
+                              f"not define")
+        return (m.channel_id in wanted and (start_ns is None or m.log_time >= start_ns)
+                and (end_ns is None or m.log_time < end_ns))
+
+    def _raw_indexed(self, f: McapFile, wanted: set[int], start_ns: int | None,
+                     end_ns: int | None) -> Iterator[tuple[Channel, int, int, bytes]]:
+        assert self._chunk_indexes is not None
+        heap: list[tuple[int, int, int, Any]] = []
+        for ci in self._chunk_indexes:
+            if start_ns is not None and ci.message_end_time < start_ns:
+                continue
+            if end_ns is not None and ci.message_start_time >= end_ns:
+                continue
+            heapq.heappush(heap, (ci.message_start_time, ci.chunk_start_offset, -1, ci))
+        while heap:
+            _, offset, i, item = heapq.heappop(heap)
+            if i >= 0:
+                yield self._channels[item.channel_id], item.log_time, item.publish_time, item.data
+                continue
+            chunk, _ = f.chunk(item)
+            data = decompress(chunk, offset)
+            for k, record in enumerate(chunk_records(data, offset)):
+                if isinstance(record, McapMessage) and self._keep(record, wanted, start_ns, end_ns,
+                                                              f"in the chunk at byte {offset}"):
+                    heapq.heappush(heap, (record.log_time, offset, k, record))
+
+    def _raw_linear(self, f: McapFile, wanted: set[int], start_ns: int | None,
+                    end_ns: int | None) -> Iterator[tuple[Channel, int, int, bytes]]:
+        found = [(r.log_time, offset, i, r) for offset, i, r in self._linear(f)
+                 if isinstance(r, McapMessage) and self._keep(r, wanted, start_ns, end_ns, f"at byte {offset}")]
+        found.sort(key=lambda t: t[:3])
+        for _, _, _, m in found:
+            yield self._channels[m.channel_id], m.log_time, m.publish_time, m.data

@@ -10,6 +10,7 @@ into the same directory replaces it (``prepare_run_dir``), a succeeded run is ne
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -53,10 +54,14 @@ class RunResult:
 def atomic_write(path: Path, data: str | bytes) -> None:
     """Write ``path`` so that it appears complete or not at all."""
     tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(data.encode() if isinstance(data, str) else data)
-        f.flush()
-        os.fsync(f.fileno())
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data.encode() if isinstance(data, str) else data)
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError:
+        tmp.unlink(missing_ok=True)  # a full disk leaves no stray temporary file
+        raise
     os.replace(tmp, path)
 
 
@@ -118,6 +123,14 @@ def _what_is_there(out_dir: Path, manifest: Any) -> str:
     if all(p.name.startswith(".") and p.name.endswith((".partial", ".tmp")) for p in out_dir.iterdir()):
         return "an unfinished run (no manifest.json: running now, or killed; delete it if nothing writes it)"
     return "files that are not a run (no manifest.json)"
+
+
+DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
+
+
+def _disk_full(out_dir: Path) -> str:
+    return (f"no space left on the device while writing {out_dir}: the run did not finish and is not listed as "
+            f"finished; free space and run it again into a new --out")
 
 
 def prepare_run_dir(out_dir: Path) -> None:
@@ -223,19 +236,32 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
         lines.append(f"FAILED: {err}")
         raise ReplayError(str(err)) from err
     except BaseException as err:
+        if isinstance(err, OSError) and err.errno in DISK_FULL:
+            msg = _disk_full(out_dir)
+            manifest.update(status="failed", error=msg)
+            lines.append(f"FAILED: {msg}")
+            raise ReplayError(msg) from err
         manifest.update(status="failed", error=f"internal error: {type(err).__name__}: {err}")
         lines.append(f"FAILED: internal error\n{traceback.format_exc()}")
         raise
     finally:
         if observer is not None:
             observer.close()
-        if manifest["status"] != "succeeded":
-            rrd_tmp.unlink(missing_ok=True)
+        if manifest["status"] != "succeeded":  # the directory was empty: what is in it is this run's, half done
+            for name in (rrd_tmp.name, rrd.name, "metrics.json", *manifest.get("artifacts", {})):
+                (out_dir / name).unlink(missing_ok=True)
         usage = resource.getrusage(resource.RUSAGE_SELF)
         timings.update(wall_s=time.perf_counter() - t_wall, cpu_s=time.process_time() - t_cpu,
                        max_rss_mib=usage.ru_maxrss / 1024.0)
         manifest["timings"] = {"started_at": started.isoformat(), "finished_at": datetime.now(timezone.utc).isoformat(),
                                **{k: round(v, 6) for k, v in timings.items()}}
-        atomic_write(out_dir / "log.txt", "\n".join(lines) + "\n")
-        atomic_write(out_dir / "manifest.json", json.dumps(manifest, indent=2, sort_keys=True, default=str) + "\n")
+        try:
+            atomic_write(out_dir / "log.txt", "\n".join(lines) + "\n")
+            atomic_write(out_dir / "manifest.json", json.dumps(manifest, indent=2, sort_keys=True, default=str) + "\n")
+        except OSError as err:  # no manifest: diff and compare read the run as unfinished, which it is
+            if err.errno not in DISK_FULL:
+                raise
+            for name in (rrd.name, "metrics.json", *manifest.get("artifacts", {})):
+                (out_dir / name).unlink(missing_ok=True)
+            raise ReplayError(_disk_full(out_dir)) from err
     return RunResult(out_dir, run_id, "succeeded", values, manifest)

@@ -7,19 +7,39 @@ A :class:`TopicDecoder` is made once per channel and turns its raw bytes into me
 
 from __future__ import annotations
 
+import contextlib
+import io
+import struct
 from collections.abc import Callable
 from typing import Any
 
+import cv2
+import numpy as np
+from google.protobuf.message import DecodeError
+from mcap.exceptions import McapError
 from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
+from mcap_ros2._vendor.rosidl_adapter.parser import InvalidSpecification, InvalidValue
 from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 
 from recorder.codec.protobuf import READABLE_SCHEMAS, encode, from_proto, schema_data, schema_name
 from recorder.codec.ros2 import canonical_ros_type, from_ros2
 from recorder.errors import CodecError
-from recorder.messages import Message
+from recorder.messages import LandmarkMap, Message, PlanarPose, RangeBearingScan
 
 __all__ = ["READABLE_SCHEMAS", "TopicDecoder", "encode", "schema_data", "schema_name"]
+
+# What a damaged schema raises while it is parsed: a FileDescriptorSet that is not protobuf
+# (DecodeError), whose files do not build (TypeError from the descriptor pool), a ros2msg text
+# that is not UTF-8 (UnicodeDecodeError, a ValueError) or not message definitions (rosidl's
+# InvalidSpecification family, NameError for a bad field name).
+_BAD_SCHEMA = (DecodeError, TypeError, ValueError, KeyError, IndexError, NameError, McapError, InvalidSpecification,
+               InvalidValue, RecursionError)
+# What damaged message bytes raise: protobuf's DecodeError, CDR reads past the end (struct.error,
+# IndexError), bad UTF-8 or values the message model refuses (ValueError), an image OpenCV cannot take,
+# and a damaged schema that still parses but lost a field the message model reads (AttributeError).
+_BAD_MESSAGE = (CodecError, DecodeError, McapError, struct.error, ValueError, TypeError, IndexError, KeyError,
+                OverflowError, AttributeError, cv2.error)
 
 
 class TopicDecoder:
@@ -40,14 +60,21 @@ class TopicDecoder:
         assert schema is not None
         self.schema_name = name
         self._raw: Callable[[bytes], Any] | None
-        if message_encoding == "protobuf" and schema.encoding == "protobuf":
-            self._raw = ProtobufDecoderFactory().decoder_for(message_encoding, schema)
-            self._ros = False
-        elif message_encoding == "cdr" and schema.encoding == "ros2msg":
-            self._raw = Ros2DecoderFactory().decoder_for(message_encoding, schema)
-            self._ros = True
-        else:
-            self._raw = None
+        try:
+            if message_encoding == "protobuf" and schema.encoding == "protobuf":
+                self._raw = ProtobufDecoderFactory().decoder_for(message_encoding, schema)
+                self._ros = False
+            elif message_encoding == "cdr" and schema.encoding == "ros2msg":
+                # rosidl's parser prints each bad line to stderr before it raises: the error below says it once
+                with contextlib.redirect_stderr(io.StringIO()):
+                    self._raw = Ros2DecoderFactory().decoder_for(message_encoding, schema)
+                self._ros = True
+            else:
+                self._raw = None
+        except _BAD_SCHEMA as err:
+            msg = (f"topic {topic}: its schema {name} ({schema.encoding}, {len(schema.data)} bytes) is damaged "
+                   f"and cannot be parsed: {type(err).__name__}: {_one_line(err)}")
+            raise CodecError(msg) from err
         if self._raw is None:
             msg = (f"topic {topic}: schema {name} with schema encoding {schema.encoding!r} and message "
                    f"encoding {message_encoding!r} is not supported (use protobuf, or ROS 2 ros2msg/cdr)")
@@ -58,8 +85,40 @@ class TopicDecoder:
         try:
             obj = self._raw(data)
             if self._ros:
-                return from_ros2(self.kind, self.schema_name, obj, log_time_ns)
-            return from_proto(self.kind, obj, log_time_ns)
-        except Exception as err:
-            msg = f"{self.topic} message at log_time {log_time_ns} ns is invalid: {err}"
+                decoded = from_ros2(self.kind, self.schema_name, obj, log_time_ns)
+            else:
+                decoded = from_proto(self.kind, obj, log_time_ns)
+            _check_plausible(decoded)
+            return decoded
+        except _BAD_MESSAGE as err:
+            msg = (f"{self.topic} message at log_time {log_time_ns} ns is invalid ({len(data)} bytes): "
+                   f"{_one_line(err) or type(err).__name__}")
             raise CodecError(msg) from err
+
+
+# No robot recording holds a coordinate or range this far out; bytes shifted by damage easily decode into one
+# (1e300 is finite), which then overflows the float32 of the viewer and the algorithms' arithmetic.
+PLAUSIBLE_M = 1e9
+
+
+def _check_plausible(msg: Message) -> None:
+    """CodecError when a decoded position or range is beyond PLAUSIBLE_M metres."""
+    if isinstance(msg, PlanarPose):
+        values = {"x_m": np.array([msg.x_m]), "y_m": np.array([msg.y_m])}
+    elif isinstance(msg, RangeBearingScan):
+        values = {"ranges_m": msg.ranges_m}
+    elif isinstance(msg, LandmarkMap):
+        values = {"positions_m": msg.positions_m}
+    else:
+        return
+    for name, v in values.items():
+        if v.size and float(np.max(np.abs(v))) > PLAUSIBLE_M:
+            raise CodecError(f"{name} holds {float(np.max(np.abs(v))):.3g} m, beyond any plausible "
+                             f"{PLAUSIBLE_M:g} m: the bytes are damaged")
+
+
+def _one_line(err: BaseException, limit: int = 200) -> str:
+    """An exception's text on one line, printable and bounded (damaged bytes can end up in it)."""
+    text = " ".join(str(err).split())
+    text = "".join(c if c.isprintable() else "?" for c in text)
+    return text if len(text) <= limit else text[:limit] + "..."

@@ -17,6 +17,8 @@ Planar poses are stored in 3D with z = 0 and the heading as a quaternion about +
 from __future__ import annotations
 
 import math
+import struct
+import zlib
 from functools import cache
 from typing import Any, Literal, cast
 
@@ -156,8 +158,35 @@ def stamp_of(proto: Any, log_time_ns: int) -> int:
     return ns if ns > 0 else log_time_ns
 
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def check_png(data: bytes) -> None:
+    """CodecError unless every chunk of a PNG is whole and passes its CRC.
+
+    Checked before OpenCV sees the bytes: libpng reports damage on the process's stderr
+    before it fails, which would break the one-line error a user gets.
+    """
+    pos = len(PNG_SIGNATURE)
+    while pos < len(data):
+        if pos + 12 > len(data):
+            raise CodecError(f"PNG data is cut short at byte {pos} of {len(data)}")
+        length, kind = struct.unpack_from(">I4s", data, pos)
+        if pos + 12 + length > len(data):
+            raise CodecError(f"PNG chunk {kind!r} at byte {pos} claims {length} bytes, past the end of the image")
+        (crc,) = struct.unpack_from(">I", data, pos + 8 + length)
+        if zlib.crc32(data[pos + 4:pos + 8 + length]) != crc:
+            raise CodecError(f"PNG chunk {kind!r} at byte {pos} fails its CRC check: the image is damaged")
+        pos += 12 + length
+        if kind == b"IEND":
+            return
+    raise CodecError("PNG data has no IEND chunk: the image is cut short")
+
+
 def decode_image_bytes(data: bytes, fmt: str) -> np.ndarray:
     """Decode PNG/JPEG bytes to mono8 (H, W) or rgb8 (H, W, 3) pixels."""
+    if data.startswith(PNG_SIGNATURE):
+        check_png(data)
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None:
         raise CodecError(f"image data is not a readable {fmt or 'PNG/JPEG'} file")

@@ -154,6 +154,21 @@ def test_truncated_upload_with_recover_flag_is_salvaged_at_once(client: TestClie
     assert r.json()["recovered"]["messages"] > 0
 
 
+def test_damaged_index_upload_names_record_and_offset(client: TestClient) -> None:
+    """An upload whose summary has a 3.75 GB record length: 422 naming the record and offset, no CLI hint;
+    a random body between MCAP magics cannot be recovered: 422 saying nothing could be salvaged."""
+    cases = Path(__file__).resolve().parents[1] / "fuzz" / "cases"
+    r = upload(client, (cases / "summary-record-length.mcap").read_bytes(), filename="bad.mcap")
+    assert r.status_code == 422
+    detail = r.json()["detail"]
+    assert "Schema record at byte 8752 claims 4,026,531,840 bytes" in detail and "slamreplay recover" not in detail
+    r = upload(client, (cases / "random-body.mcap").read_bytes(), filename="junk.mcap")
+    assert r.status_code == 422
+    rec = client.post(r.json()["recover"]["url"])
+    assert rec.status_code == 422 and "nothing could be salvaged" in rec.json()["detail"], rec.text
+    assert "holds no readable message" in rec.json()["detail"]
+
+
 def test_oversized_upload_is_413(tmp_path: Path, recording: Path) -> None:
     """Over SLAMREPLAY_MAX_UPLOAD_BYTES: 413 whether the size is declared or found while streaming."""
     c = TestClient(create_app(Settings(data_dir=tmp_path, max_upload_bytes=1000), executor=InlineExecutor()))

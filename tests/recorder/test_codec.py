@@ -116,3 +116,38 @@ def test_decoder_reports_nan_and_garbage() -> None:
         dec(bad, 42)
     with pytest.raises(CodecError, match="log_time 43"):
         dec(b"\xff\xff\xff", 43)
+
+
+def test_implausible_decoded_values_are_damage() -> None:
+    """A pose a billion metres out, or a range beyond it, decodes to CodecError: damaged bytes, not a place."""
+    from recorder.codec import TopicDecoder
+
+    pose = OdometryPose(5, 2e9, 0.0, 0.0)
+    schema = Schema(id=1, name=codec.schema_name(pose), encoding="protobuf", data=codec.schema_data(pose))
+    dec = TopicDecoder("/odom", OdometryPose, schema, "protobuf")
+    with pytest.raises(CodecError, match=r"/odom message at log_time 5 ns is invalid .*x_m holds 2e\+09 m, beyond any"):
+        dec(codec.encode(pose), 5)
+    assert dec(codec.encode(OdometryPose(5, 9e8, -9e8, 1.0)), 5).x_m == 9e8
+    scan = RangeBearingScan(5, np.array([1.0, 3e9]), np.array([0.0, 0.1]), np.array([-1, -1]), 0.1, 0.01)
+    schema = Schema(id=2, name=codec.schema_name(scan), encoding="protobuf", data=codec.schema_data(scan))
+    with pytest.raises(CodecError, match=r"ranges_m holds 3e\+09 m"):
+        TopicDecoder("/landmarks/range_bearing", RangeBearingScan, schema, "protobuf")(codec.encode(scan), 5)
+
+
+def _schema(name: str, encoding: str, data: bytes) -> Schema:
+    return Schema(id=1, name=name, encoding=encoding, data=data)
+
+
+def test_damaged_schema_is_codec_error() -> None:
+    """A FileDescriptorSet that is not protobuf, or whose files do not build, is a CodecError naming the topic."""
+    from recorder.codec import TopicDecoder
+
+    pose = OdometryPose(5, 0.0, 0.0, 0.0)
+    with pytest.raises(CodecError, match=r"topic /odom: its schema foxglove.PoseInFrame \(protobuf, 4 bytes\) is "
+                                         r"damaged and cannot be parsed: DecodeError"):
+        TopicDecoder("/odom", OdometryPose, _schema("foxglove.PoseInFrame", "protobuf", b"\xff" * 4), "protobuf")
+    data = codec.schema_data(pose).replace(b"foxglove/Vector3.proto", b"foxglove/Vector4.proto", 1)
+    with pytest.raises(CodecError, match=r"is damaged and cannot be parsed: TypeError: Couldn't build proto file"):
+        TopicDecoder("/odom", OdometryPose, _schema("foxglove.PoseInFrame", "protobuf", data), "protobuf")
+    with pytest.raises(CodecError, match=r"\(ros2msg, 3 bytes\) is damaged and cannot be parsed: UnicodeDecodeError"):
+        TopicDecoder("/odom", OdometryPose, _schema("nav_msgs/msg/Odometry", "ros2msg", b"\xff\xfe\xfd"), "cdr")

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 from mcap.reader import make_reader
 
@@ -77,3 +80,60 @@ def test_write_errors(tmp_path: Path) -> None:
         Recorder(tmp_path / "q.mcap", source={"x": object()})
     with pytest.raises(RecorderError, match="does not exist"):
         Recorder(tmp_path / "nope" / "q.mcap", source={})
+
+
+class _FullDisk:
+    """A file that takes ``budget`` bytes, then fails as a full disk does (ENOSPC)."""
+
+    def __init__(self, f: Any, budget: int) -> None:
+        self.f, self.budget = f, budget
+
+    def write(self, data: bytes) -> int:
+        if len(data) > self.budget:
+            self.f.write(data[: self.budget])
+            self.budget = 0
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self.budget -= len(data)
+        return int(self.f.write(data))
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.f, name)
+
+
+def test_full_disk_is_a_clear_error_and_keeps_a_recoverable_partial(tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """ENOSPC mid-recording: one RecorderError saying so, no FILE, and a FILE.partial that recover salvages."""
+    import recorder.writer as writer_module
+    from recorder.recover import recover
+
+    real_open = open
+    monkeypatch.setattr(writer_module, "open", lambda p, mode: _FullDisk(real_open(p, mode), 300_000), raising=False)
+    path = tmp_path / "full.mcap"
+    rng = np.random.default_rng(0)
+    full = (r"no space left on the device while writing .*full\.mcap\.partial \(after [\d,]+ messages\): the "
+            r"recording is incomplete and kept as full\.mcap\.partial; .*slamreplay recover")
+    with pytest.raises(RecorderError, match=full), Recorder(path, source={"test": "full"}) as rec:
+        for k in range(100_000):
+            rec.write("/ground_truth/pose", GroundTruthPose(1000 + k, *rng.normal(size=3)))
+    assert not path.exists() and (tmp_path / "full.mcap.partial").stat().st_size == 300_000
+    report = recover(tmp_path / "full.mcap.partial", tmp_path / "fixed.mcap")
+    assert report.messages > 1000
+
+
+def test_partial_holds_header_and_metadata_before_any_message(tmp_path: Path) -> None:
+    """While recording, before the first chunk is written, FILE.partial already holds the header and metadata:
+    a process killed then leaves a truncated recording that says what it was, not an empty file."""
+    from recorder.errors import DamageError
+    from recorder.recover import recover
+    from replay.inspect import inspect_recording
+
+    rec = Recorder(tmp_path / "r.mcap", source={"simulator": "test"})
+    rec.open()
+    rec.write("/odom", OdometryPose(5, 0.0, 0.0, 0.0))
+    partial = tmp_path / "r.mcap.partial"
+    data = partial.read_bytes()
+    assert data.startswith(b"\x89MCAP0\r\n") and METADATA_NAME.encode() in data
+    assert inspect_recording(partial)["health"] == "truncated"
+    with pytest.raises(DamageError, match="holds no readable message"):
+        recover(partial, tmp_path / "fixed.mcap")
+    rec.close()

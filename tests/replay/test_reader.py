@@ -140,3 +140,40 @@ def test_nan_and_missing_topic(tmp_path: Path) -> None:
         list(reader.messages())
     with pytest.raises(ReplayError, match=r"has no /odom topic.*--topic-map"):
         list(reader.messages(["/odom"]))
+
+
+def test_channel_without_its_schema_is_damage(tmp_path: Path) -> None:
+    """A channel whose schema record is missing is reported as damage, with the recover pointer."""
+    path = tmp_path / "lost-schema.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        cid = w.register_channel("/odom", "protobuf", 7)
+        w.add_message(cid, 5, codec.encode(OdometryPose(5, 0.0, 0.0, 0.0)), 5)
+        w.finish()
+    reader = RecordingReader(path)
+    with pytest.raises(ReplayError, match=r"is damaged \(topic /odom\): the Channel record of /odom refers to "
+                                          r"schema 7, which no Schema record defines\. .*slamreplay recover"):
+        reader.decoder("/odom")
+
+
+@pytest.mark.parametrize(("at", "value", "match"), [
+    ("footer", 10**9, r"the Footer puts the summary section at byte 1000000000, outside the file's data"),
+    ("first", 2**40, r"Header record at byte 8 claims 1,099,511,627,776 bytes but only"),
+])
+def test_lengths_from_the_file_are_checked(tmp_path: Path, at: str, value: int, match: str) -> None:
+    """A summary offset or record length past the end of the file is reported with the record and its offset."""
+    import struct
+
+    src = tmp_path / "ok.mcap"
+    with Recorder(src, source={}) as rec:
+        rec.write("/odom", OdometryPose(5, 0.0, 0.0, 0.0))
+    data = bytearray(src.read_bytes())
+    if at == "footer":
+        struct.pack_into("<Q", data, len(data) - 8 - 20, value)  # Footer.summary_start
+    else:
+        struct.pack_into("<Q", data, 9, value)  # the Header record's length
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(ReplayError, match=match + r".*slamreplay recover"):
+        RecordingReader(bad)

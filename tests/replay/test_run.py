@@ -185,3 +185,31 @@ def test_ros2_bag_replayed(tmp_path: Path) -> None:
     assert res.metrics["poses_scored"] == 20
     man = json.loads((res.run_dir / "manifest.json").read_text())
     assert man["recording"]["sha256"] and man["status"] == "succeeded"
+
+
+@pytest.mark.parametrize("failing", ["metrics.json", "manifest.json"])
+def test_full_disk_fails_the_run_cleanly(tiny_recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                         failing: str) -> None:
+    """ENOSPC while a run writes its files: a ReplayError saying so, and nothing left that looks finished."""
+    import errno
+
+    import replay.run as run_module
+
+    real = run_module.atomic_write
+
+    def full(path: Path, data: str | bytes) -> None:
+        if path.name == failing:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(path, data)
+
+    monkeypatch.setattr(run_module, "atomic_write", full)
+    out = tmp_path / "run"
+    with pytest.raises(ReplayError, match=r"no space left on the device while writing .*run: the run did not finish"):
+        run_recording(tiny_recording, "odometry", out)
+    left = sorted(p.name for p in out.iterdir())
+    assert "run.rrd" not in left and "metrics.json" not in left and not any(n.startswith(".") for n in left)
+    if failing == "metrics.json":
+        manifest = json.loads((out / "manifest.json").read_text())
+        assert manifest["status"] == "failed" and "no space left" in manifest["error"]
+    else:
+        assert left == ["log.txt"]
