@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from api.graph_cli import add_graph_parser
+from api.suite_cli import add_suite_parsers
 from recorder.errors import RecorderError
 from replay.errors import ReplayError
 
@@ -504,6 +505,7 @@ def build_parser() -> argparse.ArgumentParser:
     srv.set_defaults(func=cmd_serve)
 
     add_graph_parser(sub)
+    add_suite_parsers(sub, quiet)
     return p
 
 
