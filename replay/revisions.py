@@ -100,8 +100,7 @@ def _remove_build(repo: Path, root: Path) -> None:
     if (root / "src").exists():
         subprocess.run(["git", "worktree", "remove", "--force", str(root / "src")], cwd=repo,
                        capture_output=True, timeout=120)
-    shutil.rmtree(root / "src", ignore_errors=True)
-    shutil.rmtree(root / "venv", ignore_errors=True)
+    shutil.rmtree(root, ignore_errors=True)
     subprocess.run(["git", "worktree", "prune"], cwd=repo, capture_output=True, timeout=120)
 
 
@@ -133,6 +132,7 @@ def prepare_revision(repo: Path, rev: str, cache: Path) -> Revision:
                     if done.returncode != 0:
                         keep = cache / "revs" / f"{sha}.failed-build.log"
                         shutil.copy(log, keep)
+                        out.close()
                         _remove_build(repo, root)
                         raise ReplayError(f"revision {rev} ({sha[:10]}) does not build: `{' '.join(step[:4])}` "
                                           f"failed; see {keep}")
