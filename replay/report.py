@@ -2,7 +2,8 @@
 
 The HTML needs no network: CSS is inline and every plot is an inline SVG drawn here (per-seed
 values of A and B on one axis, the A-B pairs joined, so a shift shared by every seed stands
-out from scatter). Regressions are red, improvements green, the rest grey. Each cell links to
+out from scatter; and the estimated trajectories of A and B overlaid, per cell and seed, from
+each run's ``trajectory.tum``). Regressions are red, improvements green, the rest grey. Each cell links to
 its A and B run directories.
 """
 
@@ -13,8 +14,11 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 from replay.compare import Comparison, MetricResult, fmt, fmt_ms
 from replay.run import atomic_write
+from replay.trajectory import TUM_ARTIFACT, read_tum
 
 COLOURS = {"regression": "#c62828", "failed": "#c62828", "improvement": "#2e7d32"}
 A_COLOUR, B_COLOUR = "#7f7f7f", "#1f77b4"  # A grey (the baseline), B blue (the estimate under test)
@@ -49,6 +53,53 @@ def _strip_plot(r: MetricResult, width: int = 220, height: int = 34) -> str:
     parts += [f'<circle cx="{x(v):.1f}" cy="{yb}" r="3.5" fill="{B_COLOUR}"/>' for v in r.b]
     parts.append("</svg>")
     return "".join(parts)
+
+
+def _trajectory(path: str | None) -> np.ndarray | None:
+    """(n, 2) positions from a run's trajectory.tum, thinned to at most 400 points; None without one."""
+    if not path:
+        return None
+    try:
+        _, poses = read_tum((Path(path) / TUM_ARTIFACT).read_text())
+    except (OSError, ValueError):
+        return None
+    if not len(poses):
+        return None
+    step = max(1, len(poses) // 400)
+    return np.vstack([poses[::step, :2], poses[-1:, :2]])
+
+
+def _trajectory_plot(a: np.ndarray, b: np.ndarray, title: str, size: int = 260) -> str:
+    """A and B estimated trajectories on equal axes (world frame, y up)."""
+    both = np.vstack([a, b])
+    lo, hi = both.min(axis=0), both.max(axis=0)
+    span = float(max(hi - lo)) or 1.0
+    scale = (size - 20) / span
+
+    def pts(xy: np.ndarray) -> str:
+        return " ".join(f"{10 + (x - lo[0]) * scale:.1f},{size - 10 - (y - lo[1]) * scale:.1f}" for x, y in xy)
+
+    return (f'<figure style="display:inline-block;margin:4px"><svg xmlns="http://www.w3.org/2000/svg" '
+            f'width="{size}" height="{size}" style="border:1px solid #ddd"><title>{html.escape(title)}</title>'
+            f'<polyline points="{pts(a)}" fill="none" stroke="{A_COLOUR}" stroke-width="1.5"/>'
+            f'<polyline points="{pts(b)}" fill="none" stroke="{B_COLOUR}" stroke-width="1.2"/></svg>'
+            f"<figcaption>{html.escape(title)} ({span:.3g} m across)</figcaption></figure>")
+
+
+def _trajectories(c: Comparison) -> list[str]:
+    """One overlay per cell and seed pair where both runs exported trajectory.tum."""
+    out = []
+    index = {s: {(r["recording"], r["pipeline"], r["variant"], r.get("recording_seed"), r.get("seed")): r
+                 for r in side.rows} for s, side in (("A", c.a), ("B", c.b))}
+    for key, ra in index["A"].items():
+        rb = index["B"].get(key)
+        if rb is None:
+            continue
+        ta, tb = _trajectory(ra.get("run_dir")), _trajectory(rb.get("run_dir"))
+        if ta is not None and tb is not None:
+            rs = "" if key[3] is None else f" recording seed {key[3]},"
+            out.append(_trajectory_plot(ta, tb, f"{key[0]}/{key[1]}/{key[2]}{rs} seed {key[4]}"))
+    return out
 
 
 def _link(path: str | None, base: Path, text: str) -> str:
@@ -104,6 +155,11 @@ def render_html(c: Comparison, base: Path) -> str:
                    f"<td class='l'>{e(r.verdict)}</td><td class='l'>{_strip_plot(r)}</td>"
                    f"<td class='l'>{a_links} {b_links}</td></tr>")
     out.append("</table>")
+    plots = _trajectories(c)
+    if plots:
+        out.append("<h2>Estimated trajectories</h2><p>Each run's trajectory.tum: "
+                   f"<span style='color:{A_COLOUR}'>A</span>, <span style='color:{B_COLOUR}'>B</span>.</p>")
+        out += plots
     if c.failures:
         out.append("<h2>Failed runs</h2><ul>" + "".join(
             f"<li>{e(f['side'])}: {e(f['cell'])} seeds {e(str(f['seeds']))}: {e(str(f['error']))} "

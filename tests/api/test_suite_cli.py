@@ -57,6 +57,12 @@ def test_suite_run_then_cached(tmp_path: Path, capsys: pytest.CaptureFixture[str
     again = suite_run.read_results(out)
     assert all(r["cached"] for r in again) and manifests(again) == first
     assert "12 from cache, 0 run, 0 failed" in stdout
+    report = tmp_path / "r.html"
+    code, stdout, err = run_cli(["compare", str(out), str(out), "--report", str(report)], capsys)
+    assert code == 0 and "0 regression(s)" in stdout, err
+    text = report.read_text()
+    assert "Estimated trajectories" in text and text.count("<polyline") == 2 * 12
+    assert "<tr class='regression'>" not in text and "<tr class='unchanged'>" in text
 
 
 def test_failed_cell_recorded_and_suite_goes_on(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
