@@ -142,6 +142,45 @@ def cmd_compare(args: argparse.Namespace) -> int:
     return 1 if result.regressions else 0
 
 
+def cmd_bisect(args: argparse.Namespace) -> int:
+    from replay.compare import compare
+    from replay.diff import parse_tolerances
+    from replay.revisions import ancestry, find_repo, one_line, resolve
+    from replay.suite import load_suite
+
+    tolerances = parse_tolerances(args.tolerance)
+    load_suite(args.suite)
+    repo = find_repo()
+    good, bad = resolve(repo, args.good), resolve(repo, args.bad)
+    commits = ancestry(repo, good, bad)
+    if not commits:
+        raise ReplayError(f"{args.good} and {args.bad} are the same commit: nothing to bisect")
+    base = _side(f"rev:{good}", args.suite, args)
+    known = {m for r in base.rows for m in r.get("metrics", {})}
+    if args.metric not in known:
+        raise ReplayError(f"--metric {args.metric!r} is not a metric of this suite; it has: {', '.join(sorted(known))}")
+    tested: dict[str, bool] = {}
+
+    def regressed(sha: str) -> bool:
+        c = compare(base, _side(f"rev:{sha}", args.suite, args), tolerances)
+        tested[sha] = any(r.metric == args.metric or r.verdict == "failed" for r in c.regressions)
+        print(f"  {sha[:10]} {'regressed' if tested[sha] else 'good'}", flush=True)
+        return tested[sha]
+
+    print(f"bisecting {len(commits)} commit(s) after {good[:10]} for a regression of {args.metric}")
+    if not regressed(bad):
+        raise ReplayError(f"{args.metric} did not regress at {args.bad} against {args.good}: nothing to bisect")
+    lo, hi = -1, len(commits) - 1  # commits[hi] regressed; lo: the last known good (-1: GOOD itself)
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if regressed(commits[mid]):
+            hi = mid
+        else:
+            lo = mid
+    print(f"first regressed commit ({len(tested)} revision(s) run): {one_line(repo, commits[hi])}")
+    return 0
+
+
 def add_suite_parsers(sub: Any, quiet: argparse.ArgumentParser) -> None:
     """The ``suite`` and ``compare`` subcommands."""
     st = sub.add_parser("suite", help="run a suite: recordings x pipelines x config variants x seeds")
@@ -175,3 +214,17 @@ def add_suite_parsers(sub: Any, quiet: argparse.ArgumentParser) -> None:
     cp.add_argument("--jobs", type=int, default=1, metavar="N", help="cells at once when a rev: side runs")
     cp.add_argument("--json", action="store_true", help="machine-readable output")
     cp.set_defaults(func=cmd_compare)
+
+    bs = sub.add_parser("bisect", parents=[quiet], help="find the first commit at which a metric regressed",
+                        description="Binary search over the commits from GOOD to BAD (ancestry path): runs the "
+                                    "suite at each revision tried (cached, as compare rev: does) and compares it "
+                                    "with GOOD. Prints the first commit where METRIC is a regression. Exit 0 when "
+                                    "found, 2 on bad input (BAD not regressed, unknown metric or revision).")
+    bs.add_argument("good", help="a revision where the metric is fine")
+    bs.add_argument("bad", help="a later revision where it regressed")
+    bs.add_argument("--suite", required=True, metavar="SUITE.toml", help="the suite to run at each revision")
+    bs.add_argument("--metric", required=True, metavar="NAME", help="the metric that regressed")
+    bs.add_argument("--tolerance", action="append", default=[], metavar="NAME=VALUE",
+                    help="as for compare")
+    bs.add_argument("--jobs", type=int, default=1, metavar="N", help="cells at once")
+    bs.set_defaults(func=cmd_bisect)

@@ -85,6 +85,21 @@ def commit_range(repo: Path, a: str, b: str, limit: int = 50) -> list[str]:
         return []
 
 
+def one_line(repo: Path, sha: str) -> str:
+    """``git log --oneline -1 SHA``."""
+    return _git(repo, "log", "--oneline", "-1", sha).strip()
+
+
+def ancestry(repo: Path, good: str, bad: str) -> list[str]:
+    """Commits after ``good`` up to ``bad`` on the path between them, oldest first; ReplayError if unrelated."""
+    try:
+        _git(repo, "merge-base", "--is-ancestor", good, bad)
+    except ReplayError:
+        raise ReplayError(f"{good} is not an ancestor of {bad}: bisect needs GOOD older than BAD "
+                          f"on one line of history") from None
+    return _git(repo, "rev-list", "--reverse", "--ancestry-path", f"{good}..{bad}").split()
+
+
 @contextmanager
 def _locked(path: Path) -> Iterator[None]:
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -218,3 +218,41 @@ def test_revision_that_does_not_build(tmp_path: Path, capsys: pytest.CaptureFixt
     assert len(git(repo, "worktree", "list").splitlines()) == 1  # the failed worktree is gone
     assert not (tmp_path / "o" / "results.jsonl").exists()
     assert (tmp_path / "cache" / "revs" / f"{sha}.failed-build.log").is_file()
+
+
+@pytest.mark.slow
+def test_bisect_finds_the_degrading_commit(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """good, harmless, degrading, harmless: bisect names the degrading commit; compare of the ends exits 1."""
+    clone = tmp_path / "clone"
+    subprocess.run(["git", "clone", "-q", "--no-hardlinks", str(REPO), str(clone)], check=True)
+    slam = clone / "replay" / "pipelines" / "landmark_slam.py"
+    for i, degrade in enumerate((False, True, False)):
+        if degrade:
+            text = slam.read_text()
+            assert "msg.ranges_m[keep], msg.bearings_rad[keep]" in text
+            slam.write_text(text.replace("msg.ranges_m[keep], msg.bearings_rad[keep]",
+                                         "msg.ranges_m[keep] * 1.05, msg.bearings_rad[keep]"))
+            git(clone, "commit", "-qam", "degrade: ranges read 5% long")
+        else:
+            (clone / f"note{i}.txt").write_text("harmless\n")
+            git(clone, "add", f"note{i}.txt")
+            git(clone, "commit", "-qm", f"harmless {i}")
+    monkeypatch.chdir(clone)
+    monkeypatch.setenv("SLAMREPLAY_REV_PYTHON", sys.executable)
+    write_tiny_recording(tmp_path / "tiny.mcap", n=60)
+    suite = tmp_path / "s.toml"
+    suite.write_text('[recordings.tiny]\npath = "tiny.mcap"\n[pipelines.dslam]\n')
+    code, out, err = run_cli(["bisect", "HEAD~3", "HEAD", "--suite", str(suite), "--metric", "landmark_rmse_m"],
+                             capsys)
+    assert code == 0, err
+    assert out.strip().splitlines()[-1].endswith("degrade: ranges read 5% long"), out
+    report = tmp_path / "r.md"
+    code, out, err = run_cli(["compare", "rev:HEAD~3", "rev:HEAD", "--suite", str(suite), "--markdown", str(report)],
+                             capsys)
+    assert code == 1 and "landmark_rmse_m" in report.read_text() and "degrade: ranges read 5% long" in out
+    code, out, err = run_cli(["bisect", "HEAD~3", "HEAD~2", "--suite", str(suite), "--metric", "landmark_rmse_m"],
+                             capsys)
+    assert_bad_input(code, err, r"did not regress at HEAD~2")
+    code, out, err = run_cli(["bisect", "HEAD~3", "HEAD", "--suite", str(suite), "--metric", "nope"], capsys)
+    assert_bad_input(code, err, r"--metric 'nope' is not a metric of this suite")
