@@ -51,7 +51,7 @@ def executor_runner(kind: str, jobs: int) -> Any:
                 futures = {}
                 for job in todo:
                     task = Task(uuid.uuid4().hex, str(job.recording.path), job.cell.pipeline, dict(job.cell.config),
-                                job.cell.seed, str(job.run_dir), "")
+                                job.cell.seed, str(job.run_dir), "", dict(job.recording.topic_map))
                     futures[pool.submit(ex.run, task)] = job
                 for fut in as_completed(futures):
                     outcome: Outcome = fut.result()

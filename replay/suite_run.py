@@ -287,6 +287,10 @@ def run_suite(suite: Suite, out: Path, code: str, run_cells: Callable[[list[Cell
     ``run_cells(jobs)`` runs the jobs (serially, in a process pool, on Ray, in another
     revision's environment) and yields ``(job, error or None)`` as each one ends, in any order.
     """
+    if out.exists() and not out.is_dir():
+        raise ReplayError(f"--out {out} is a file: give a results directory (new, or one a suite wrote)")
+    if out.is_dir() and any(out.iterdir()) and not (out / "suite.json").is_file():
+        raise ReplayError(f"--out {out} holds other files: give a new directory or one a suite wrote")
     out.mkdir(parents=True, exist_ok=True)
     recordings = materialize(suite, cache or cache_dir())
     jobs, cached = plan(suite, recordings, out, code)

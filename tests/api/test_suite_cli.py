@@ -80,6 +80,30 @@ def test_failed_cell_recorded_and_suite_goes_on(tmp_path: Path, capsys: pytest.C
     assert "FAILED" in stdout
 
 
+def test_topic_map_and_out_checks(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A recording's topic_map reaches its runs; --out must be a results directory or new."""
+    from recorder import OdometryPose, Recorder
+
+    with Recorder(tmp_path / "robot.mcap", source={"test": "renamed"}, seed=0) as rec:
+        for k in range(30):
+            rec.write("/robot/odom", OdometryPose(1_000_000_000 + k * 100_000_000, 0.1 * k, 0.0, 0.0))
+    suite = tmp_path / "s.toml"
+    suite.write_text('[recordings.robot]\npath = "robot.mcap"\ntopic_map = { "/robot/odom" = "/odom" }\n'
+                     "[pipelines.odometry]\n")
+    code, _out, err = run_cli(["suite", "run", str(suite), "--out", str(tmp_path / "res")], capsys)
+    assert code == 0, err
+    (row,) = suite_run.read_results(tmp_path / "res")
+    assert row["status"] == "succeeded", row["error"]
+    manifest = json.loads((Path(row["run_dir"]) / "manifest.json").read_text())
+    assert manifest["recording"]["topic_map"] == {"/robot/odom": "/odom"}
+    (tmp_path / "file").write_text("x")
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "mine.txt").write_text("x")
+    for target, pattern in (("file", r"is a file"), ("other", r"holds other files")):
+        code, _out, err = run_cli(["suite", "run", str(suite), "--out", str(tmp_path / target)], capsys)
+        assert_bad_input(code, err, pattern)
+
+
 def test_code_version_of_a_dirty_tree(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Uncommitted changes: `<sha>-dirty+<hash of the diff>`, which changes with the diff."""
     repo = tmp_path / "repo"
