@@ -115,7 +115,7 @@ def sim_recording(spec: RecordingSpec, seed: int, cache: Path) -> Path:
 def url_recording(spec: RecordingSpec, cache: Path) -> Path:
     """A local copy of ``spec.url``, fetched once per (url, the store's checksum of the object)."""
     try:
-        import fsspec
+        import fsspec  # type: ignore[import-untyped]
     except ImportError:
         raise ReplayError(f"recording {spec.name}: url recordings need fsspec (pip install fsspec)") from None
     url = spec.url or ""

@@ -104,6 +104,24 @@ def test_topic_map_and_out_checks(tmp_path: Path, capsys: pytest.CaptureFixture[
         assert_bad_input(code, err, pattern)
 
 
+def test_url_recording_fetched_once(tmp_path: Path, capsys: pytest.CaptureFixture[str], cache: Path) -> None:
+    """A url recording is fetched through fsspec once, then served from the cache."""
+    fsspec = pytest.importorskip("fsspec")
+    fs = fsspec.filesystem("memory")
+    fs.pipe("/suite-test/tiny.mcap", write_tiny_recording(tmp_path / "tiny.mcap", n=30).read_bytes())
+    suite = tmp_path / "s.toml"
+    suite.write_text('[recordings.remote]\nurl = "memory://suite-test/tiny.mcap"\n[pipelines.odometry]\n')
+    for _ in range(2):
+        code, _out, err = run_cli(["suite", "run", str(suite), "--out", str(tmp_path / "res")], capsys)
+        assert code == 0, err
+    (row,) = suite_run.read_results(tmp_path / "res")
+    assert row["status"] == "succeeded" and row["cached"]
+    assert len(list((cache / "downloads").iterdir())) == 1
+    suite.write_text('[recordings.remote]\nurl = "memory://suite-test/missing.mcap"\n[pipelines.odometry]\n')
+    code, _out, err = run_cli(["suite", "run", str(suite), "--out", str(tmp_path / "res2")], capsys)
+    assert_bad_input(code, err, r"recording remote: cannot open memory://suite-test/missing\.mcap")
+
+
 def test_code_version_of_a_dirty_tree(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Uncommitted changes: `<sha>-dirty+<hash of the diff>`, which changes with the diff."""
     repo = tmp_path / "repo"
