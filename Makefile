@@ -32,7 +32,7 @@ test: $(STAMP)
 # a minute of tests, most of it Ray's start-up; apart from `make test` so that it needs no Ray. CI runs both.
 test-ray: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[dev,ray]"
-	$(BIN)/python -m pytest -q -m ray tests/api/test_ray_executor.py $(ARGS)
+	$(BIN)/python -m pytest -q -m ray tests/api/test_ray_executor.py tests/api/test_suite_cli.py $(ARGS)
 
 lint: $(STAMP)
 	$(BIN)/ruff check recorder replay algorithms api tests benchmarks

@@ -51,7 +51,7 @@ class Task:
     config: dict[str, Any]
     seed: int
     run_dir: str
-    db_path: str  # where a local worker reports progress
+    db_path: str  # where a local worker reports progress ("" for none: a suite's cells)
     topic_map: dict[str, str] = field(default_factory=dict)  # file topic -> slamreplay topic (suites)
 
 

@@ -298,3 +298,16 @@ def test_bisect_finds_the_degrading_commit(tmp_path: Path, capsys: pytest.Captur
     assert_bad_input(code, err, r"did not regress at HEAD~2")
     code, out, err = run_cli(["bisect", "HEAD~3", "HEAD", "--suite", str(suite), "--metric", "nope"], capsys)
     assert_bad_input(code, err, r"--metric 'nope' is not a metric of this suite")
+
+
+@pytest.mark.ray
+def test_suite_on_ray(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--executor ray runs the cells as Ray tasks (the service's RayExecutor, no job store)."""
+    pytest.importorskip("ray")
+    write_tiny_recording(tmp_path / "tiny.mcap", n=40)
+    suite = tmp_path / "s.toml"
+    suite.write_text('seeds = [0, 1]\n[recordings.tiny]\npath = "tiny.mcap"\n[pipelines.odometry]\n')
+    code, _out, err = run_cli(["suite", "run", str(suite), "--out", str(tmp_path / "res"), "--executor", "ray",
+                               "--jobs", "2"], capsys)
+    assert code == 0, err
+    assert [r["status"] for r in suite_run.read_results(tmp_path / "res")] == ["succeeded"] * 2
