@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import uuid
 from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +40,25 @@ def _executor(kind: str, jobs: int) -> Any:
     return LocalExecutor(jobs, job=suite_job)
 
 
+@contextmanager
+def _one_blas_thread() -> Iterator[None]:
+    """Workers started inside see one BLAS/OpenMP thread each, as Ray gives its workers: replays do
+    small dense algebra that BLAS threads slow down, and N workers with a thread per core each would
+    oversubscribe the cores. A user's own setting wins."""
+    names = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    saved = {n: os.environ.get(n) for n in names}
+    for n in names:
+        os.environ.setdefault(n, "1")
+    try:
+        yield
+    finally:
+        for n, v in saved.items():
+            if v is None:
+                os.environ.pop(n, None)
+            else:
+                os.environ[n] = v
+
+
 def executor_runner(kind: str, jobs: int) -> Any:
     """``run_cells`` for ``replay.suite_run.run_suite`` on a local process pool or Ray."""
 
@@ -45,7 +66,8 @@ def executor_runner(kind: str, jobs: int) -> Any:
         if not todo:
             return
         ex = _executor(kind, min(jobs, len(todo)))
-        ex.start()
+        with _one_blas_thread():
+            ex.start()
         try:
             with ThreadPoolExecutor(max_workers=ex.slots) as pool:
                 futures = {}
