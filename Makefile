@@ -55,7 +55,7 @@ snapshots: $(STAMP) viewer-deps
 # a minute of tests, most of it Ray's start-up; apart from `make test` so that it needs no Ray. CI runs both.
 test-ray: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[dev,ray]"
-	$(BIN)/python -m pytest -q -m ray tests/api/test_ray_executor.py $(ARGS)
+	$(BIN)/python -m pytest -q -m ray tests/api/test_ray_executor.py tests/api/test_suite_cli.py $(ARGS)
 
 # Every ```sh/```bash/```console block of README.md, run in a fresh copy of the repository with
 # $(BIN) on PATH (tests/test_readme.py); blocks marked <!-- docs-test: skip (why) --> are reported.

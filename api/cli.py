@@ -17,6 +17,7 @@ from typing import Any
 
 from api.graph_cli import add_graph_parser
 from api.hints import spell_commands, tool, view_hint
+from api.suite_cli import add_suite_parsers
 from recorder.errors import RecorderError
 from replay.errors import ReplayError
 
@@ -524,6 +525,7 @@ def build_parser() -> argparse.ArgumentParser:
     srv.set_defaults(func=cmd_serve)
 
     add_graph_parser(sub)
+    add_suite_parsers(sub, quiet)
     return p
 
 

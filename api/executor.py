@@ -26,7 +26,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
 from typing import Any, Literal, Protocol
@@ -51,7 +51,8 @@ class Task:
     config: dict[str, Any]
     seed: int
     run_dir: str
-    db_path: str  # where a local worker reports progress
+    db_path: str  # where a local worker reports progress ("" for none: a suite's cells)
+    topic_map: dict[str, str] = field(default_factory=dict)  # file topic -> slamreplay topic (suites)
 
 
 @dataclass(frozen=True, slots=True)
@@ -123,7 +124,7 @@ def run_task(task: Task, report: Report | None = None) -> Outcome:
     try:
         with staged_recording(task.recording) as recording, staged_run_dir(task.run_dir) as run_dir:
             run_recording(recording, task.pipeline, run_dir, seed=task.seed, config=task.config,
-                          progress=progress, run_id=task.job_id)
+                          topic_map=task.topic_map, progress=progress, run_id=task.job_id)
     except ReplayError as err:
         return Outcome("failed", str(err))
     except StorageError as err:

@@ -174,7 +174,7 @@ class RayExecutor:
         except self.ray.exceptions.RayError as err:  # progress is best effort
             log.warning("job %s: no progress from the sink: %s", task.job_id, err)
             return None, None
-        if fraction is not None:
+        if fraction is not None and task.db_path:  # no job store (a suite's cells): nothing to write
             set_progress(task.db_path, task.job_id, fraction)
         return fraction, error
 

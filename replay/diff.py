@@ -135,6 +135,18 @@ def _verdict(a: float | None, b: float | None, better: str, tol: float) -> tuple
     return delta, "better" if improved else "worse"
 
 
+def judge_metric(a: float, b: float, better: str, default_tolerance: float, tolerance_spec: str | None = None
+                 ) -> tuple[float, float | None, str]:
+    """(tolerance, B - A, verdict) of one metric, judged exactly as ``diff_runs`` judges it.
+
+    ``tolerance_spec`` is a ``--tolerance`` value (absolute, or ``N%`` of A); without it the
+    metric's own default applies. Verdicts: better | worse | same | changed.
+    """
+    tol = _tolerance(tolerance_spec, default_tolerance, a)
+    delta, verdict = _verdict(a, b, better, tol)
+    return tol, delta, verdict
+
+
 def _get(doc: Mapping[str, Any], dotted: str) -> Any:
     for part in dotted.split("."):
         doc = doc.get(part, {}) if isinstance(doc, Mapping) else {}

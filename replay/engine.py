@@ -20,6 +20,7 @@ from recorder.messages import TOPIC_GROUND_TRUTH_POSE
 from replay.errors import ReplayError
 from replay.pipeline import Pipeline, ReplayContext, ReplayObserver
 from replay.reader import RecordingReader
+from replay.trajectory import trajectory_artifacts
 
 Progress = Callable[[int, int], None]
 
@@ -109,7 +110,7 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
         raise RuntimeError(f"pipeline {pipeline_cls.name} returned metrics without a spec: {sorted(unknown)}")
     return ReplayStats(metrics, n, np.asarray(durations) if log_timings else None,
                        np.asarray(times, np.int64) if log_timings else None, pipeline.timings(),
-                       pipeline.artifacts())
+                       {**trajectory_artifacts(pipeline.trajectory()), **pipeline.artifacts()})
 
 
 def text_logger(observer: ReplayObserver, lines: list[str]) -> Callable[[str], None]:

@@ -126,6 +126,17 @@ class Pipeline(ABC):
         """
         return {}
 
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The estimated trajectory, (t_ns (n,) int64, poses (n, 3) x y yaw in the world frame), or None.
+
+        Written to the run as ``trajectory.tum``. By default it is read from the ``t_est`` and
+        ``est`` lists that trajectory pipelines keep; a pipeline holding it elsewhere overrides this.
+        """
+        t_est, est = getattr(self, "t_est", None), getattr(self, "est", None)
+        if t_est is None or est is None or len(t_est) != len(est):
+            return None
+        return np.asarray(t_est, np.int64), np.asarray(est, np.float64).reshape(-1, 3)
+
     @classmethod
     def blueprint(cls, bounds: views.Bounds | None = None) -> rrb.Blueprint:
         """The Rerun layout a run of this pipeline opens into (`replay.views`): the summary first.

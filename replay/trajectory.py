@@ -59,3 +59,42 @@ class TrajectoryLog:
             self._xy = np.concatenate([self._xy, np.empty_like(self._xy)])
         self._xy[self._n] = (x, y)
         self._n += 1
+
+
+TUM_ARTIFACT = "trajectory.tum"
+
+
+def to_tum(t_ns: np.ndarray, poses: np.ndarray) -> bytes:
+    """Planar poses (n, 3: x, y, yaw) at ``t_ns`` as TUM text: ``timestamp x y z qx qy qz qw`` per line.
+
+    Timestamps in seconds with nanosecond digits; z = 0 and the yaw as a quaternion about +z,
+    so that evo (``evo_ape tum truth.tum trajectory.tum``) and other tools read it as it is.
+    """
+    t_ns, poses = np.asarray(t_ns, np.int64), np.asarray(poses, np.float64).reshape(-1, 3)
+    if len(t_ns) != len(poses):
+        raise ValueError(f"t_ns and poses differ in length: {len(t_ns)} != {len(poses)}")
+    lines = [f"{t // 1_000_000_000}.{t % 1_000_000_000:09d} {x:.9g} {y:.9g} 0 0 0 {math.sin(th / 2):.9g} "
+             f"{math.cos(th / 2):.9g}" for t, (x, y, th) in zip(t_ns.tolist(), poses.tolist(), strict=True)]
+    return ("# timestamp x y z qx qy qz qw\n" + "\n".join(lines) + ("\n" if lines else "")).encode()
+
+
+def read_tum(text: str) -> tuple[np.ndarray, np.ndarray]:
+    """(t_s (n,), poses (n, 3: x, y, yaw)) of TUM text; ValueError on a malformed line."""
+    rows = []
+    for i, line in enumerate(text.splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        parts = line.split()
+        if len(parts) != 8:
+            raise ValueError(f"line {i}: expected 8 fields (timestamp x y z qx qy qz qw), got {len(parts)}")
+        t, x, y, _z, qx, qy, qz, qw = map(float, parts)
+        rows.append((t, x, y, math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))))
+    arr = np.array(rows, np.float64).reshape(-1, 4)
+    return arr[:, 0], arr[:, 1:]
+
+
+def trajectory_artifacts(trajectory: tuple[np.ndarray, np.ndarray] | None) -> dict[str, bytes]:
+    """``{"trajectory.tum": ...}`` for a pipeline's estimated trajectory, nothing without one."""
+    if trajectory is None or len(trajectory[0]) == 0:
+        return {}
+    return {TUM_ARTIFACT: to_tum(*trajectory)}

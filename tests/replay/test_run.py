@@ -74,7 +74,7 @@ def test_run_directory_contents(tiny_recording: Path, tmp_path: Path) -> None:
     """A run has run.rrd, metrics.json, manifest.json and log.txt; no temporary files remain."""
     res = run_recording(tiny_recording, "odometry", tmp_path / "run", seed=5, config={})
     names = sorted(p.name for p in res.run_dir.iterdir())
-    assert names == ["log.txt", "manifest.json", "metrics.json", "run.rrd"]
+    assert names == ["log.txt", "manifest.json", "metrics.json", "run.rrd", "trajectory.tum"]
     man = json.loads((res.run_dir / "manifest.json").read_text())
     assert man["status"] == "succeeded" and man["seed"] == 5 and man["pipeline"] == "odometry"
     assert len(man["recording"]["sha256"]) == 64 and len(man["config_hash"]) == 64

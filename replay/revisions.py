@@ -1,0 +1,187 @@
+"""Another version of the code: a git worktree of a revision with its own virtual environment.
+
+``prepare_revision`` checks the revision out with ``git worktree add --detach`` into
+``<cache>/revs/<sha>/src`` and builds ``<cache>/revs/<sha>/venv`` (``python -m venv`` then
+``pip install -e src``), once per commit sha; a ``ready`` stamp marks a finished build, a lock
+file keeps two suites from building the same revision at once, and a failed build is removed
+so that the next attempt starts clean. Cells run there through that environment's
+``slamreplay run`` (which every revision has, unlike ``suite``), so results of a revision come
+from its own code only: the checkout the user works in is never touched.
+
+``SLAMREPLAY_REV_PYTHON`` names an interpreter that already has the dependencies, to use
+instead of building a virtual environment (tests; a cluster image): cells then run as
+``python -m api.cli run`` with the worktree first on ``PYTHONPATH``, still the revision's code.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import shutil
+import subprocess
+import sys
+from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from recorder.version import SOURCE_ROOT
+from replay.errors import ReplayError
+from replay.suite_run import CellJob
+
+BUILD_TIMEOUT_S = 1800
+
+
+@dataclass(frozen=True, slots=True)
+class Revision:
+    """A built revision: its commit, worktree and the command that runs ``slamreplay``."""
+
+    rev: str
+    sha: str
+    worktree: Path
+    command: tuple[str, ...]
+    env: dict[str, str]
+
+
+def _git(repo: Path, *args: str) -> str:
+    try:
+        done = subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, timeout=120)
+    except (OSError, subprocess.SubprocessError) as err:
+        raise ReplayError(f"git {' '.join(args)} failed: {err}") from None
+    if done.returncode != 0:
+        msg = (done.stderr.strip().splitlines() or ["(no message)"])[-1]
+        raise ReplayError(f"git {' '.join(args)}: {msg}")
+    return done.stdout
+
+
+def find_repo(start: Path | None = None) -> Path:
+    """The git checkout holding ``start`` (default: the current directory), else the running code's."""
+    for where in (start or Path.cwd(), SOURCE_ROOT):
+        try:
+            return Path(_git(where, "rev-parse", "--show-toplevel").strip())
+        except ReplayError:
+            continue
+    raise ReplayError("not in a git checkout: --rev and rev: need the slamreplay repository (cd into it)")
+
+
+def resolve(repo: Path, rev: str) -> str:
+    """The full commit sha of ``rev``; ReplayError for an unknown revision."""
+    if not rev or rev.startswith("-"):
+        raise ReplayError(f"unknown revision {rev!r}")
+    try:
+        return _git(repo, "rev-parse", "--verify", "--quiet", f"{rev}^{{commit}}").strip()
+    except ReplayError:
+        raise ReplayError(f"unknown revision {rev!r} in {repo}: give a commit, branch or tag that "
+                          f"`git rev-parse` knows (fetch it first if it is remote)") from None
+
+
+def commit_range(repo: Path, a: str, b: str, limit: int = 50) -> list[str]:
+    """``git log --oneline A..B`` (at most ``limit`` lines)."""
+    try:
+        return _git(repo, "log", "--oneline", f"-{limit}", f"{a}..{b}").splitlines()
+    except ReplayError:
+        return []
+
+
+def one_line(repo: Path, sha: str) -> str:
+    """``git log --oneline -1 SHA``."""
+    return _git(repo, "log", "--oneline", "-1", sha).strip()
+
+
+def ancestry(repo: Path, good: str, bad: str) -> list[str]:
+    """Commits after ``good`` up to ``bad`` on the path between them, oldest first; ReplayError if unrelated."""
+    try:
+        _git(repo, "merge-base", "--is-ancestor", good, bad)
+    except ReplayError:
+        raise ReplayError(f"{good} is not an ancestor of {bad}: bisect needs GOOD older than BAD "
+                          f"on one line of history") from None
+    return _git(repo, "rev-list", "--reverse", "--ancestry-path", f"{good}..{bad}").split()
+
+
+@contextmanager
+def _locked(path: Path) -> Iterator[None]:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _remove_build(repo: Path, root: Path) -> None:
+    if (root / "src").exists():
+        subprocess.run(["git", "worktree", "remove", "--force", str(root / "src")], cwd=repo,
+                       capture_output=True, timeout=120)
+    shutil.rmtree(root, ignore_errors=True)
+    subprocess.run(["git", "worktree", "prune"], cwd=repo, capture_output=True, timeout=120)
+
+
+def prepare_revision(repo: Path, rev: str, cache: Path) -> Revision:
+    """Worktree and environment of ``rev``, built once per commit; ReplayError if it does not build."""
+    sha = resolve(repo, rev)
+    root = cache / "revs" / sha
+    src, venv = root / "src", root / "venv"
+    override = os.environ.get("SLAMREPLAY_REV_PYTHON")
+    with _locked(cache / "revs" / f".{sha}.lock"):
+        if not (root / "ready").is_file():
+            _remove_build(repo, root)
+            root.mkdir(parents=True, exist_ok=True)
+            log = root / "build.log"
+            steps = [["git", "worktree", "add", "--detach", str(src), sha]]
+            if not override:
+                steps += [[sys.executable, "-m", "venv", str(venv)],
+                          [str(venv / "bin" / "python"), "-m", "pip", "install", "--quiet", "-e", str(src)]]
+            with open(log, "w") as out:
+                for step in steps:
+                    out.write(f"$ {' '.join(step)}\n")
+                    out.flush()
+                    try:
+                        done = subprocess.run(step, cwd=repo, stdout=out, stderr=subprocess.STDOUT,
+                                              timeout=BUILD_TIMEOUT_S)
+                    except (OSError, subprocess.SubprocessError) as err:
+                        done = subprocess.CompletedProcess(step, 1, None, None)
+                        out.write(f"{err}\n")
+                    if done.returncode != 0:
+                        keep = cache / "revs" / f"{sha}.failed-build.log"
+                        shutil.copy(log, keep)
+                        out.close()
+                        _remove_build(repo, root)
+                        raise ReplayError(f"revision {rev} ({sha[:10]}) does not build: `{' '.join(step[:4])}` "
+                                          f"failed; see {keep}")
+            (root / "ready").write_text(sha + "\n")
+    if override:
+        env = {"PYTHONPATH": str(src) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+        return Revision(rev, sha, src, (override, "-m", "api.cli"), env)
+    return Revision(rev, sha, src, (str(venv / "bin" / "slamreplay"),), {})
+
+
+def run_cell(revision: Revision, job: CellJob) -> str | None:
+    """Run one cell with the revision's ``slamreplay run``; an error message, or None on success."""
+    cfg = job.run_dir.parent / f".{job.run_dir.name}.config.json"
+    cfg.write_text(json.dumps(job.cell.config, sort_keys=True))
+    cmd = [*revision.command, "run", str(job.recording.path), "--pipeline", job.cell.pipeline,
+           "--out", str(job.run_dir), "--seed", str(job.cell.seed), "--config", str(cfg), "--quiet"]
+    for k, v in sorted(job.recording.topic_map.items()):
+        cmd += ["--topic-map", f"{k}={v}"]
+    env = {**os.environ, **revision.env}
+    try:
+        done = subprocess.run(cmd, cwd=revision.worktree, capture_output=True, text=True, env=env)
+    except OSError as err:
+        return f"cannot start {cmd[0]}: {err}"
+    finally:
+        cfg.unlink(missing_ok=True)
+    if done.returncode != 0:
+        lines = done.stderr.strip().splitlines()
+        return lines[-1] if lines else f"slamreplay run exited with {done.returncode}"
+    return None
+
+
+def run_cells(revision: Revision, jobs: list[CellJob], workers: int) -> Iterable[tuple[CellJob, str | None]]:
+    """Run ``jobs`` at the revision, ``workers`` at once; yields (job, error) as they end."""
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        futures = {pool.submit(run_cell, revision, job): job for job in jobs}
+        for fut in as_completed(futures):
+            yield futures[fut], fut.result()

@@ -1,0 +1,318 @@
+"""Running a suite: recordings made or fetched on demand, a cache key per cell, results.jsonl.
+
+``RESULTS_DIR/`` holds ``results.jsonl`` (one row per cell: the cell, every metric with its
+direction, recording sha256, config hash, code version, status, wall time, peak memory, the
+run directory), ``suite.json`` (what ran: suite, code version, revision) and ``runs/<cell>/``.
+
+A cell's cache key is the sha256 of its inputs: recording sha256, pipeline, the variant's
+config values, run seed, topic map and code version. The resolved configuration is a function
+of those (defaults and the recording's sensor model come from the code and the recording), so
+equal keys mean equal runs. A run directory holding a succeeded run with the key it was made
+for is reused; anything else in its place (a failed or interrupted run) is removed and run again.
+
+Simulated recordings are made once by the code running the suite (both sides of a comparison
+replay the same recordings) and cached by their content in ``<cache>/recordings/``: the key
+is the simulator, its options, the seed and a fingerprint of the simulator's loaded code.
+``url`` recordings are fetched with fsspec once per (url, the store's checksum of it).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from recorder.version import SOURCE_ROOT, git_commit, version
+from replay.errors import ReplayError
+from replay.run import atomic_write, sha256_file
+from replay.suite import Cell, RecordingSpec, Suite, canonical, sim_config_class, sim_kwargs
+
+RESULTS_FORMAT = 1
+SIM_MODULES = {
+    "sim-landmarks": ("recorder.sim.landmarks", "recorder.sim.unicycle", "recorder.sim.wheel_odometry"),
+    "sim-seabed": ("recorder.sim.seabed", "recorder.sim.unicycle"),
+    "sim-corridor": ("recorder.sim.corridor", "recorder.sim.corridor_plan", "recorder.sim.corridor_render",
+                     "recorder.sim.unicycle", "recorder.sim.wheel_odometry"),
+}
+WRITER_MODULES = ("recorder.writer", "recorder.messages", "recorder.codec.protobuf", "recorder.codec.schemas")
+
+
+def cache_dir() -> Path:
+    """``$SLAMREPLAY_CACHE``, else ``~/.cache/slamreplay``."""
+    env = os.environ.get("SLAMREPLAY_CACHE")
+    return Path(env).expanduser() if env else Path.home() / ".cache" / "slamreplay"
+
+
+def code_version() -> str:
+    """The commit of the running code; with local changes ``<sha>-dirty+<hash of the diff>``.
+
+    The diff hash tells two different sets of uncommitted changes apart, so the cache never
+    serves a run of other code. Outside a git checkout: ``<version>+code.<fingerprint>``.
+    """
+    commit = git_commit()
+    if commit == "unknown":
+        import sys
+
+        from replay.codeprint import code_fingerprint
+        mods = [m for m in sys.modules if m.split(".")[0] in ("replay", "algorithms", "recorder")]
+        return f"{version()}+code.{code_fingerprint(mods)}"
+    if not commit.endswith("-dirty"):
+        return commit
+    try:
+        diff = subprocess.run(["git", "diff", "HEAD", "--binary"], cwd=SOURCE_ROOT, capture_output=True,
+                              timeout=30, check=True).stdout
+    except (OSError, subprocess.SubprocessError):
+        diff = b""
+    return f"{commit}+{hashlib.sha256(diff).hexdigest()[:12]}"
+
+
+# ---------------------------------------------------------------------------------------
+# Recordings
+
+
+def _simulate(spec: RecordingSpec, seed: int, out: Path) -> None:
+    cls = sim_config_class(spec.sim or "")
+    config = cls(**sim_kwargs(spec.sim or "", spec.args))
+    if spec.sim == "sim-landmarks":
+        from recorder.sim.landmarks import simulate_landmarks
+        simulate_landmarks(out, config, seed=seed)
+    elif spec.sim == "sim-seabed":
+        from recorder.sim.seabed import simulate_seabed
+        simulate_seabed(out, config, seed=seed)
+    else:
+        from recorder.sim.corridor import simulate_corridor
+        simulate_corridor(out, config, seed=seed)
+
+
+def sim_recording(spec: RecordingSpec, seed: int, cache: Path) -> Path:
+    """The recording of ``spec`` at ``seed``, simulated once and cached by its inputs and code."""
+    from replay.codeprint import code_fingerprint
+
+    sim = spec.sim or ""
+    key = hashlib.sha256(canonical({"sim": sim, "args": sim_kwargs(sim, spec.args), "seed": seed,
+                                    "code": code_fingerprint([*SIM_MODULES[sim], *WRITER_MODULES])}).encode())
+    out = cache / "recordings" / f"{sim}-s{seed}-{key.hexdigest()[:16]}.mcap"
+    if out.is_file():
+        return out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=out.parent, prefix=".sim-") as tmp:
+        part = Path(tmp) / out.name
+        try:
+            _simulate(spec, seed, part)
+        except (ValueError, TypeError) as err:
+            raise ReplayError(f"recording {spec.name}: {sim} failed: {err}") from err
+        os.replace(part, out)
+    return out
+
+
+def url_recording(spec: RecordingSpec, cache: Path) -> Path:
+    """A local copy of ``spec.url``, fetched once per (url, the store's checksum of the object)."""
+    try:
+        import fsspec  # type: ignore[import-untyped]
+    except ImportError:
+        raise ReplayError(f"recording {spec.name}: url recordings need fsspec (pip install fsspec)") from None
+    url = spec.url or ""
+    try:
+        fs, path = fsspec.core.url_to_fs(url)
+        stamp = str(fs.checksum(path))
+    except (ValueError, OSError, ImportError) as err:
+        raise ReplayError(f"recording {spec.name}: cannot open {url}: {err}") from None
+    suffix = Path(path).suffix or ".mcap"
+    out = cache / "downloads" / (hashlib.sha256(f"{url}\n{stamp}".encode()).hexdigest()[:24] + suffix)
+    if out.is_file():
+        return out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    part = out.with_name(f".{out.name}.{os.getpid()}.partial")
+    try:
+        with fs.open(path, "rb") as src, open(part, "wb") as dst:
+            shutil.copyfileobj(src, dst, 1 << 20)
+        os.replace(part, out)
+    except OSError as err:
+        part.unlink(missing_ok=True)
+        raise ReplayError(f"recording {spec.name}: cannot fetch {url}: {err}") from None
+    return out
+
+
+@dataclass(frozen=True, slots=True)
+class Recording:
+    path: Path
+    sha256: str
+    topic_map: dict[str, str]
+
+
+def materialize(suite: Suite, cache: Path) -> dict[tuple[str, int | None], Recording]:
+    """(recording name, recording seed) -> a local file and its sha256, for every recording of the suite."""
+    out: dict[tuple[str, int | None], Recording] = {}
+    for spec in suite.recordings.values():
+        if spec.sim:
+            for seed in spec.seeds:
+                p = sim_recording(spec, seed, cache)
+                out[(spec.name, seed)] = Recording(p, sha256_file(p), spec.topic_map)
+        else:
+            p = spec.path if spec.path is not None else url_recording(spec, cache)
+            if not p.exists():
+                raise ReplayError(f"recording {spec.name}: {p} does not exist")
+            sha = sha256_file(p) if p.is_file() else hashlib.sha256(str(p.resolve()).encode()).hexdigest()
+            out[(spec.name, None)] = Recording(p, sha, spec.topic_map)
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# Cells, cache, rows
+
+
+@dataclass(frozen=True, slots=True)
+class CellJob:
+    """A cell with everything needed to run it: where its recording is, where its run goes."""
+
+    cell: Cell
+    recording: Recording
+    run_dir: Path
+    key: str
+
+
+def cell_key(cell: Cell, recording: Recording, code: str) -> str:
+    """sha256 of the cell's inputs (see the module docstring)."""
+    doc = {"recording_sha256": recording.sha256, "pipeline": cell.pipeline, "config": cell.config,
+           "seed": cell.seed, "topic_map": recording.topic_map, "code_version": code}
+    return hashlib.sha256(canonical(doc).encode()).hexdigest()
+
+
+def plan(suite: Suite, recordings: dict[tuple[str, int | None], Recording], out: Path, code: str
+         ) -> tuple[list[CellJob], set[str]]:
+    """Every cell of ``suite`` as a job in results directory ``out``, and the keys served from cache."""
+    jobs, cached = [], set()
+    for cell in suite.cells():
+        rec = recordings[(cell.recording, cell.recording_seed)]
+        key = cell_key(cell, rec, code)
+        job = CellJob(cell, rec, out / "runs" / f"{cell.label}-{key[:12]}", key)
+        jobs.append(job)
+        if is_cached(job):
+            cached.add(key)
+    return jobs, cached
+
+
+def is_cached(job: CellJob) -> bool:
+    """A finished, succeeded run made for this key is in the job's run directory."""
+    try:
+        manifest = json.loads((job.run_dir / "manifest.json").read_text())
+        stamp = json.loads((job.run_dir / "cell.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return False
+    return (manifest.get("status") == "succeeded" and stamp.get("key") == job.key
+            and (job.run_dir / "metrics.json").is_file())
+
+
+def clear_run_dir(job: CellJob) -> None:
+    """Remove what a failed or interrupted earlier attempt left, so the run can start afresh."""
+    if job.run_dir.exists():
+        shutil.rmtree(job.run_dir)
+    job.run_dir.parent.mkdir(parents=True, exist_ok=True)
+
+
+def stamp_run(job: CellJob) -> None:
+    """Mark the run directory with the key it was made for (after the run finished)."""
+    if job.run_dir.is_dir():
+        atomic_write(job.run_dir / "cell.json", canonical({"key": job.key, "cell": job.cell.to_json()}) + "\n")
+
+
+def row(job: CellJob, code: str, error: str | None = None, cached: bool = False) -> dict[str, Any]:
+    """The results.jsonl row of a cell, from its run directory (or from ``error`` without one)."""
+    out: dict[str, Any] = {**job.cell.to_json(), "key": job.key, "run_dir": str(job.run_dir),
+                           "recording_path": str(job.recording.path), "recording_sha256": job.recording.sha256,
+                           "code_version": code, "cached": cached, "status": "failed", "error": error,
+                           "config_hash": None, "metrics": {}, "better": {}, "tolerance": {}, "units": {},
+                           "wall_s": None, "peak_rss_mib": None, "git_commit": None}
+    try:
+        manifest = json.loads((job.run_dir / "manifest.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        out["error"] = error or "the run left no manifest"
+        return out
+    timings = manifest.get("timings", {})
+    out.update(status=manifest.get("status", "failed"), error=manifest.get("error") or error,
+               config_hash=manifest.get("config_hash"), wall_s=timings.get("wall_s"),
+               peak_rss_mib=timings.get("max_rss_mib"), git_commit=manifest.get("slamreplay", {}).get("git_commit"))
+    if out["status"] == "succeeded":
+        try:
+            metrics = json.loads((job.run_dir / "metrics.json").read_text())["metrics"]
+        except (OSError, json.JSONDecodeError, KeyError) as err:
+            out.update(status="failed", error=f"unreadable metrics.json: {err}")
+            return out
+        for name, m in sorted(metrics.items()):
+            out["metrics"][name] = m["value"]
+            out["better"][name] = m.get("better", "none")
+            out["tolerance"][name] = m.get("tolerance", 0.0)
+            out["units"][name] = m.get("unit", "")
+    return out
+
+
+def write_results(out: Path, rows: Iterable[dict[str, Any]]) -> None:
+    """results.jsonl, whole or not at all."""
+    text = "".join(json.dumps(r, sort_keys=True, default=str) + "\n" for r in rows)
+    atomic_write(out / "results.jsonl", text)
+
+
+def read_results(out: Path) -> list[dict[str, Any]]:
+    """The rows of a results directory; ReplayError when it has none or they are unreadable."""
+    path = out / "results.jsonl"
+    try:
+        lines = path.read_text().splitlines()
+    except FileNotFoundError:
+        raise ReplayError(f"{out} has no results.jsonl: it is not a suite results directory "
+                          f"(make one with `slamreplay suite run SUITE.toml --out {out}`)") from None
+    rows = []
+    for i, line in enumerate(lines, 1):
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError as err:
+            raise ReplayError(f"{path}:{i}: not a JSON row: {err}") from None
+    return rows
+
+
+RunCell = Callable[[CellJob], str | None]  # runs one cell into job.run_dir; an error message or None
+
+
+def run_suite(suite: Suite, out: Path, code: str, run_cells: Callable[[list[CellJob]], Iterable[tuple[CellJob,
+              str | None]]], *, cache: Path | None = None, rev: str | None = None,
+              progress: Callable[[int, int], None] | None = None) -> list[dict[str, Any]]:
+    """Run every cell of ``suite`` not cached in ``out``; the rows of results.jsonl (also written).
+
+    ``run_cells(jobs)`` runs the jobs (serially, in a process pool, on Ray, in another
+    revision's environment) and yields ``(job, error or None)`` as each one ends, in any order.
+    """
+    if out.exists() and not out.is_dir():
+        raise ReplayError(f"--out {out} is a file: give a results directory (new, or one a suite wrote)")
+    if out.is_dir() and any(out.iterdir()) and not (out / "suite.json").is_file():
+        raise ReplayError(f"--out {out} holds other files: give a new directory or one a suite wrote")
+    out.mkdir(parents=True, exist_ok=True)
+    recordings = materialize(suite, cache or cache_dir())
+    jobs, cached = plan(suite, recordings, out, code)
+    todo = [j for j in jobs if j.key not in cached]
+    atomic_write(out / "suite.json", json.dumps({
+        "format": RESULTS_FORMAT, "suite": str(suite.path), "suite_name": suite.name, "suite_sha256": suite.sha256,
+        "code_version": code, "rev": rev, "cells": len(jobs)}, indent=2, sort_keys=True) + "\n")
+    by_key = {j.key: row(j, code, cached=True) for j in jobs if j.key in cached}
+    order = [j.key for j in jobs]
+    total, done = len(order), len(cached)
+    if progress:
+        progress(done, total)
+    for job in todo:
+        clear_run_dir(job)
+    write_results(out, [by_key[k] for k in order if k in by_key])
+    for job, error in run_cells(todo):
+        stamp_run(job)
+        by_key[job.key] = row(job, code, error)
+        done += 1
+        write_results(out, [by_key[k] for k in order if k in by_key])
+        if progress:
+            progress(done, total)
+    rows = [by_key[k] for k in order]
+    write_results(out, rows)
+    return rows

@@ -1,0 +1,112 @@
+"""Compare: regressions told from seed noise (known answers), reports, and error paths."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from replay.compare import Side, compare, judge, paired_test
+from replay.errors import ReplayError
+from replay.report import write_reports
+
+
+def rows(values: list[float], *, metric: str = "landmark_rmse_m", better: str = "lower", tol: float = 1e-9,
+         pipeline: str = "dslam", status: str = "succeeded", code: str = "a") -> list[dict[str, Any]]:
+    return [{"recording": "landmarks", "recording_seed": i + 1, "pipeline": pipeline, "variant": "default",
+             "seed": 0, "config": {}, "status": status, "error": None if status == "succeeded" else "boom",
+             "run_dir": f"/tmp/runs/{code}{i}", "code_version": code,
+             "metrics": {metric: v} if status == "succeeded" else {}, "better": {metric: better},
+             "tolerance": {metric: tol}, "units": {metric: "m"}} for i, v in enumerate(values)]
+
+
+def side(label: str, r: list[dict[str, Any]]) -> Side:
+    return Side(label, r, "results", [label])
+
+
+A = [0.050, 0.080, 0.060]
+
+
+def test_identical_is_unchanged() -> None:
+    """Identical A and B: p = 1, unchanged, no regression."""
+    c = compare(side("A", rows(A)), side("B", rows(A, code="b")))
+    (r,) = c.results
+    assert (r.verdict, r.p_value, r.delta) == ("unchanged", 1.0, 0.0)
+    assert not c.regressions
+
+
+def test_clear_degradation_over_three_seeds_is_a_regression() -> None:
+    """Every seed ~50 % worse with little scatter in the shift: significant and beyond tolerance."""
+    b = [0.075, 0.121, 0.089]
+    c = compare(side("A", rows(A)), side("B", rows(b, code="b")))
+    (r,) = c.results
+    assert r.verdict == "regression" and r.p_value is not None and r.p_value < 0.05
+    assert r.delta == pytest.approx(sum(b) / 3 - sum(A) / 3)
+    assert [x.metric for x in c.regressions] == ["landmark_rmse_m"]
+
+
+def test_same_improvement_is_green() -> None:
+    """The mirror image of a regression is an improvement."""
+    c = compare(side("A", rows([0.075, 0.121, 0.089])), side("B", rows(A, code="b")))
+    assert c.results[0].verdict == "improvement" and not c.regressions
+
+
+def test_seed_noise_is_not_a_regression() -> None:
+    """B worse on average but the sign flips across seeds: noise, not a regression."""
+    b = [0.070, 0.068, 0.075]  # +0.020, -0.012, +0.015
+    c = compare(side("A", rows(A)), side("B", rows(b, code="b")))
+    (r,) = c.results
+    assert r.delta is not None and r.delta > 0 and r.p_value is not None and r.p_value > 0.05
+    assert r.verdict == "noise" and not c.regressions
+
+
+def test_constant_shift_and_tolerance() -> None:
+    """A deterministic shift has p = 0; within tolerance it is unchanged; higher-is-better flips the sign."""
+    assert paired_test([1, 2, 3], [1.5, 2.5, 3.5])[0] == 0.0
+    assert judge([1, 2, 3], [1.5, 2.5, 3.5], "lower", 0.0)[4] == "regression"
+    assert judge([1, 2, 3], [1.5, 2.5, 3.5], "lower", 0.0, "1")[4] == "unchanged"
+    assert judge([1, 2, 3], [1.5, 2.5, 3.5], "lower", 0.0, "30%")[4] == "unchanged"
+    assert judge([1, 2, 3], [1.5, 2.5, 3.5], "lower", 0.0, "20%")[4] == "regression"
+    assert judge([1, 2, 3], [1.5, 2.5, 3.5], "higher", 0.0)[4] == "improvement"
+    assert judge([1, 2, 3], [1.5, 2.5, 3.5], "none", 0.0)[4] == "changed"
+
+
+def test_one_seed_falls_back_to_tolerance() -> None:
+    """With one pair the verdict is the tolerance's, as `diff` judges it."""
+    tol, delta, p, test, verdict = judge([1.0], [1.2], "lower", 0.1)
+    assert (tol, delta) == (0.1, pytest.approx(0.2))
+    assert (p, verdict, test) == (None, "regression", "tolerance (one seed)")
+    assert judge([1.0], [1.05], "lower", 0.1)[4] == "unchanged"
+
+
+def test_failed_in_b_is_a_regression() -> None:
+    """A cell that ran in A and failed in B counts as a regression."""
+    c = compare(side("A", rows(A)), side("B", rows(A, status="failed", code="b")))
+    assert [r.verdict for r in c.regressions] == ["failed"]
+    assert {f["side"] for f in c.failures} == {"B"}
+
+
+def test_no_cell_in_common_and_unknown_tolerance() -> None:
+    """Two results with nothing to match, or a tolerance for no metric: ReplayError."""
+    with pytest.raises(ReplayError, match=r"no cell in common"):
+        compare(side("A", rows(A)), side("B", rows(A, pipeline="odometry")))
+    with pytest.raises(ReplayError, match=r"--tolerance names unknown metrics: nope"):
+        compare(side("A", rows(A)), side("B", rows(A)), {"nope": "1"})
+
+
+def test_reports(tmp_path: Path) -> None:
+    """HTML: one self-contained file with the regression row red and an SVG; markdown: the table."""
+    c = compare(side("A", rows(A + [0.07])), side("B", rows([0.075, 0.121, 0.089, 0.1], code="b")))
+    c.commits = ["abc1234 degrade ranges"]
+    html, md = tmp_path / "r.html", tmp_path / "s.md"
+    write_reports(c, html, md)
+    text = html.read_text()
+    assert "<tr class='regression'>" in text and "tr.regression" in text and "#fde0e0" in text
+    assert "<svg" in text and "abc1234 degrade ranges" in text
+    assert "http://" not in text.replace('xmlns="http://www.w3.org/2000/svg"', "")
+    assert "https://" not in text
+    summary = md.read_text()
+    assert "| landmarks/dslam/default | landmark_rmse_m |" in summary
+    assert "🔴 **regression**" in summary and "1 regression(s)" in summary
+    assert not list(tmp_path.glob(".*.tmp"))
