@@ -41,7 +41,7 @@ from scipy import stats
 
 from replay.diff import judge_metric
 from replay.errors import ReplayError
-from replay.suite_run import read_results
+from replay.suite_run import add_metrics, read_results
 
 ALPHA = 0.05
 VERDICT_ORDER = ("regression", "failed", "improvement", "noise", "unchanged", "changed", "missing")
@@ -130,11 +130,7 @@ def _run_row(run_dir: Path) -> dict[str, Any]:
             metrics = json.loads((run_dir / "metrics.json").read_text())["metrics"]
         except (OSError, json.JSONDecodeError, KeyError) as err:
             raise ReplayError(f"{run_dir}/metrics.json is missing or unreadable: {err}") from None
-        for name, m in metrics.items():
-            out["metrics"][name] = m["value"]
-            out["better"][name] = m.get("better", "none")
-            out["tolerance"][name] = m.get("tolerance", 0.0)
-            out["units"][name] = m.get("unit", "")
+        add_metrics(out, metrics)
     return out
 
 
@@ -185,10 +181,14 @@ def _sd(x: Sequence[float]) -> float | None:
 
 
 def judge(a: Sequence[float], b: Sequence[float], better: str, default_tolerance: float,
-          tolerance_spec: str | None = None) -> tuple[float, float | None, float | None, str, str]:
-    """(tolerance, delta of the means, p-value, test, verdict) of paired samples of one metric."""
+          tolerance_spec: str | None = None, rel_tolerance: float = 0.0
+          ) -> tuple[float, float | None, float | None, str, str]:
+    """(tolerance, delta of the means, p-value, test, verdict) of paired samples of one metric.
+
+    ``default_tolerance`` and ``rel_tolerance`` are the metric's own (metrics.json), as ``diff`` uses them."""
     ma, mb = float(np.mean(a)), float(np.mean(b))
-    tol, delta, by_tol = judge_metric(ma, mb, better, default_tolerance, tolerance_spec)
+    entry = {"tolerance": default_tolerance, "rel_tolerance": rel_tolerance}
+    tol, delta, by_tol = judge_metric(ma, mb, better, entry, tolerance_spec)
     p, test = paired_test(a, b)
     if by_tol == "same":
         return tol, delta, p, test, "unchanged"
@@ -261,7 +261,8 @@ def compare(a: Side, b: Side, tolerances: Mapping[str, str] | None = None) -> Co
             va = [float(ra[s]["metrics"][name]) for s in pairs]
             vb = [float(rb[s]["metrics"][name]) for s in pairs]
             tol, delta, p, test, verdict = judge(va, vb, better, float(spec["tolerance"].get(name, 0.0)),
-                                                 tolerances.get(name, tolerances.get("*")))
+                                                 tolerances.get(name, tolerances.get("*")),
+                                                 float(spec.get("rel_tolerance", {}).get(name, 0.0)))
             out.results.append(MetricResult(*key, name, better, unit, [list(s) for s in pairs], va, vb,
                                             float(np.mean(va)), _sd(va), float(np.mean(vb)), _sd(vb), delta, tol,
                                             p, test, verdict))

@@ -135,14 +135,15 @@ def _verdict(a: float | None, b: float | None, better: str, tol: float) -> tuple
     return delta, "better" if improved else "worse"
 
 
-def judge_metric(a: float, b: float, better: str, default_tolerance: float, tolerance_spec: str | None = None
+def judge_metric(a: float, b: float, better: str, entry: Mapping[str, Any], tolerance_spec: str | None = None
                  ) -> tuple[float, float | None, str]:
     """(tolerance, B - A, verdict) of one metric, judged exactly as ``diff_runs`` judges it.
 
-    ``tolerance_spec`` is a ``--tolerance`` value (absolute, or ``N%`` of A); without it the
-    metric's own default applies. Verdicts: better | worse | same | changed.
+    ``entry`` holds the metric's own ``tolerance`` and ``rel_tolerance`` (metrics.json);
+    ``tolerance_spec`` is a ``--tolerance`` value (absolute, or ``N%`` of A) that replaces them.
+    Verdicts: better | worse | same | changed.
     """
-    tol = _tolerance(tolerance_spec, default_tolerance, a)
+    tol = metric_tolerance(entry, a, tolerance_spec)
     delta, verdict = _verdict(a, b, better, tol)
     return tol, delta, verdict
 

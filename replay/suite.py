@@ -26,11 +26,12 @@ import dataclasses
 import hashlib
 import json
 import re
-import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import tomllib
 
 from replay.errors import ReplayError
 from replay.pipeline import get_pipeline, resolve_config

@@ -245,12 +245,20 @@ def row(job: CellJob, code: str, error: str | None = None, cached: bool = False)
         except (OSError, json.JSONDecodeError, KeyError) as err:
             out.update(status="failed", error=f"unreadable metrics.json: {err}")
             return out
-        for name, m in sorted(metrics.items()):
-            out["metrics"][name] = m["value"]
-            out["better"][name] = m.get("better", "none")
-            out["tolerance"][name] = m.get("tolerance", 0.0)
-            out["units"][name] = m.get("unit", "")
+        add_metrics(out, metrics)
     return out
+
+
+def add_metrics(row: dict[str, Any], metrics: dict[str, Any]) -> None:
+    """Copy a metrics.json ``metrics`` mapping into a results row: values, directions, tolerances, units."""
+    for key in ("metrics", "better", "tolerance", "rel_tolerance", "units"):
+        row.setdefault(key, {})
+    for name, m in sorted(metrics.items()):
+        row["metrics"][name] = m["value"]
+        row["better"][name] = m.get("better", "none")
+        row["tolerance"][name] = m.get("tolerance", 0.0)
+        row["rel_tolerance"][name] = m.get("rel_tolerance", 0.0)
+        row["units"][name] = m.get("unit", "")
 
 
 def write_results(out: Path, rows: Iterable[dict[str, Any]]) -> None:
