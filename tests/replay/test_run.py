@@ -119,7 +119,7 @@ def test_failed_run_never_blocks_its_retry(tiny_recording: Path, tmp_path: Path)
     assert manifest["status"] == "failed"
     res = run_recording(tiny_recording, "odometry", out)
     assert res.status == "succeeded" and not (out / ".run.rrd.partial").exists()
-    assert {p.name for p in out.iterdir()} == {"run.rrd", "metrics.json", "manifest.json", "log.txt"}
+    assert {p.name for p in out.iterdir()} == {"run.rrd", "metrics.json", "manifest.json", "log.txt", "trajectory.tum"}
     assert "has no /odom topic" not in (out / "log.txt").read_text()
     # a failed run beside a user's file: the file is not the run's to delete
     other = tmp_path / "other"
