@@ -221,6 +221,14 @@ def write_comparison_rrd(a_dir: str | Path, b_dir: str | Path, out: str | Path, 
     write(a_dir, b_dir, out, diff)
 
 
+def formatted(m: MetricDelta) -> tuple[str, str, str]:
+    """A, B and B - A of a metric as a diff shows them ("-" where absent)."""
+    fa = "-" if m.a is None else f"{m.a:.6g}"
+    fb = "-" if m.b is None else f"{m.b:.6g}"
+    fd = "" if m.delta is None or not math.isfinite(m.delta) else f"{m.delta:+.4g}"
+    return fa, fb, fd
+
+
 def format_table(diff: RunDiff) -> str:
     """Human-readable diff."""
     lines = [f"A: {diff.a}", f"B: {diff.b}", ""]
@@ -234,9 +242,7 @@ def format_table(diff: RunDiff) -> str:
     width = max([len(m.name) for m in diff.metrics] + [6])
     lines.append(f"  {'metric':<{width}}  {'A':>14}  {'B':>14}  {'B - A':>12}  better  verdict")
     for m in diff.metrics:
-        fa = "-" if m.a is None else f"{m.a:.6g}"
-        fb = "-" if m.b is None else f"{m.b:.6g}"
-        fd = "" if m.delta is None or not math.isfinite(m.delta) else f"{m.delta:+.4g}"
+        fa, fb, fd = formatted(m)
         mark = {"worse": "WORSE", "better": "better"}.get(m.verdict, m.verdict)
         lines.append(f"  {m.name:<{width}}  {fa:>14}  {fb:>14}  {fd:>12}  {m.better:<6}  {mark}")
     lines.append("")

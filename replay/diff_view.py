@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,7 @@ import rerun.blueprint as rrb
 from rerun.chunk import Chunk, RrdReader
 
 from replay import views
+from replay.diff import RunDiff, formatted
 from replay.errors import ReplayError
 from replay.observer import deterministic_batcher
 
@@ -110,14 +110,12 @@ def _copy(rec: rr.RecordingStream, run_dir: Path, label: str) -> _RunContent:
     return content
 
 
-def _markdown(diff: Any, a: _RunContent, b: _RunContent) -> str:
+def _markdown(diff: RunDiff, a: _RunContent, b: _RunContent) -> str:
     lines = [f"### A: `{diff.a}`  vs  B: `{diff.b}`", "",
              "Map: **A** teal, **B** magenta, ground truth grey.", "",
              "| metric | A | B | B - A | better | verdict |", "|---|---:|---:|---:|---|---|"]
     for m in diff.metrics:
-        fa = "-" if m.a is None else f"{m.a:.6g}"
-        fb = "-" if m.b is None else f"{m.b:.6g}"
-        fd = "" if m.delta is None or not math.isfinite(m.delta) else f"{m.delta:+.4g}"
+        fa, fb, fd = formatted(m)
         verdict = {"worse": "**WORSE**", "better": "better"}.get(m.verdict, m.verdict)
         lines.append(f"| `{m.name}` | {fa} | {fb} | {fd} | {m.better} | {verdict} |")
     lines += ["", f"**{len(diff.worse)} metric(s) worse**" + (f": {', '.join(diff.worse)}" if diff.worse else ""),
@@ -153,7 +151,7 @@ def _blueprint(a: _RunContent, b: _RunContent, a_name: str, b_name: str) -> rrb.
     return views.layout(*tabs)
 
 
-def write_comparison_rrd(a_dir: str | Path, b_dir: str | Path, out: str | Path, diff: Any = None) -> None:
+def write_comparison_rrd(a_dir: str | Path, b_dir: str | Path, out: str | Path, diff: RunDiff | None = None) -> None:
     """One ``.rrd`` comparing run B with run A (see the module docstring); temp file, then renamed."""
     from replay.diff import diff_runs
 
