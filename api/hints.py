@@ -67,5 +67,6 @@ def view_hint(rrd: str | Path) -> list[str]:
             f"-L 9876:localhost:9876 HOST)",
             f"  or copy {rrd} to a machine with a display and rerun-sdk {sdk} (pip install 'rerun-sdk~={sdk}.0'; "
             f"rerun FILE)",
+            f"  or render its tabs to PNG files: {tool('slamreplay')} snapshot {rrd} --out PICTURES_DIR",
         ]
     return lines
