@@ -8,7 +8,7 @@ index in replay order, ``sensor_time`` = its log_time) before the pipeline sees 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -76,12 +76,14 @@ def start_pose(reader: RecordingReader, start_topic: str, start_ns: int | None,
 
 def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, observer: ReplayObserver, *,
            seed: int, start_ns: int | None = None, end_ns: int | None = None, log: Callable[[str], None],
-           progress: Progress | None = None, log_timings: bool = False) -> ReplayStats:
+           progress: Progress | None = None, log_timings: bool = False,
+           config_sources: Mapping[str, str] | None = None) -> ReplayStats:
     """Run one pipeline over a recording and return its metrics."""
     topics = check_topics(reader, pipeline_cls)
     t0, T_world_start = start_pose(reader, pipeline_cls.start_topic, start_ns, end_ns)
     total = sum(t.message_count for t in reader.info.topics if t.logical_topic in topics)
-    ctx = ReplayContext(reader.info, seed, np.random.default_rng(seed), observer, T_world_start, t0, log)
+    ctx = ReplayContext(reader.info, seed, np.random.default_rng(seed), observer, T_world_start, t0, log,
+                        dict(config_sources or {}))
     observer.set_time(0, t0)
     if T_world_start is None:
         log("no ground truth at the start: the estimate starts at the origin")
