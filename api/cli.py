@@ -184,6 +184,30 @@ def cmd_record_ros2(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_record_victoria_park(args: argparse.Namespace) -> int:
+    from recorder.importers.victoria_park import read_victoria_park, write_victoria_park
+
+    data = read_victoria_park(Path(args.dir))
+    reference, note = None, ""
+    if not args.no_reference:
+        from replay.landmark_reference import victoria_park_reference
+
+        if not args.quiet:
+            _eprint("computing the reference: the batch least-squares optimum of the measurements (2-3 minutes)")
+        poses, landmarks, res = victoria_park_reference(data)
+        reference = (poses, landmarks)
+        note = (f"batch least-squares optimum of the same measurements (chi2 {res.chi2:.1f}, "
+                f"{'converged' if res.converged else 'not converged'}); the file has no ground truth")
+    with progress_bar("importing Victoria Park", args.quiet) as update:
+        summary = write_victoria_park(data, Path(args.out), reference=reference, reference_note=note,
+                                      merge_window_m=args.merge_window_m, progress=update)
+    if not args.quiet:
+        _eprint(f"wrote {args.out}: {summary.poses:,} poses, {summary.scans:,} scans with {summary.observations:,} "
+                f"observations of {summary.landmarks} landmarks, {summary.path_length_m / 1000:.2f} km driven"
+                + (f"; ground truth = {note}" if reference is not None else "; no reference (--no-reference)"))
+    return EXIT_OK
+
+
 def _add_record_ros2(rsub: Any, quiet: argparse.ArgumentParser) -> None:
     import dataclasses
 
@@ -471,6 +495,19 @@ def build_parser() -> argparse.ArgumentParser:
     mr.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
     mr.set_defaults(func=cmd_record_mrclam)
     _add_record_ros2(rsub, quiet)
+    vp = rsub.add_parser("victoria-park", parents=[quiet], help="import Victoria Park (iSAM graph form, trees)",
+                         description="Import Victoria Park's iSAM/GTSAM file: odometry composed into poses, tree "
+                                     "sightings as range-bearing scans with their landmark ids. The file has no "
+                                     "ground truth: the batch least-squares optimum of the same measurements is "
+                                     "recorded as the reference runs are scored against.")
+    vp.add_argument("dir", help="the folder holding victoria_park.txt (or the file)")
+    vp.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
+    vp.add_argument("--no-reference", action="store_true",
+                    help="skip the batch optimum (no /ground_truth topics; runs are not scored)")
+    vp.add_argument("--merge-window-m", type=float, default=0.0, metavar="M",
+                    help="gather the sightings of consecutive poses over M metres of odometry into one scan "
+                         "(default 0: one scan per pose, as in the file; D-SLAM needs scans seeing two trees)")
+    vp.set_defaults(func=cmd_record_victoria_park)
 
     ins = sub.add_parser("inspect", help="topics, schemas, counts, time span and health of a recording")
     ins.add_argument("file", help="an .mcap recording or a ROS 2 bag directory")
