@@ -188,19 +188,20 @@ def cmd_record_victoria_park(args: argparse.Namespace) -> int:
     from recorder.importers.victoria_park import read_victoria_park, write_victoria_park
 
     data = read_victoria_park(Path(args.dir))
-    reference, note = None, ""
+    reference, note, measured = None, "", None
     if not args.no_reference:
-        from replay.landmark_reference import victoria_park_reference
+        from replay.landmark_reference import measured_noise, victoria_park_reference
 
         if not args.quiet:
             _eprint("computing the reference: the batch least-squares optimum of the measurements (2-3 minutes)")
         poses, landmarks, res = victoria_park_reference(data)
         reference = (poses, landmarks)
+        measured = measured_noise(data, poses, landmarks)
         note = (f"batch least-squares optimum of the same measurements (chi2 {res.chi2:.1f}, "
                 f"{'converged' if res.converged else 'not converged'}); the file has no ground truth")
     with progress_bar("importing Victoria Park", args.quiet) as update:
         summary = write_victoria_park(data, Path(args.out), reference=reference, reference_note=note,
-                                      merge_window_m=args.merge_window_m, progress=update)
+                                      measured_model=measured, merge_window_m=args.merge_window_m, progress=update)
     if not args.quiet:
         _eprint(f"wrote {args.out}: {summary.poses:,} poses, {summary.scans:,} scans with {summary.observations:,} "
                 f"observations of {summary.landmarks} landmarks, {summary.path_length_m / 1000:.2f} km driven"

@@ -153,8 +153,18 @@ def _open(path: Path, typestore: str) -> _Bag:
     store = get_typestore(Stores.ROS2_HUMBLE if typestore == "humble" else Stores.ROS2_JAZZY)
     src = _bag_source(path)
     try:
-        reader = AnyReader([src], default_typestore=store)
-        reader.open()
+        try:
+            reader = AnyReader([src], default_typestore=store)
+            reader.open()
+        except Exception:
+            # a folder whose metadata.yaml rosbags cannot read (hand-written, another writer's) but whose one
+            # storage file it can: read that file alone
+            files = sorted([*src.glob("*.db3"), *src.glob("*.mcap")]) if src.is_dir() else []
+            if len(files) != 1:
+                raise
+            src = files[0]
+            reader = AnyReader([src], default_typestore=store)
+            reader.open()
     except Exception as err:  # rosbags, sqlite and YAML errors alike: the file is not a readable bag
         text = " ".join(str(a) for a in getattr(err, "args", ())) or type(err).__name__
         raise RecorderError(f"{path} cannot be read as a ROS 2 bag ({text.splitlines()[0]}); check that it is a "

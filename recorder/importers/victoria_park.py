@@ -8,7 +8,7 @@ landmark ids share one integer space. The recording holds:
 - ``/odom``: the odometry increments composed from (0, 0, 0), one pose per pose id;
 - ``/landmarks/range_bearing``: one scan per pose that observes landmarks, the point turned into
   range ``hypot(x, y)`` and bearing ``atan2(y, x)``, ids = the file's landmark ids; sigmas from
-  :func:`sensor_model`;
+  :func:`sensor_model` (measured; the file's own, looser, are :func:`gtsam_noise`);
 - with a ``reference`` (the batch least-squares optimum of these same measurements, as
   ``slamreplay record victoria-park`` computes it; the file has no ground truth):
   ``/ground_truth/pose`` and ``/ground_truth/landmarks``, so that runs are scored against it.
@@ -39,7 +39,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Final
+from typing import Final
 
 import numpy as np
 from numpy.typing import NDArray
@@ -100,18 +100,29 @@ class VictoriaPark:
                                 np.arctan2(self.obs_xy[:, 1], self.obs_xy[:, 0])])
 
 
-def sensor_model() -> dict[str, Any]:
-    """The data set's noise as pipeline config keys, from the file's own covariances.
+def gtsam_noise() -> dict[str, float]:
+    """The file's own noise as GTSAM's loader reads it (the reference's weights; the data folder's README).
 
-    Odometry: the file states sigma 0.01 m forward and 0.002 rad per step (GTSAM reads the six
-    numbers as a covariance); steps average 0.58 m (4.03 km over 6968 steps), so per square root of
-    a metre 0.01 / sqrt(0.58) = 0.013 m and 0.002 / sqrt(0.58) = 0.0026 rad. Landmarks: x/y variance
-    0.4 m², which GTSAM's bearing-range conversion turns into sigma_range = sqrt(0.4) = 0.63 m and
-    sigma_bearing = sqrt(0.4 / 10) = 0.2 rad (the README of the data folder).
+    Odometry: the six numbers are a covariance, sigma 0.01 m forward, 0.002 m lateral, 0.002 rad
+    per step. Landmarks: an x/y variance of 0.4 m², which GTSAM turns into sigma_range =
+    sqrt(0.4) = 0.63 m and sigma_bearing = sqrt(0.4 / 10) = 0.2 rad.
     """
-    return {"translation_sigma_per_sqrt_m": 0.013, "heading_sigma_per_sqrt_m": 0.0026,
-            "heading_sigma_per_sqrt_rad": 0.0, "range_sigma_m": math.sqrt(0.4),
-            "bearing_sigma_rad": math.sqrt(0.4 / 10.0)}
+    return {"range_sigma_m": math.sqrt(0.4), "bearing_sigma_rad": math.sqrt(0.4 / 10.0)}
+
+
+def sensor_model() -> dict[str, float]:
+    """The data set's noise as pipeline config keys, measured about the batch optimum.
+
+    The root-mean-square residuals of the reference (the optimum under :func:`gtsam_noise`),
+    scaled for the noise the optimum absorbs, as :func:`replay.landmark_reference.measured_noise`
+    computes them at import (``slamreplay record victoria-park`` stores its values in the
+    recording's parameters): 0.48 m in range and 0.096 rad in bearing, against the file's
+    stated 0.63 m and 0.2 rad; odometry 0.002 m and 0.0039 rad per square root of a metre driven
+    (the file states 0.01 m and 0.002 rad per step of 0.58 m on average, 0.013 m and 0.0026 rad
+    per square root of a metre).
+    """
+    return {"translation_sigma_per_sqrt_m": 0.002, "heading_sigma_per_sqrt_m": 0.0039,
+            "heading_sigma_per_sqrt_rad": 0.0, "range_sigma_m": 0.48, "bearing_sigma_rad": 0.096}
 
 
 def _float(tok: str, where: str) -> float:
@@ -225,12 +236,15 @@ def _scan_groups(data: VictoriaPark, odom: F64, window_m: float) -> dict[int, tu
 
 
 def write_victoria_park(data: VictoriaPark, out: str | Path, *, reference: tuple[F64, F64] | None = None,
-                        reference_note: str = "", merge_window_m: float = 0.0,
+                        reference_note: str = "", measured_model: dict[str, float] | None = None,
+                        merge_window_m: float = 0.0,
                         progress: Progress | None = None) -> ImportSummary:
     """Write the recording; ``reference``: poses (n, 3) and landmarks (L, 2, in ``data.landmark_ids`` order).
 
-    ``merge_window_m`` > 0 gathers the sightings of consecutive poses until the robot has driven that far
-    (by odometry) into one scan at the last of them (module docstring).
+    ``measured_model``: the noise measured about the reference (config keys), kept in the parameters
+    beside the documented :func:`sensor_model`. ``merge_window_m`` > 0 gathers the sightings of
+    consecutive poses until the robot has driven that far (by odometry) into one scan at the last of
+    them (module docstring).
     """
     if not math.isfinite(merge_window_m) or merge_window_m < 0:
         raise RecorderError(f"merge_window_m must be >= 0 metres, got {merge_window_m}")
@@ -244,6 +258,8 @@ def write_victoria_park(data: VictoriaPark, out: str | Path, *, reference: tuple
     if reference is not None:
         source["ground_truth"] = reference_note or "batch least-squares optimum of the same measurements"
     rec = Recorder(out, source=source, parameters={"stamp_step_ns": STEP_NS, "sensor_model": model,
+                                                  "file_noise_gtsam": gtsam_noise(),
+                                                  "measured_noise": measured_model or {},
                                                   "merge_window_m": merge_window_m},
                    robot={"name": "ACFR utility vehicle", "sensor": "SICK laser, tree trunks as point landmarks"})
     groups = _scan_groups(data, odom, merge_window_m)

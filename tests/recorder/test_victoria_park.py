@@ -19,7 +19,7 @@ COV = "0.0001 0 0 4e-06 0 4e-06"
 SMALL = f"""ODOMETRY 0 1 1.0 0 0 {COV}
 LANDMARK 1 2 3.0 4.0 0.4 0 0.4
 ODOMETRY 1 3 1.0 0 1.5707963267948966 {COV}
-LANDMARK 3 2 1.0 -1.0 0.4 0 0.4
+LANDMARK 3 2 4.0 -2.0 0.4 0 0.4
 LANDMARK 3 4 0.0 5.0 0.4 0 0.4
 ODOMETRY 3 5 2.0 0 0 {COV}
 """
@@ -47,7 +47,7 @@ def test_parse_and_record(tmp_path: Path) -> None:
     scans = [m for _, m in msgs if isinstance(m, RangeBearingScan)]
     assert scans[0].stamp_ns == 200_000_000 and scans[0].landmark_ids.tolist() == [2]
     assert scans[0].ranges_m[0] == pytest.approx(5.0) and scans[0].bearings_rad[0] == pytest.approx(math.atan2(4, 3))
-    assert scans[1].landmark_ids.tolist() == [2, 4] and scans[1].ranges_m[0] == pytest.approx(math.sqrt(2))
+    assert scans[1].landmark_ids.tolist() == [2, 4] and scans[1].ranges_m[0] == pytest.approx(math.sqrt(20))
     assert scans[0].range_sigma_m == pytest.approx(sensor_model()["range_sigma_m"])
 
 
@@ -58,9 +58,9 @@ def test_merge_window_gathers_sightings_into_one_frame(tmp_path: Path) -> None:
     scans = [e.msg for e in RecordingReader(tmp_path / "vp.mcap").messages(["/landmarks/range_bearing"])]
     assert len(scans) == 1 and scans[0].stamp_ns == 2 * 200_000_000  # the last sighting, not the end of the file
     s = scans[0]
-    # landmark 2 seen last from pose 3 at (1, -1); landmark 4 at (0, 5)
+    # landmark 2 seen last from pose 3 at (4, -2); landmark 4 at (0, 5)
     assert s.landmark_ids.tolist() == [2, 4]
-    np.testing.assert_allclose(s.ranges_m, [math.sqrt(2), 5.0])
+    np.testing.assert_allclose(s.ranges_m, [math.sqrt(20), 5.0])
     with pytest.raises(RecorderError, match="merge_window_m"):
         write_victoria_park(data, tmp_path / "x.mcap", merge_window_m=-1.0)
 
@@ -96,3 +96,22 @@ def test_real_file_statistics() -> None:
     np.testing.assert_allclose(data.odometry_poses()[-1, :2], [-187.6, -102.3], atol=0.1)
     rb = data.ranges_bearings()
     assert rb[:, 0].min() > 4.5 and rb[:, 0].max() < 20.8
+
+
+def test_cli_records_with_the_reference_as_ground_truth(tmp_path: Path) -> None:
+    """`record victoria-park` on a small file: the reference (batch optimum) is the ground truth; exact
+    measurements make it the odometry itself, and the measured noise is stored."""
+    import json
+
+    from mcap.reader import make_reader
+
+    assert main(["record", "victoria-park", str(_small(tmp_path)), "--out", str(tmp_path / "vp.mcap"), "-q"]) == 0
+    gt = [e.msg for e in RecordingReader(tmp_path / "vp.mcap").messages(["/ground_truth/pose"])]
+    data = read_victoria_park(tmp_path)
+    np.testing.assert_allclose([m.xy_yaw for m in gt], data.odometry_poses(), atol=1e-6)
+    lm = next(RecordingReader(tmp_path / "vp.mcap").messages(["/ground_truth/landmarks"])).msg
+    np.testing.assert_allclose(lm.positions_m, [[4.0, 4.0], [-3.0, 0.0]], atol=1e-6)
+    with open(tmp_path / "vp.mcap", "rb") as f:
+        meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}["slamreplay.recording"]
+    assert "batch least-squares optimum" in json.loads(meta["source"])["ground_truth"]
+    assert set(json.loads(meta["parameters"])["measured_noise"]) >= {"range_sigma_m", "bearing_sigma_rad"}
