@@ -14,7 +14,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from algorithms.common.landmark_graph import LandmarkGraph, LsqConfig, LsqResult, residuals, solve_incremental
+from algorithms.common.landmark_graph import LandmarkGraph, LsqConfig, LsqResult, noise_scales, solve_incremental
 from recorder.importers.victoria_park import VictoriaPark, gtsam_noise
 
 
@@ -36,25 +36,27 @@ def victoria_park_reference(data: VictoriaPark, cfg: LsqConfig | None = None
     return res.poses, res.landmarks, res
 
 
-def measured_noise(data: VictoriaPark, poses: NDArray[np.float64], landmarks: NDArray[np.float64]
-                   ) -> dict[str, float]:
+def measured_noise(data: VictoriaPark, poses: NDArray[np.float64], landmarks: NDArray[np.float64], *,
+                   seed: int = 0) -> dict[str, float]:
     """The noise the measurements show about the reference, as pipeline config keys.
 
-    Root-mean-square residuals at the optimum, scaled by ``sqrt(residuals / degrees of freedom)``
-    (the optimum absorbs part of the noise: 28,184 residuals against 21,206 unknowns on Victoria
-    Park, so the scale is about 2). One scale for all residual kinds is an approximation: odometry
-    residuals are absorbed more than landmark ones. Odometry is per square root of a metre driven,
-    as the pipelines' noise model (algorithms/common/motion.py) is.
+    Each residual kind's modelled sigma (:func:`recorder.importers.victoria_park.gtsam_noise` and the
+    file's odometry covariance) times the factor its residuals show at the optimum, corrected for
+    the unknowns that kind absorbs (:func:`algorithms.common.landmark_graph.noise_scales`, seeded).
+    A kind the optimum absorbs almost whole keeps its modelled sigma (factor 1).
+    Odometry becomes per square root of a metre driven, as the pipelines' noise model
+    (algorithms/common/motion.py) is: the forward sigma of a step of mean length.
     """
-    e_odo, e_obs = residuals(victoria_park_graph(data), poses, landmarks)
-    n_res = e_odo.size + e_obs.size
-    dof = n_res - 3 * (len(poses) - 1) - 2 * len(landmarks)
-    scale = math.sqrt(n_res / dof) if dof > 0 else math.nan
-    dist = float(np.sum(np.hypot(data.odo_z[:, 0], data.odo_z[:, 1])))
+    graph = victoria_park_graph(data)
+    c = noise_scales(graph, poses, landmarks, np.random.default_rng(seed))
+    c = np.where(np.isfinite(c), c, 1.0)  # not measurable: the model's own sigma stands
+    step_m = float(np.mean(np.hypot(data.odo_z[:, 0], data.odo_z[:, 1])))
+    sig_step = np.sqrt(np.mean(np.diagonal(data.odo_cov, axis1=1, axis2=2), axis=0))  # (3,) x, y, θ per step
+    model = gtsam_noise()
     return {
-        "translation_sigma_per_sqrt_m": scale * math.sqrt(float(np.sum(e_odo[:, :2] ** 2)) / 2.0 / dist),
-        "heading_sigma_per_sqrt_m": scale * math.sqrt(float(np.sum(e_odo[:, 2] ** 2)) / dist),
+        "translation_sigma_per_sqrt_m": float(c[0] * sig_step[0] / math.sqrt(step_m)),
+        "heading_sigma_per_sqrt_m": float(c[2] * sig_step[2] / math.sqrt(step_m)),
         "heading_sigma_per_sqrt_rad": 0.0,
-        "range_sigma_m": scale * float(np.sqrt(np.mean(e_obs[:, 0] ** 2))),
-        "bearing_sigma_rad": scale * float(np.sqrt(np.mean(e_obs[:, 1] ** 2))),
+        "range_sigma_m": float(c[3] * model["range_sigma_m"]),
+        "bearing_sigma_rad": float(c[4] * model["bearing_sigma_rad"]),
     }

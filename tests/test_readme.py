@@ -147,6 +147,7 @@ def _provide(name: str, repo: Path) -> None:
                                                       REPO / "tests" / "recorder" / "ros2bag_fixtures.py")
         assert spec is not None and spec.loader is not None
         module = importlib.util.module_from_spec(spec)
+        sys.modules["ros2bag_fixtures"] = module  # its dataclass resolves annotations through sys.modules
         spec.loader.exec_module(module)
         module.write_bag(repo / name, "sqlite3", seconds=20.0)
         return
