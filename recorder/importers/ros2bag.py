@@ -118,6 +118,13 @@ class ImportSummary:
         return sum(self.counts.values())
 
 
+def sensor_model(poles: PoleConfig | None = None) -> dict[str, float]:
+    """The noise of what a bag's import states, as pipeline config keys: the pole extractor's range and
+    bearing floors (each scan also carries the sigma its circle fits give, never below these)."""
+    cfg = poles or PoleConfig()
+    return {"range_sigma_m": cfg.range_sigma_m, "bearing_sigma_rad": cfg.bearing_sigma_rad}
+
+
 def is_ros2_bag(path: Path) -> bool:
     """A bag folder (``metadata.yaml``) or a ``.db3`` file: something only :mod:`rosbags` reads."""
     return (path.is_dir() and (path / "metadata.yaml").is_file()) or (path.is_file() and path.suffix == ".db3")
@@ -332,7 +339,8 @@ def import_ros2_bag(bag_path: str | Path, out: str | Path, *, topic_map: Mapping
                    parameters={"topic_map": {p.topic: p.maps_to for p in plan.topics if p.maps_to},
                                "base_frame": base_frame, "odom_frame": odom_frame,
                                "ground_truth_frame": ground_truth_frame, "typestore": typestore,
-                               "pole_extractor": poles.as_dict() if scans else None},
+                               "pole_extractor": poles.as_dict() if scans else None,
+                               "sensor_model": sensor_model(poles) if scans else {}},
                    robot={"frames": json.dumps(sorted(tree.frames))})
     with rec:
         for _, _, topic, msg in out_msgs:
