@@ -169,7 +169,10 @@ def _system(graph: LandmarkGraph, poses: F64, landmarks: F64, wo: F64, wl: F64) 
 
     rows_o = (np.arange(m)[:, None] * 3 + np.arange(3))[:, :, None]
     rows_l = (3 * m + np.arange(k)[:, None] * 2 + np.arange(2))[:, :, None]
-    col = lambda base, width: (base[:, None] + np.arange(width))[:, None, :]  # noqa: E731
+
+    def col(base: I64, width: int) -> I64:
+        return (base[:, None] + np.arange(width))[:, None, :]
+
     blocks = [
         (rows_o, col(3 * graph.odo_i, 3), Ji), (rows_o, col(3 * graph.odo_j, 3), Jj),
         (rows_l, col(3 * graph.obs_pose, 3), Jx), (rows_l, col(3 * n + 2 * graph.obs_landmark, 2), Jl),
