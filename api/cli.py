@@ -169,12 +169,95 @@ def cmd_record_mrclam(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_record_ros2(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from recorder.importers.poles import PoleConfig
+    from recorder.importers.ros2bag import import_ros2_bag
+
+    values = {f.name: getattr(args, f"pole_{f.name}") for f in dataclasses.fields(PoleConfig)
+              if getattr(args, f"pole_{f.name}") is not None}
+    try:
+        poles = PoleConfig(**values)
+    except ValueError as err:
+        raise CliError(str(err)) from err
+    with progress_bar("importing ROS 2 bag", args.quiet) as update:
+        summary = import_ros2_bag(Path(args.bag), Path(args.out), topic_map=_parse_pairs(args.topic_map, "--topic-map"),
+                                  base_frame=args.base_frame, odom_frame=args.odom_frame,
+                                  ground_truth_frame=args.ground_truth_frame, typestore=args.typestore, poles=poles,
+                                  progress=update)
+    if not args.quiet:
+        counts = ", ".join(f"{n:,} {t}" for t, n in sorted(summary.counts.items()))
+        skipped = [t.topic for t in summary.plan.topics if t.maps_to is None]
+        _eprint(f"wrote {args.out}: {summary.messages:,} messages ({counts}); {summary.poles:,} poles extracted"
+                + (f"; skipped {', '.join(skipped)} (see `slamreplay inspect {args.bag}`)" if skipped else ""))
+    return EXIT_OK
+
+
+def cmd_record_victoria_park(args: argparse.Namespace) -> int:
+    from recorder.importers.victoria_park import read_victoria_park, write_victoria_park
+
+    data = read_victoria_park(Path(args.dir))
+    reference, note, measured = None, "", None
+    if not args.no_reference:
+        from replay.landmark_reference import measured_noise, victoria_park_reference
+
+        if not args.quiet:
+            _eprint("computing the reference: the batch least-squares optimum of the measurements (2-3 minutes)")
+        poses, landmarks, res = victoria_park_reference(data)
+        reference = (poses, landmarks)
+        measured = measured_noise(data, poses, landmarks)
+        note = (f"batch least-squares optimum of the same measurements (chi2 {res.chi2:.1f}, "
+                f"{'converged' if res.converged else 'not converged'}); the file has no ground truth")
+    with progress_bar("importing Victoria Park", args.quiet) as update:
+        summary = write_victoria_park(data, Path(args.out), reference=reference, reference_note=note,
+                                      measured_model=measured, merge_window_m=args.merge_window_m, progress=update)
+    if not args.quiet:
+        _eprint(f"wrote {args.out}: {summary.poses:,} poses, {summary.scans:,} scans with {summary.observations:,} "
+                f"observations of {summary.landmarks} landmarks, {summary.path_length_m / 1000:.2f} km driven"
+                + (f"; ground truth = {note}" if reference is not None else "; no reference (--no-reference)"))
+    return EXIT_OK
+
+
+def _add_record_ros2(rsub: Any, quiet: argparse.ArgumentParser) -> None:
+    import dataclasses
+
+    from recorder.importers.poles import PoleConfig
+
+    r2 = rsub.add_parser("ros2", parents=[quiet], help="import a ROS 2 bag (sqlite3 or MCAP storage)",
+                         description="Import a ROS 2 bag read with rosbags: odometry, poses, /tf and /tf_static, IMU, "
+                                     "LaserScan (poles and trunks become landmarks), images and camera info. "
+                                     "`slamreplay inspect BAG` shows what each topic becomes.")
+    r2.add_argument("bag", help="the bag folder, or its .db3 or .mcap file")
+    r2.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
+    r2.add_argument("--topic-map", action="append", default=[], metavar="BAG_TOPIC=TOPIC",
+                    help="read a bag topic as a logical topic, e.g. /gps/pose=/ground_truth/pose (repeatable)")
+    r2.add_argument("--base-frame", default="base_link", help="the robot's tf frame (default: base_link)")
+    r2.add_argument("--odom-frame", default="odom",
+                    help="tf frame of odometry, used when the bag has no Odometry topic (default: odom)")
+    r2.add_argument("--ground-truth-frame", default=None, metavar="FRAME",
+                    help="record the base frame's pose in FRAME, composed through /tf, as ground truth (e.g. map)")
+    r2.add_argument("--typestore", choices=("humble", "jazzy"), default="humble",
+                    help="message definitions for bags that store none (default: humble)")
+    for f in dataclasses.fields(PoleConfig):
+        kind = int if f.type in ("int", int) else (str if f.type in ("bool", bool) else float)
+        r2.add_argument(f"--pole-{f.name.replace('_', '-')}", dest=f"pole_{f.name}", default=None,
+                        type=(lambda v: v.lower() in ("1", "true", "yes")) if kind is str else kind,
+                        help=f"pole extractor (recorder/importers/poles.py): {f.name} (default: {f.default})")
+    r2.set_defaults(func=cmd_record_ros2)
+
+
 # ---------------------------------------------------------------------------------------
 # inspect, recover, pipelines
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
+    from recorder.importers.ros2bag import is_ros2_bag, iter_plan_lines, plan_bag
     from replay.inspect import inspect_recording
+
+    path = Path(args.file)
+    if path.suffix == ".db3" or (path.is_dir() and any(path.glob("*.db3"))):
+        return _inspect_bag(args)  # sqlite3 storage: only rosbags reads it
 
     report = inspect_recording(args.file, _parse_pairs(args.topic_map, "--topic-map"))
     if args.json:
@@ -205,7 +288,25 @@ def cmd_inspect(args: argparse.Namespace) -> int:
                 print(f"{whose} ({model['source'] or 'source not stated'}); pipelines use it where you set nothing:")
                 for line in model["lines"]:
                     print(f"  {line}")
+        if is_ros2_bag(path) or any(t["encoding"] == "cdr" for t in report["topics"]):
+            try:
+                print("\n`slamreplay record ros2` would import it as:\n" + "\n".join(
+                    iter_plan_lines(plan_bag(path, _parse_pairs(args.topic_map, "--topic-map")))))
+            except RecorderError as err:
+                print(f"\n`slamreplay record ros2` cannot import it: {err}")
     return EXIT_OK if report["health"] == "ok" else EXIT_CHECK_FAILED
+
+
+def _inspect_bag(args: argparse.Namespace) -> int:
+    """A ROS 2 bag (folder or .db3): each topic, its type and what `record ros2` makes of it."""
+    from recorder.importers.ros2bag import iter_plan_lines, plan_bag
+
+    plan = plan_bag(Path(args.file), _parse_pairs(args.topic_map, "--topic-map"))
+    if args.json:
+        print(json.dumps(plan.as_dict(), indent=2, sort_keys=True))
+    else:
+        print("\n".join(iter_plan_lines(plan)))
+    return EXIT_OK
 
 
 def cmd_recover(args: argparse.Namespace) -> int:
@@ -422,6 +523,20 @@ def build_parser() -> argparse.ArgumentParser:
                     help="robot number, 1-5, or `all`: the five robots in one recording, each under /robotN/")
     mr.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
     mr.set_defaults(func=cmd_record_mrclam)
+    _add_record_ros2(rsub, quiet)
+    vp = rsub.add_parser("victoria-park", parents=[quiet], help="import Victoria Park (iSAM graph form, trees)",
+                         description="Import Victoria Park's iSAM/GTSAM file: odometry composed into poses, tree "
+                                     "sightings as range-bearing scans with their landmark ids. The file has no "
+                                     "ground truth: the batch least-squares optimum of the same measurements is "
+                                     "recorded as the reference runs are scored against.")
+    vp.add_argument("dir", help="the folder holding victoria_park.txt (or the file)")
+    vp.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
+    vp.add_argument("--no-reference", action="store_true",
+                    help="skip the batch optimum (no /ground_truth topics; runs are not scored)")
+    vp.add_argument("--merge-window-m", type=float, default=0.0, metavar="M",
+                    help="gather the sightings of consecutive poses over M metres of odometry into one scan "
+                         "(default 0: one scan per pose, as in the file; D-SLAM needs scans seeing two trees)")
+    vp.set_defaults(func=cmd_record_victoria_park)
 
     ins = sub.add_parser("inspect", help="topics, schemas, counts, time span and health of a recording")
     ins.add_argument("file", help="an .mcap recording or a ROS 2 bag directory")

@@ -24,6 +24,7 @@ TOPIC_CAMERA_IMAGE: Final = "/camera/image"
 TOPIC_CAMERA_CALIBRATION: Final = "/camera/calibration"
 TOPIC_CMD_VEL: Final = "/cmd_vel"
 TOPIC_NAV_LOCALIZATION: Final = "/nav/localization"
+TOPIC_IMU_YAW_RATE: Final = "/imu/yaw_rate"
 
 ImageEncoding = Literal["mono8", "rgb8"]
 ImageCompression = Literal["raw", "png", "jpeg"]
@@ -279,8 +280,28 @@ class NavLocalization:
             object.__setattr__(self, name, float(getattr(self, name)))
 
 
+@dataclass(frozen=True, slots=True)
+class ImuYawRate:
+    """A gyroscope's rate about the body's +z axis (counter-clockwise), and its 1-sigma (0: not stated)."""
+
+    stamp_ns: int
+    yaw_rate_radps: float
+    yaw_rate_sigma_radps: float = 0.0
+
+    FRAME_ID: ClassVar[str] = "base_link"
+
+    def __post_init__(self) -> None:
+        _check_stamp(self.stamp_ns)
+        _check_finite(yaw_rate_radps=self.yaw_rate_radps, yaw_rate_sigma_radps=self.yaw_rate_sigma_radps)
+        if self.yaw_rate_sigma_radps < 0:
+            raise ValueError(f"yaw_rate_sigma_radps must be >= 0, got {self.yaw_rate_sigma_radps}")
+        object.__setattr__(self, "stamp_ns", int(self.stamp_ns))
+        object.__setattr__(self, "yaw_rate_radps", float(self.yaw_rate_radps))
+        object.__setattr__(self, "yaw_rate_sigma_radps", float(self.yaw_rate_sigma_radps))
+
+
 Message = (OdometryPose | GroundTruthPose | RangeBearingScan | LandmarkMap | CameraImage | CameraCalibration
-           | VelocityCommand | NavLocalization)
+           | VelocityCommand | NavLocalization | ImuYawRate)
 
 
 def assert_msg_equal(a: Message, b: Message, *, atol: float = 0.0) -> None:
@@ -312,4 +333,5 @@ TOPIC_TYPES: Final[dict[str, type]] = {
     TOPIC_CAMERA_CALIBRATION: CameraCalibration,
     TOPIC_CMD_VEL: VelocityCommand,
     TOPIC_NAV_LOCALIZATION: NavLocalization,
+    TOPIC_IMU_YAW_RATE: ImuYawRate,
 }

@@ -36,7 +36,7 @@ RUN = SHELLS | {"python"}
 BLOCK_TIMEOUT_S = 300
 MARKER = re.compile(r"^<!--\s*docs-test:\s*(?P<kind>\S+)\s*(?P<arg>.*?)\s*-->\s*$")
 FENCE = re.compile(r"^```(?P<lang>[\w-]*)\s*$")
-PROVIDED = ("my_robot_bag",)  # what `given` may name; written by _provide
+PROVIDED = ("my_robot_bag", "robot_bag_db3")  # what `given` may name; written by _provide
 
 
 @dataclass(frozen=True)
@@ -141,6 +141,15 @@ def _env(repo: Path) -> dict[str, str]:
 def _provide(name: str, repo: Path) -> None:
     """Write what a ``given`` marker names (the reader's own files) into the copy."""
     if (repo / name).exists():
+        return
+    if name == "robot_bag_db3":  # a sqlite3 bag with odometry, tf, IMU, scans, images (tests/recorder)
+        spec = importlib.util.spec_from_file_location("ros2bag_fixtures",
+                                                      REPO / "tests" / "recorder" / "ros2bag_fixtures.py")
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        sys.modules["ros2bag_fixtures"] = module  # its dataclass resolves annotations through sys.modules
+        spec.loader.exec_module(module)
+        module.write_bag(repo / name, "sqlite3", seconds=20.0)
         return
     spec = importlib.util.spec_from_file_location("ros2_fixtures", REPO / "tests" / "replay" / "ros2_fixtures.py")
     assert spec is not None and spec.loader is not None

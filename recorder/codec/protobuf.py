@@ -10,6 +10,7 @@
 | CameraCalibration  | foxglove.CameraCalibration                         |
 | VelocityCommand    | slamreplay.VelocityCommand                         |
 | NavLocalization    | slamreplay.NavLocalization (frame ``map``)         |
+| ImuYawRate         | slamreplay.ImuYawRate (frame ``base_link``)        |
 
 Planar poses are stored in 3D with z = 0 and the heading as a quaternion about +z.
 """
@@ -31,6 +32,7 @@ from foxglove_schemas_protobuf.RawImage_pb2 import RawImage as RawImageProto
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from recorder.codec.schemas import (
+    ImuYawRateProto,
     LandmarkMapProto,
     NavLocalizationProto,
     RangeBearingScanProto,
@@ -41,6 +43,7 @@ from recorder.messages import (
     CameraCalibration,
     CameraImage,
     GroundTruthPose,
+    ImuYawRate,
     LandmarkMap,
     Message,
     NavLocalization,
@@ -68,6 +71,8 @@ def _proto_class(msg: Message) -> Any:
         return VelocityCommandProto
     if isinstance(msg, NavLocalization):
         return NavLocalizationProto
+    if isinstance(msg, ImuYawRate):
+        return ImuYawRateProto
     raise CodecError(f"no schema for message type {type(msg).__name__}")
 
 
@@ -79,7 +84,8 @@ def schema_name(msg: Message) -> str:
 @cache
 def _schema_data(full_name: str) -> bytes:
     classes = (PoseInFrameProto, RangeBearingScanProto, LandmarkMapProto, RawImageProto,
-               CompressedImageProto, CameraCalibrationProto, VelocityCommandProto, NavLocalizationProto)
+               CompressedImageProto, CameraCalibrationProto, VelocityCommandProto, NavLocalizationProto,
+               ImuYawRateProto)
     cls = next(c for c in classes if c.DESCRIPTOR.full_name == full_name)
     return bytes(build_file_descriptor_set(cls).SerializeToString())
 
@@ -143,6 +149,9 @@ def _to_proto(msg: Message) -> Any:
         return NavLocalizationProto(frame_id=NavLocalization.FRAME_ID, x=msg.x_m, y=msg.y_m, yaw=msg.yaw_rad,
                                     node=msg.node, x_translation=msg.x_translation_px,
                                     heading_deviation=msg.heading_deviation_rad, corrected=msg.corrected)
+    if isinstance(msg, ImuYawRate):
+        return ImuYawRateProto(frame_id=ImuYawRate.FRAME_ID, yaw_rate=msg.yaw_rate_radps,
+                               yaw_rate_sigma=msg.yaw_rate_sigma_radps)
     raise CodecError(f"no schema for message type {type(msg).__name__}")
 
 
@@ -246,6 +255,8 @@ def from_proto(kind: type, proto: Any, log_time_ns: int) -> Message:
     if kind is NavLocalization and name == "slamreplay.NavLocalization":
         return NavLocalization(stamp, proto.x, proto.y, proto.yaw, proto.node, proto.x_translation,
                                proto.heading_deviation, proto.corrected)
+    if kind is ImuYawRate and name == "slamreplay.ImuYawRate":
+        return ImuYawRate(stamp, proto.yaw_rate, proto.yaw_rate_sigma)
     raise CodecError(f"schema {name} cannot be read as {kind.__name__}")
 
 
@@ -260,4 +271,5 @@ READABLE_SCHEMAS: dict[type, tuple[str, ...]] = {
     CameraCalibration: ("foxglove.CameraCalibration",),
     VelocityCommand: ("slamreplay.VelocityCommand",),
     NavLocalization: ("slamreplay.NavLocalization",),
+    ImuYawRate: ("slamreplay.ImuYawRate",),
 }

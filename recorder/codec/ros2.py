@@ -1,10 +1,11 @@
 """ROS 2 messages (``ros2msg`` schemas, CDR encoding) -> slamreplay messages, read-only.
 
-Supported: ``nav_msgs/msg/Odometry`` and ``geometry_msgs/msg/PoseStamped`` (as odometry or
-ground-truth poses), ``sensor_msgs/msg/Image`` (mono8, rgb8, bgr8) and
-``sensor_msgs/msg/CompressedImage`` (png, jpeg). Decoding of CDR bytes into objects is done
-by ``mcap_ros2``; this module maps those objects onto the message model. Schema names may
-use the ROS 1 style ``nav_msgs/Odometry`` too.
+Supported: ``nav_msgs/msg/Odometry``, ``geometry_msgs/msg/PoseStamped`` and
+``PoseWithCovarianceStamped`` (as odometry or ground-truth poses), ``sensor_msgs/msg/Image``
+(mono8, rgb8, bgr8) and ``sensor_msgs/msg/CompressedImage`` (png, jpeg). Decoding of CDR bytes
+into objects is done by ``mcap_ros2`` (or ``rosbags`` in :mod:`recorder.importers.ros2bag`);
+this module maps those objects onto the message model. Schema names may use the ROS 1 style
+``nav_msgs/Odometry`` too.
 """
 
 from __future__ import annotations
@@ -23,6 +24,10 @@ ROS2_SCHEMAS = (
 )
 
 
+# Types holding a pose: Odometry and PoseWithCovarianceStamped at ``.pose.pose``, PoseStamped at ``.pose``.
+POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PoseWithCovarianceStamped")
+
+
 def canonical_ros_type(schema_name: str) -> str:
     """``nav_msgs/Odometry`` -> ``nav_msgs/msg/Odometry``; other names unchanged."""
     parts = schema_name.split("/")
@@ -37,8 +42,8 @@ def _stamp(header: Any, log_time_ns: int) -> int:
 def from_ros2(kind: type, schema_name: str, obj: Any, log_time_ns: int) -> Message:
     """Build a message of type ``kind`` from a decoded ROS 2 message object."""
     name = canonical_ros_type(schema_name)
-    if issubclass(kind, PlanarPose) and name in ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped"):
-        pose = obj.pose.pose if name == "nav_msgs/msg/Odometry" else obj.pose
+    if issubclass(kind, PlanarPose) and name in POSE_TYPES:
+        pose = obj.pose if name == "geometry_msgs/msg/PoseStamped" else obj.pose.pose
         p, o = pose.position, pose.orientation
         # kind is an OdometryPose/GroundTruthPose subclass of PlanarPose in practice
         return cast(Message, kind(_stamp(obj.header, log_time_ns), p.x, p.y,

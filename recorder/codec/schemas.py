@@ -34,6 +34,12 @@ _LANDMARK_MAP_FIELDS = [
     ("x", 4, _F.TYPE_DOUBLE, _F.LABEL_REPEATED, None),  # metres
     ("y", 5, _F.TYPE_DOUBLE, _F.LABEL_REPEATED, None),  # metres
 ]
+_IMU_YAW_RATE_FIELDS = [
+    ("timestamp", 1, _F.TYPE_MESSAGE, _F.LABEL_OPTIONAL, ".google.protobuf.Timestamp"),
+    ("frame_id", 2, _F.TYPE_STRING, _F.LABEL_OPTIONAL, None),
+    ("yaw_rate", 3, _F.TYPE_DOUBLE, _F.LABEL_OPTIONAL, None),  # rad/s, counter-clockwise about +z of the body
+    ("yaw_rate_sigma", 4, _F.TYPE_DOUBLE, _F.LABEL_OPTIONAL, None),  # rad/s, 1-sigma, 0 = not stated
+]
 
 # Navigation (topo-metric navigation mode): a velocity command (foxglove has no Twist) and the
 # localization after each image.
@@ -77,7 +83,8 @@ def _file_descriptor() -> descriptor_pb2.FileDescriptorProto:
     fdp = descriptor_pb2.FileDescriptorProto(
         name=FILE_NAME, package=PACKAGE, syntax="proto3", dependency=["google/protobuf/timestamp.proto"]
     )
-    for msg_name, msg_fields in (("RangeBearingScan", _RANGE_BEARING_FIELDS), ("LandmarkMap", _LANDMARK_MAP_FIELDS)):
+    for msg_name, msg_fields in (("RangeBearingScan", _RANGE_BEARING_FIELDS), ("LandmarkMap", _LANDMARK_MAP_FIELDS),
+                                  ("ImuYawRate", _IMU_YAW_RATE_FIELDS)):
         msg = fdp.message_type.add(name=msg_name)
         for name, number, ftype, label, type_name in msg_fields:
             field = msg.field.add(name=name, number=number, type=ftype, label=label, json_name=name)
@@ -95,7 +102,7 @@ def _build_classes() -> dict[str, Any]:
     pool.Add(_nav_file_descriptor())
     return {
         name: message_factory.GetMessageClass(pool.FindMessageTypeByName(f"{PACKAGE}.{name}"))
-        for name in ("RangeBearingScan", "LandmarkMap", "VelocityCommand", "NavLocalization")
+        for name in ("RangeBearingScan", "LandmarkMap", "VelocityCommand", "NavLocalization", "ImuYawRate")
     }
 
 
@@ -104,3 +111,4 @@ RangeBearingScanProto: Any = _CLASSES["RangeBearingScan"]
 LandmarkMapProto: Any = _CLASSES["LandmarkMap"]
 VelocityCommandProto: Any = _CLASSES["VelocityCommand"]
 NavLocalizationProto: Any = _CLASSES["NavLocalization"]
+ImuYawRateProto: Any = _CLASSES["ImuYawRate"]

@@ -17,6 +17,7 @@ from recorder.messages import (
     CameraCalibration,
     CameraImage,
     GroundTruthPose,
+    ImuYawRate,
     LandmarkMap,
     Message,
     OdometryPose,
@@ -52,6 +53,16 @@ def test_range_bearing_roundtrip(stamp: int, arrs: tuple[np.ndarray, ...], rs: f
     """Scans keep ranges, bearings, ids (with -1 unknown) and sigmas exactly."""
     msg = RangeBearingScan(stamp, *arrs, range_sigma_m=rs, bearing_sigma_rad=bs)
     assert_msg_equal(roundtrip(msg), msg)
+
+
+@given(stamps, finite, st.floats(0, 10))
+def test_imu_yaw_rate_roundtrip(stamp: int, rate: float, sigma: float) -> None:
+    """Gyro yaw rates keep rate and sigma exactly; a negative sigma is refused."""
+    msg = ImuYawRate(stamp, rate, sigma)
+    back = roundtrip(msg)
+    assert isinstance(back, ImuYawRate) and (back.yaw_rate_radps, back.yaw_rate_sigma_radps) == (rate, sigma)
+    with pytest.raises(ValueError, match="yaw_rate_sigma_radps"):
+        ImuYawRate(stamp, rate, -1.0)
 
 
 @given(stamps, st.integers(0, 30).flatmap(lambda n: arrays(np.float64, (n, 2), elements=finite)))

@@ -1,0 +1,406 @@
+"""Importer for ROS 2 bags of either storage (sqlite3 ``.db3``, MCAP), read with ``rosbags``.
+
+A bag is a folder (``metadata.yaml`` plus storage files), or one ``.db3`` or ``.mcap`` file.
+Message definitions stored in the bag are used; where the bag holds none (sqlite3 bags before
+Iron), the ROS 2 Humble or Jazzy type store (``typestore``) supplies them. Each topic maps to a
+logical topic of the recording (DESIGN.md, "Recording format"):
+
+- ``nav_msgs/Odometry`` -> ``/odom``: the pose, planar;
+- ``geometry_msgs/PoseStamped``, ``PoseWithCovarianceStamped`` -> ``/ground_truth/pose``;
+- ``tf2_msgs/TFMessage`` on ``/tf`` and ``/tf_static`` -> ``/odom`` (when no odometry topic is
+  mapped: ``base_frame`` in ``odom_frame``) and ``/ground_truth/pose`` (with
+  ``ground_truth_frame``: ``base_frame`` in it), composed through the tree (:mod:`.tf_tree`);
+- ``sensor_msgs/Imu`` -> ``/imu/yaw_rate``: angular velocity about +z (sensor aligned with the base);
+- ``sensor_msgs/LaserScan`` -> ``/landmarks/range_bearing``: poles and trunks (:mod:`.poles`),
+  ids unknown, moved into the base frame through a static tf when there is one;
+- ``sensor_msgs/Image``, ``CompressedImage`` -> ``/camera/image``;
+- ``sensor_msgs/CameraInfo`` -> ``/camera/calibration``: K, D, size.
+
+One bag topic per logical topic: where several qualify, the first in name order is taken and the
+others are listed as ignored (``topic_map`` picks another). Any other type is listed and skipped.
+Stamps are the header stamps (the bag's receive time where a header stamp is 0); messages are
+written in stamp order, so the whole bag is held in memory while importing.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+
+from recorder.codec.ros2 import POSE_TYPES, from_ros2
+from recorder.errors import RecorderError
+from recorder.importers.poles import PoleConfig, extract_poles
+from recorder.importers.tf_tree import TfTree
+from recorder.messages import (
+    TOPIC_CAMERA_CALIBRATION,
+    TOPIC_CAMERA_IMAGE,
+    TOPIC_GROUND_TRUTH_POSE,
+    TOPIC_IMU_YAW_RATE,
+    TOPIC_ODOM,
+    TOPIC_RANGE_BEARING,
+    CameraCalibration,
+    CameraImage,
+    GroundTruthPose,
+    ImuYawRate,
+    Message,
+    OdometryPose,
+    RangeBearingScan,
+)
+from recorder.sensor_model import SensorModel
+from recorder.writer import Recorder
+
+IMPORTER: Final = "ros2"
+TF_TYPE: Final = "tf2_msgs/msg/TFMessage"
+TF_TOPICS: Final = ("/tf", "/tf_static")
+TYPESTORES: Final = ("humble", "jazzy")
+# What each ROS 2 type can become; the first entry is its automatic mapping.
+TARGETS: Final[dict[str, tuple[str, ...]]] = {
+    "nav_msgs/msg/Odometry": (TOPIC_ODOM, TOPIC_GROUND_TRUTH_POSE),
+    "geometry_msgs/msg/PoseStamped": (TOPIC_GROUND_TRUTH_POSE, TOPIC_ODOM),
+    "geometry_msgs/msg/PoseWithCovarianceStamped": (TOPIC_GROUND_TRUTH_POSE, TOPIC_ODOM),
+    "sensor_msgs/msg/Imu": (TOPIC_IMU_YAW_RATE,),
+    "sensor_msgs/msg/LaserScan": (TOPIC_RANGE_BEARING,),
+    "sensor_msgs/msg/Image": (TOPIC_CAMERA_IMAGE,),
+    "sensor_msgs/msg/CompressedImage": (TOPIC_CAMERA_IMAGE,),
+    "sensor_msgs/msg/CameraInfo": (TOPIC_CAMERA_CALIBRATION,),
+}
+NEEDS: Final = ("a pipeline needs odometry (nav_msgs/Odometry, or /tf from --odom-frame to --base-frame) plus "
+                "range-bearing landmarks (sensor_msgs/LaserScan) or camera images (sensor_msgs/Image or "
+                "CompressedImage)")
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass(frozen=True, slots=True)
+class TopicPlan:
+    """One bag topic: its type, message count, and the logical topic it becomes (None: why not)."""
+
+    topic: str
+    msgtype: str
+    messages: int
+    maps_to: str | None
+    note: str
+
+
+@dataclass(frozen=True, slots=True)
+class BagPlan:
+    """How a bag maps onto a recording."""
+
+    path: Path
+    storage: str
+    topics: tuple[TopicPlan, ...]
+    tf_odometry: bool  # /odom comes from the tf tree
+    tf_ground_truth: bool  # /ground_truth/pose comes from the tf tree
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"path": str(self.path), "storage": self.storage, "tf_odometry": self.tf_odometry,
+                "tf_ground_truth": self.tf_ground_truth,
+                "topics": [{"topic": t.topic, "type": t.msgtype, "messages": t.messages, "maps_to": t.maps_to,
+                            "note": t.note} for t in self.topics]}
+
+
+@dataclass(frozen=True, slots=True)
+class ImportSummary:
+    """What :func:`import_ros2_bag` wrote: messages per logical topic."""
+
+    path: Path
+    plan: BagPlan
+    counts: dict[str, int] = field(default_factory=dict)
+    poles: int = 0
+
+    @property
+    def messages(self) -> int:
+        return sum(self.counts.values())
+
+
+def sensor_model(poles: PoleConfig | None = None) -> dict[str, float]:
+    """The noise of what a bag's import states, as pipeline config keys: the pole extractor's range and
+    bearing floors (each scan also carries the sigma its circle fits give, never below these)."""
+    cfg = poles or PoleConfig()
+    return {"range_sigma_m": cfg.range_sigma_m, "bearing_sigma_rad": cfg.bearing_sigma_rad}
+
+
+def is_ros2_bag(path: Path) -> bool:
+    """A bag folder (``metadata.yaml``) or a ``.db3`` file: something only :mod:`rosbags` reads."""
+    return (path.is_dir() and (path / "metadata.yaml").is_file()) or (path.is_file() and path.suffix == ".db3")
+
+
+def _bag_source(path: Path) -> Path:
+    """The path ``rosbags`` opens: a bag folder, or the one storage file of a folder without metadata."""
+    if not path.exists():
+        raise RecorderError(f"{path} does not exist: pass a ROS 2 bag folder, or its .db3 or .mcap file")
+    if path.is_dir() and not (path / "metadata.yaml").is_file():
+        files = sorted([*path.glob("*.db3"), *path.glob("*.mcap")])
+        if len(files) != 1:
+            what = "no .db3 or .mcap file" if not files else f"{len(files)} storage files but no metadata.yaml"
+            raise RecorderError(f"{path} is not a ROS 2 bag: it holds no metadata.yaml and {what}")
+        return files[0]
+    if path.is_file() and path.suffix not in (".db3", ".mcap"):
+        raise RecorderError(f"{path} is not a ROS 2 bag: expected a bag folder, a .db3 or a .mcap file")
+    return path
+
+
+@dataclass
+class _Bag:
+    reader: Any
+    storage: str
+
+
+def _open(path: Path, typestore: str) -> _Bag:
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    if typestore not in TYPESTORES:
+        raise RecorderError(f"typestore must be one of {', '.join(TYPESTORES)}, got {typestore!r}")
+    store = get_typestore(Stores.ROS2_HUMBLE if typestore == "humble" else Stores.ROS2_JAZZY)
+    src = _bag_source(path)
+    try:
+        try:
+            reader = AnyReader([src], default_typestore=store)
+            reader.open()
+        except Exception:
+            # a folder whose metadata.yaml rosbags cannot read (hand-written, another writer's) but whose one
+            # storage file it can: read that file alone
+            files = sorted([*src.glob("*.db3"), *src.glob("*.mcap")]) if src.is_dir() else []
+            if len(files) != 1:
+                raise
+            src = files[0]
+            reader = AnyReader([src], default_typestore=store)
+            reader.open()
+    except Exception as err:  # rosbags, sqlite and YAML errors alike: the file is not a readable bag
+        text = " ".join(str(a) for a in getattr(err, "args", ())) or type(err).__name__
+        raise RecorderError(f"{path} cannot be read as a ROS 2 bag ({text.splitlines()[0]}); check that it is a "
+                            f"complete rosbag2 folder, .db3 or .mcap (re-record or copy it again)") from err
+    # types the bag does not define come from the chosen store (mixed bags: some topics carry definitions)
+    missing = {c.msgtype for c in reader.connections} - set(reader.typestore.fielddefs)
+    if missing:
+        extra = {k: v for k, v in store.fielddefs.items() if k not in reader.typestore.fielddefs}
+        reader.typestore.register(extra)
+    files = [src] if src.is_file() else [*src.glob("*.db3"), *src.glob("*.mcap")]
+    storage = "sqlite3" if any(f.suffix == ".db3" for f in files) else "mcap"
+    return _Bag(reader, storage)
+
+
+def plan_bag(path: str | Path, topic_map: Mapping[str, str] | None = None, *, base_frame: str = "base_link",
+             odom_frame: str = "odom", ground_truth_frame: str | None = None, typestore: str = "humble") -> BagPlan:
+    """Map each topic of the bag onto a logical topic, or say why it is ignored (the bag stays unread)."""
+    bag = _open(Path(path), typestore)
+    try:
+        return _plan(bag, Path(path), dict(topic_map or {}), ground_truth_frame)
+    finally:
+        bag.reader.close()
+
+
+def _plan(bag: _Bag, path: Path, topic_map: dict[str, str], ground_truth_frame: str | None) -> BagPlan:
+    counts: dict[str, int] = {}
+    types: dict[str, str] = {}
+    for c in bag.reader.connections:
+        counts[c.topic] = counts.get(c.topic, 0) + c.msgcount
+        types[c.topic] = c.msgtype
+    for topic, target in topic_map.items():
+        if topic not in types:
+            raise RecorderError(f"--topic-map names {topic!r}, which the bag does not hold (topics: "
+                                f"{', '.join(sorted(types))})")
+        allowed = TARGETS.get(types[topic], ())
+        if target not in allowed:
+            can = ", ".join(allowed) if allowed else "nothing: slamreplay does not read this type"
+            raise RecorderError(f"--topic-map {topic}={target}: a {types[topic]} can become {can}")
+    taken: dict[str, str] = {v: k for k, v in topic_map.items()}
+    if len(taken) != len(topic_map):
+        raise RecorderError("--topic-map maps two bag topics onto one logical topic: one source per topic")
+    has_tf = any(types[t] == TF_TYPE for t in types if t in TF_TOPICS)
+    if ground_truth_frame is not None:
+        if not has_tf:
+            raise RecorderError(f"--ground-truth-frame {ground_truth_frame} needs /tf, and the bag has no "
+                                f"tf2_msgs/TFMessage on /tf or /tf_static")
+        taken.setdefault(TOPIC_GROUND_TRUTH_POSE, "/tf")
+    plans: dict[str, TopicPlan] = {}
+    for topic in sorted(types):
+        msgtype, n = types[topic], counts[topic]
+        if topic in topic_map:
+            plans[topic] = TopicPlan(topic, msgtype, n, topic_map[topic], "--topic-map")
+            continue
+        if msgtype == TF_TYPE and topic in TF_TOPICS:
+            continue  # decided below, once the other topics are known
+        targets = TARGETS.get(msgtype)
+        if targets is None:
+            plans[topic] = TopicPlan(topic, msgtype, n, None, "type not read by slamreplay: skipped")
+            continue
+        target = targets[0]
+        if target in taken:
+            plans[topic] = TopicPlan(topic, msgtype, n, None, f"{target} comes from {taken[target]} (pick another "
+                                     f"with --topic-map {topic}={target})")
+            continue
+        taken[target] = topic
+        how = {TOPIC_RANGE_BEARING: "poles and trunks as landmarks, ids unknown",
+               TOPIC_IMU_YAW_RATE: "angular velocity about +z"}.get(target, "automatic")
+        plans[topic] = TopicPlan(topic, msgtype, n, target, how)
+    tf_odom = has_tf and TOPIC_ODOM not in taken
+    tf_gt = ground_truth_frame is not None
+    for topic in TF_TOPICS:
+        if topic in types and types[topic] == TF_TYPE and topic not in plans:
+            laser = topic == "/tf_static" and TOPIC_RANGE_BEARING in taken
+            uses = [what for what, on in (("odometry", tf_odom), ("ground truth", tf_gt), ("the laser's mounting",
+                                                                                       laser)) if on]
+            if uses:
+                plans[topic] = TopicPlan(topic, TF_TYPE, counts[topic], "transform tree",
+                                         " and ".join(uses) + " composed through the tree")
+            else:
+                plans[topic] = TopicPlan(topic, TF_TYPE, counts[topic], None, "not needed: odometry comes from "
+                                         f"{taken.get(TOPIC_ODOM)} and no --ground-truth-frame was given")
+    ordered = tuple(plans[t] for t in sorted(plans))
+    usable = {p.maps_to for p in ordered if p.maps_to} | ({TOPIC_ODOM} if tf_odom else set())
+    if not usable - {"transform tree"}:
+        found = ", ".join(f"{t} ({types[t]})" for t in sorted(types)) or "no topics at all"
+        raise RecorderError(f"{path} holds nothing slamreplay can use (found: {found}): {NEEDS}")
+    return BagPlan(path, bag.storage, ordered, tf_odom, tf_gt)
+
+
+def _stamp(header: Any, fallback_ns: int) -> int:
+    ns = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+    return ns if ns > 0 else int(fallback_ns)
+
+
+def import_ros2_bag(bag_path: str | Path, out: str | Path, *, topic_map: Mapping[str, str] | None = None,
+                    base_frame: str = "base_link", odom_frame: str = "odom", ground_truth_frame: str | None = None,
+                    typestore: str = "humble", poles: PoleConfig | None = None,
+                    progress: Progress | None = None) -> ImportSummary:
+    """Import a ROS 2 bag into the recording ``out`` (see the module's table for the mapping).
+
+    Raises
+    ------
+    RecorderError : the bag is missing or unreadable, holds nothing usable, the tf tree lacks a
+        named frame, ``--topic-map`` names a topic or target that cannot be, or ``out`` exists.
+    """
+    bag_path = Path(bag_path)
+    poles = poles or PoleConfig()
+    bag = _open(bag_path, typestore)
+    reader = bag.reader
+    try:
+        plan = _plan(bag, bag_path, dict(topic_map or {}), ground_truth_frame)
+        by_topic = {p.topic: p for p in plan.topics if p.maps_to}
+        conns = [c for c in reader.connections if c.topic in by_topic]
+        tree = TfTree()
+        out_msgs: list[tuple[int, int, str, Message]] = []
+        scans: list[tuple[int, str, Any]] = []
+        total = sum(c.msgcount for c in conns)
+        every = max(1, total // 200)
+        for done, (conn, bag_ns, raw) in enumerate(reader.messages(connections=conns), start=1):
+            try:
+                obj = reader.deserialize(raw, conn.msgtype)
+                item = _convert(conn.topic, conn.msgtype, by_topic[conn.topic].maps_to, obj, bag_ns, tree, scans)
+            except (ValueError, AttributeError, TypeError) as err:
+                raise RecorderError(f"{bag_path}: message {done} on {conn.topic} ({conn.msgtype}) cannot be "
+                                    f"read: {err}") from err
+            except Exception as err:  # rosbags' deserialization errors of damaged bytes
+                if isinstance(err, RecorderError):
+                    raise
+                raise RecorderError(f"{bag_path}: message {done} on {conn.topic} ({conn.msgtype}) is damaged: "
+                                    f"{err}") from err
+            if item is not None:
+                out_msgs.append((item[1].stamp_ns, len(out_msgs), item[0], item[1]))
+            if progress is not None and done % every == 0:
+                progress(done, total)
+    finally:
+        reader.close()
+
+    n_poles = 0
+    if scans:
+        mount = (0.0, 0.0, 0.0)
+        frame = scans[0][1]
+        if frame and frame != base_frame and base_frame in tree.frames and frame in tree.frames:
+            mount = tree.static_planar(base_frame, frame) or mount
+        for stamp, _, scan in scans:
+            rb = _poles_scan(stamp, scan, poles, mount)
+            n_poles += len(rb)
+            out_msgs.append((stamp, len(out_msgs), TOPIC_RANGE_BEARING, rb))
+    if plan.tf_odometry:
+        tree.check_frame(odom_frame, "--odom-frame")
+        tree.check_frame(base_frame, "--base-frame")
+        for stamp, pose in zip(*tree.planar_poses(odom_frame, base_frame), strict=True):
+            out_msgs.append((int(stamp), len(out_msgs), TOPIC_ODOM, OdometryPose(int(stamp), *pose.tolist())))
+    if plan.tf_ground_truth:
+        assert ground_truth_frame is not None
+        tree.check_frame(ground_truth_frame, "--ground-truth-frame")
+        tree.check_frame(base_frame, "--base-frame")
+        for stamp, pose in zip(*tree.planar_poses(ground_truth_frame, base_frame), strict=True):
+            out_msgs.append((int(stamp), len(out_msgs), TOPIC_GROUND_TRUTH_POSE,
+                             GroundTruthPose(int(stamp), *pose.tolist())))
+    if not any(t in (TOPIC_ODOM, TOPIC_CAMERA_IMAGE) for _, _, t, _ in out_msgs):
+        raise RecorderError(f"{bag_path}: no odometry nor image message could be read: {NEEDS}")
+    out_msgs.sort(key=lambda m: (m[0], m[1]))
+    counts: dict[str, int] = {}
+    rec = Recorder(Path(out), source={"importer": IMPORTER, "bag": bag_path.name, "storage": plan.storage},
+                   parameters={"topic_map": {p.topic: p.maps_to for p in plan.topics if p.maps_to},
+                               "base_frame": base_frame, "odom_frame": odom_frame,
+                               "ground_truth_frame": ground_truth_frame, "typestore": typestore,
+                               "pole_extractor": poles.as_dict() if scans else None},
+                   robot={"frames": json.dumps(sorted(tree.frames))},
+                   sensor_model=SensorModel(**sensor_model(poles), source="the pole extractor's noise floors "
+                                            "(each scan states the sigma of its circle fits, never below them)")
+                   if scans else None)
+    with rec:
+        for _, _, topic, msg in out_msgs:
+            rec.write(topic, msg)
+            counts[topic] = counts.get(topic, 0) + 1
+    return ImportSummary(Path(out), plan, counts, n_poles)
+
+
+def _convert(topic: str, msgtype: str, target: str | None, obj: Any, bag_ns: int, tree: TfTree,
+             scans: list[tuple[int, str, Any]]) -> tuple[str, Message] | None:
+    """One bag message -> (logical topic, message), or None when it is gathered for later (tf, scans)."""
+    if msgtype == TF_TYPE:
+        for tf in obj.transforms:
+            t, q = tf.transform.translation, tf.transform.rotation
+            tree.add(tf.header.frame_id, tf.child_frame_id, _stamp(tf.header, bag_ns), (t.x, t.y, t.z),
+                     (q.x, q.y, q.z, q.w), static=topic == "/tf_static")
+        return None
+    if msgtype in POSE_TYPES:
+        kind = OdometryPose if target == TOPIC_ODOM else GroundTruthPose
+        return str(target), from_ros2(kind, msgtype, obj, bag_ns)
+    if msgtype in ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"):
+        return TOPIC_CAMERA_IMAGE, from_ros2(CameraImage, msgtype, obj, bag_ns)
+    if msgtype == "sensor_msgs/msg/CameraInfo":
+        k = np.asarray(obj.k, dtype=np.float64).reshape(3, 3)
+        return TOPIC_CAMERA_CALIBRATION, CameraCalibration(
+            _stamp(obj.header, bag_ns), int(obj.width), int(obj.height), k, np.asarray(obj.d, dtype=np.float64),
+            obj.distortion_model or "plumb_bob", obj.header.frame_id or "camera")
+    if msgtype == "sensor_msgs/msg/Imu":
+        cov = float(obj.angular_velocity_covariance[8])
+        sigma = math.sqrt(cov) if cov > 0 and obj.angular_velocity_covariance[0] >= 0 else 0.0
+        return TOPIC_IMU_YAW_RATE, ImuYawRate(_stamp(obj.header, bag_ns), float(obj.angular_velocity.z), sigma)
+    if msgtype == "sensor_msgs/msg/LaserScan":
+        scans.append((_stamp(obj.header, bag_ns), obj.header.frame_id.lstrip("/"), obj))
+        return None
+    raise RecorderError(f"{topic}: type {msgtype} has no mapping")
+
+
+def _poles_scan(stamp: int, scan: Any, cfg: PoleConfig, mount: tuple[float, float, float]) -> RangeBearingScan:
+    """A LaserScan's poles as a range-bearing scan in the base frame (``mount``: the laser's pose there)."""
+    p = extract_poles(np.asarray(scan.ranges, dtype=np.float64), float(scan.angle_min), float(scan.angle_increment),
+                      cfg, float(scan.range_min), float(scan.range_max))
+    r, b = p.ranges_m, p.bearings_rad
+    if mount != (0.0, 0.0, 0.0):
+        mx, my, myaw = mount
+        x = mx + r * np.cos(b + myaw)
+        y = my + r * np.sin(b + myaw)
+        r, b = np.hypot(x, y), np.arctan2(y, x)
+    # one sigma per scan: the largest of its poles' (a conservative bound for every pole in it)
+    rs = float(p.range_sigmas_m.max()) if len(p) else cfg.range_sigma_m
+    bs = float(p.bearing_sigmas_rad.max()) if len(p) else cfg.bearing_sigma_rad
+    return RangeBearingScan(stamp, r, b, np.full(len(r), -1, dtype=np.int64), rs, bs)
+
+
+def iter_plan_lines(plan: BagPlan) -> Iterator[str]:
+    """The plan as text lines for ``slamreplay inspect``."""
+    yield f"ROS 2 bag {plan.path} ({plan.storage} storage)"
+    yield f"{'topic':<28} {'type':<44} {'messages':>9}  maps to"
+    for t in plan.topics:
+        target = t.maps_to or "ignored"
+        yield f"{t.topic:<28} {t.msgtype:<44} {t.messages:>9}  {target} ({t.note})"

@@ -1,0 +1,62 @@
+"""The reference a data set without ground truth is scored against: the batch optimum of its own measurements.
+
+For Victoria Park (no GPS in the iSAM file) the reference is the full-SLAM least-squares optimum
+of the same odometry and landmark observations with the noise GTSAM's loader assigns them
+(:func:`recorder.importers.victoria_park.gtsam_noise`), found by
+:func:`algorithms.common.landmark_graph.solve_incremental`. A filter scored against it is
+scored on how close it gets to the best estimate the measurements allow, not on the truth.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from algorithms.common.landmark_graph import LandmarkGraph, LsqConfig, LsqResult, noise_scales, solve_incremental
+from recorder.importers.victoria_park import VictoriaPark, gtsam_noise
+
+
+def victoria_park_graph(data: VictoriaPark) -> LandmarkGraph:
+    """The data set as a pose-landmark graph; landmarks indexed in ``data.landmark_ids`` order."""
+    model = gtsam_noise()
+    rb = data.ranges_bearings()
+    info = np.diag([1.0 / model["range_sigma_m"] ** 2, 1.0 / model["bearing_sigma_rad"] ** 2])
+    odo_info = np.asarray(np.linalg.inv(data.odo_cov), dtype=np.float64)
+    lm_index = np.searchsorted(data.landmark_ids, data.obs_landmark)
+    return LandmarkGraph(len(data.pose_ids), len(data.landmark_ids), data.odo_i, data.odo_j, data.odo_z, odo_info,
+                         data.obs_pose, lm_index, rb, np.broadcast_to(info, (len(rb), 2, 2)).copy())
+
+
+def victoria_park_reference(data: VictoriaPark, cfg: LsqConfig | None = None
+                            ) -> tuple[NDArray[np.float64], NDArray[np.float64], LsqResult]:
+    """Poses (n, 3), landmarks (L, 2) of the batch optimum, and the solver's result (χ², iterations)."""
+    res = solve_incremental(victoria_park_graph(data), cfg or LsqConfig())
+    return res.poses, res.landmarks, res
+
+
+def measured_noise(data: VictoriaPark, poses: NDArray[np.float64], landmarks: NDArray[np.float64], *,
+                   seed: int = 0) -> dict[str, float]:
+    """The noise the measurements show about the reference, as pipeline config keys.
+
+    Each residual kind's modelled sigma (:func:`recorder.importers.victoria_park.gtsam_noise` and the
+    file's odometry covariance) times the factor its residuals show at the optimum, corrected for
+    the unknowns that kind absorbs (:func:`algorithms.common.landmark_graph.noise_scales`, seeded).
+    A kind the optimum absorbs almost whole keeps its modelled sigma (factor 1).
+    Odometry becomes per square root of a metre driven, as the pipelines' noise model
+    (algorithms/common/motion.py) is: the forward sigma of a step of mean length.
+    """
+    graph = victoria_park_graph(data)
+    c = noise_scales(graph, poses, landmarks, np.random.default_rng(seed))
+    c = np.where(np.isfinite(c), c, 1.0)  # not measurable: the model's own sigma stands
+    step_m = float(np.mean(np.hypot(data.odo_z[:, 0], data.odo_z[:, 1])))
+    sig_step = np.sqrt(np.mean(np.diagonal(data.odo_cov, axis1=1, axis2=2), axis=0))  # (3,) x, y, θ per step
+    model = gtsam_noise()
+    return {
+        "translation_sigma_per_sqrt_m": float(c[0] * sig_step[0] / math.sqrt(step_m)),
+        "heading_sigma_per_sqrt_m": float(c[2] * sig_step[2] / math.sqrt(step_m)),
+        "heading_sigma_per_sqrt_rad": 0.0,
+        "range_sigma_m": float(c[3] * model["range_sigma_m"]),
+        "bearing_sigma_rad": float(c[4] * model["bearing_sigma_rad"]),
+    }

@@ -1,0 +1,107 @@
+"""Batch pose-landmark least squares: known answers on seeded worlds, Jacobians, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from algorithms.common.landmark_graph import (
+    LandmarkGraph,
+    LsqConfig,
+    _system,
+    _whiten,
+    chi2,
+    optimize,
+    residuals,
+    solve_incremental,
+)
+
+
+def _world(seed: int, noise: bool, n: int = 120) -> tuple[LandmarkGraph, np.ndarray, np.ndarray]:
+    """A robot on a circle among 12 landmarks; odometry and range-bearing edges, noisy or exact."""
+    rng = np.random.default_rng(seed)
+    lms = np.column_stack([rng.uniform(-12, 12, 12), rng.uniform(-2, 22, 12)])  # all within 12 m of the circle
+    poses = np.zeros((n, 3))
+    step = np.array([0.5, 0.0, 2 * math.pi / 60])
+    for k in range(1, n):
+        c, s = math.cos(poses[k - 1, 2]), math.sin(poses[k - 1, 2])
+        poses[k] = poses[k - 1] + [c * step[0], s * step[0], step[2]]
+    poses[:, 2] = (poses[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    sig_o, sig_r, sig_b = np.array([0.02, 0.01, 0.005]), 0.1, 0.01
+    z_o = np.tile(step, (n - 1, 1)) + (rng.normal(0, sig_o, (n - 1, 3)) if noise else 0)
+    op, ol, oz = [], [], []
+    for k in range(n):
+        for m in range(len(lms)):
+            c, s = math.cos(poses[k, 2]), math.sin(poses[k, 2])
+            dx, dy = lms[m] - poses[k, :2]
+            d0, d1 = c * dx + s * dy, -s * dx + c * dy
+            if math.hypot(d0, d1) < 14:
+                op.append(k)
+                ol.append(m)
+                oz.append([math.hypot(d0, d1) + (rng.normal(0, sig_r) if noise else 0),
+                           math.atan2(d1, d0) + (rng.normal(0, sig_b) if noise else 0)])
+    k_obs = len(op)
+    g = LandmarkGraph(n, len(lms), np.arange(n - 1), np.arange(1, n), z_o,
+                      np.broadcast_to(np.diag(1 / sig_o**2), (n - 1, 3, 3)).copy(), np.array(op), np.array(ol),
+                      np.array(oz), np.broadcast_to(np.diag([1 / sig_r**2, 1 / sig_b**2]), (k_obs, 2, 2)).copy())
+    return g, poses, lms
+
+
+def test_exact_measurements_give_the_truth() -> None:
+    """With noise-free measurements the incremental solve lands on the true poses and landmarks (χ² ≈ 0)."""
+    g, poses, lms = _world(0, noise=False)
+    res = solve_incremental(g, LsqConfig(chunk_poses=30))
+    assert res.converged and res.chi2 < 1e-12
+    np.testing.assert_allclose(res.poses, poses, atol=1e-6)
+    np.testing.assert_allclose(res.landmarks, lms, atol=1e-6)
+
+
+def test_noisy_optimum_is_consistent() -> None:
+    """With noise the minimum χ² is near its degrees of freedom (two-sided), below the truth's, and close to it."""
+    g, poses, lms = _world(1, noise=True)
+    res = solve_incremental(g, LsqConfig(chunk_poses=30))
+    dof = 3 * len(g.odo_i) + 2 * len(g.obs_pose) - 3 * (g.n_poses - 1) - 2 * g.n_landmarks
+    assert 0.7 * dof < res.chi2 < 1.3 * dof
+    assert res.chi2 < chi2(g, poses, lms)
+    assert np.sqrt(np.mean(np.sum((res.landmarks - lms) ** 2, 1))) < 0.3
+    # a second optimize from the optimum does not move it
+    again = optimize(g, res.poses, res.landmarks)
+    assert again.chi2 == pytest.approx(res.chi2, rel=1e-9)
+
+
+def test_jacobian_matches_finite_differences() -> None:
+    """The whitened analytic Jacobian equals central differences of the whitened residuals."""
+    g, poses, lms = _world(2, noise=True, n=15)
+    rng = np.random.default_rng(3)
+    poses = poses + rng.normal(0, 0.1, poses.shape)
+    lms = lms + rng.normal(0, 0.3, lms.shape)
+    wo, wl = _whiten(g.odo_info), _whiten(g.obs_info)
+    J, _ = _system(g, poses, lms, wo, wl)
+
+    def whitened(x: np.ndarray) -> np.ndarray:
+        eo, el = residuals(g, x[:3 * g.n_poses].reshape(-1, 3), x[3 * g.n_poses:].reshape(-1, 2))
+        return np.concatenate([np.einsum("nij,nj->ni", wo, eo).ravel(), np.einsum("nij,nj->ni", wl, el).ravel()])
+
+    x0 = np.concatenate([poses.ravel(), lms.ravel()])
+    num = np.zeros(J.shape)
+    for c in range(len(x0)):
+        d = np.zeros_like(x0)
+        d[c] = 1e-6
+        num[:, c] = (whitened(x0 + d) - whitened(x0 - d)) / 2e-6
+    np.testing.assert_allclose(J.toarray(), num, atol=1e-4 * np.abs(num).max())
+
+
+def test_bad_graphs_are_rejected() -> None:
+    """Wrong shapes, indices out of range and unobserved landmarks raise ValueError naming the problem."""
+    g, poses, lms = _world(0, noise=False, n=10)
+    with pytest.raises(ValueError, match="odo_z must have shape"):
+        LandmarkGraph(g.n_poses, g.n_landmarks, g.odo_i, g.odo_j, g.odo_z[:, :2], g.odo_info, g.obs_pose,
+                      g.obs_landmark, g.obs_z, g.obs_info)
+    with pytest.raises(ValueError, match="obs_landmark must index"):
+        LandmarkGraph(g.n_poses, 1, g.odo_i, g.odo_j, g.odo_z, g.odo_info, g.obs_pose, g.obs_landmark, g.obs_z,
+                      g.obs_info)
+    with pytest.raises(ValueError, match="every landmark must be observed"):
+        optimize(LandmarkGraph(g.n_poses, g.n_landmarks + 1, g.odo_i, g.odo_j, g.odo_z, g.odo_info, g.obs_pose,
+                               g.obs_landmark, g.obs_z, g.obs_info), poses, np.vstack([lms, [0.0, 0.0]]))
