@@ -9,6 +9,7 @@ Arrays are stored as read-only copies; compare messages with :func:`assert_msg_e
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 from typing import ClassVar, Final, Literal
 
@@ -49,7 +50,8 @@ def _check_stamp(stamp_ns: object) -> None:
 
 def _check_finite(**values: float) -> None:
     for name, value in values.items():
-        if not np.isfinite(value):
+        # math.isfinite: a tenth of np.isfinite's cost on a scalar (this runs for every decoded pose)
+        if not math.isfinite(value):
             raise ValueError(f"{name} is {value}: every value in a message must be finite")
 
 
