@@ -65,11 +65,18 @@ class PlanarPose:
     yaw_rad: float
 
     def __post_init__(self) -> None:
-        _check_stamp(self.stamp_ns)
-        _check_finite(x_m=self.x_m, y_m=self.y_m, yaw_rad=self.yaw_rad)
-        object.__setattr__(self, "stamp_ns", int(self.stamp_ns))
-        for name in ("x_m", "y_m", "yaw_rad"):
-            object.__setattr__(self, name, float(getattr(self, name)))
+        # One pose per decoded message: the common case (an int stamp, finite Python floats) is checked
+        # without a call per field; anything else goes through the general checks and conversions.
+        stamp, x, y, yaw = self.stamp_ns, self.x_m, self.y_m, self.yaw_rad
+        if type(stamp) is not int or stamp < 0:
+            _check_stamp(stamp)
+            object.__setattr__(self, "stamp_ns", int(stamp))
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(yaw)):
+            _check_finite(x_m=x, y_m=y, yaw_rad=yaw)
+        if type(x) is not float or type(y) is not float or type(yaw) is not float:
+            object.__setattr__(self, "x_m", float(x))
+            object.__setattr__(self, "y_m", float(y))
+            object.__setattr__(self, "yaw_rad", float(yaw))
 
     @property
     def xy_yaw(self) -> NDArray[np.float64]:

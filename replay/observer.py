@@ -102,9 +102,12 @@ class RerunObserver:
             self._sync_time()
             self.stream.log(path, *to_archetypes(path, item))
             return
-        if isinstance(item, Scalar):
-            self._style_series(path)
-        rows = self._buffers.setdefault((path, type(item)), [])
+        key = (path, type(item))
+        rows = self._buffers.get(key)
+        if rows is None:
+            if isinstance(item, Scalar):
+                self._style_series(path)
+            rows = self._buffers[key] = []
         rows.append((self.step, self.sensor_time_ns, item))
         if len(rows) >= self.flush_rows:
             self._flush(path, type(item))
