@@ -87,18 +87,19 @@ class NullObserver:
 
 
 def interleaved(repeat: int, fns: list[Callable[[], int]]) -> list[tuple[float, int]]:
-    """Fastest wall time of each ``fn`` over ``repeat`` rounds, and the count it returned.
+    """Least CPU time of each ``fn`` over ``repeat`` rounds, and the count it returned.
 
-    Each round runs every function once, in turn: a burst of load from other processes then slows
-    all of them in the same round instead of one of them, so that the ratios stay side by side.
+    CPU time of the process (all its threads: Rerun's encoder and file writer included), not wall
+    time: on a machine shared with other jobs, wall time mostly measures their load. Each round
+    runs every function once, in turn, so that a burst of load hits all of them alike.
     """
     best = [float("inf")] * len(fns)
     counts = [0] * len(fns)
     for _ in range(repeat):
         for i, fn in enumerate(fns):
-            tic = time.perf_counter()
+            tic = time.process_time()
             counts[i] = fn()
-            best[i] = min(best[i], time.perf_counter() - tic)
+            best[i] = min(best[i], time.process_time() - tic)
     return list(zip(best, counts, strict=True))
 
 
@@ -153,7 +154,7 @@ def main() -> None:
     rows = [(name, t, n) for name, (t, n) in zip(names, results, strict=True)]
     print(f"recording: {total} messages ({args.poses} poses), best of {args.repeat} interleaved rounds")
     base = rows[0][1]
-    print(f"{'what':<50} {'messages':>9} {'time s':>8} {'msg/s':>10} {'time / raw':>11}")
+    print(f"{'what':<50} {'messages':>9} {'CPU s':>8} {'msg/s':>10} {'time / raw':>11}")
     for name, t, n in rows:
         print(f"{name:<50} {n:>9} {t:>8.3f} {n / t:>10.0f} {t / base:>11.2f}")
     odo_messages = rows[3][2]

@@ -213,7 +213,8 @@ def _strips_arrow(strips: list[np.ndarray]) -> pa.Array:
     dtype = rr.components.LineStrip2DBatch._ARROW_DATATYPE
     counts = np.array([len(s) for s in strips], np.int32)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
-    flat = (np.concatenate([np.asarray(s, np.float32).reshape(-1, 2) for s in strips]).reshape(-1)
+    # float64 -> float32 once over all points: the same values as the SDK's conversion strip by strip
+    flat = (np.concatenate([np.asarray(s).reshape(-1, 2) for s in strips]).astype(np.float32).reshape(-1)
             if strips else np.empty(0, np.float32))
     points = pa.FixedSizeListArray.from_arrays(pa.array(flat, pa.float32()), type=dtype.value_type)
     return pa.ListArray.from_arrays(pa.array(offsets, pa.int32()), points, type=dtype)

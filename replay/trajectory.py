@@ -37,9 +37,10 @@ class TrajectoryLog:
         self._pending = None
         self._push(x, y)
         if self._n - self._checkpoint > max(10.0, math.sqrt(self._n)):
-            self.observer.log(self.path, LineStrips((self._xy[: self._n].copy(),)))
+            self.observer.log(self.path, LineStrips((self._xy[: self._n],)))
             self._checkpoint = self._n - 1
-        self.observer.log(f"{self.path}/tail", LineStrips((self._xy[self._checkpoint: self._n].copy(),)))
+        # views, not copies: rows below _n are never written again (growing makes a new array)
+        self.observer.log(f"{self.path}/tail", LineStrips((self._xy[self._checkpoint: self._n],)))
 
     def finish(self) -> None:
         """Draw the whole polyline, ending at the last offered point, at the current time."""
