@@ -20,11 +20,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from bench_io import write_json
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
 from algorithms.observe import Observation
-from bench_io import write_json
 from recorder import GroundTruthPose, OdometryPose, RangeBearingScan, Recorder
 from replay.engine import replay
 from replay.observer import RerunObserver

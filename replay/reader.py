@@ -10,9 +10,9 @@ ROS 2 bag a message type that appears on exactly one topic is mapped automatical
 from __future__ import annotations
 
 import heapq
-from operator import itemgetter
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
+from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
