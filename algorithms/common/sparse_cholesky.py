@@ -50,13 +50,16 @@ HAVE_CHOLMOD = _cholmod_analyze is not None or HAVE_CVXOPT
 _cholmod_order = _cholmod_analyze  # the ordering's own handle (tests fake the factorization's)
 
 
-def _cvx_pattern(h: sp.csc_matrix) -> Any:
-    """A CVXOPT sparse matrix with the pattern (and values) of ``h``; its values sit in CSC order,
-    as in ``h`` (whose row indices are sorted within each column)."""
+def _cvx_lower(h: sp.csc_matrix) -> tuple[Any, I64]:
+    """A CVXOPT sparse matrix holding the lower triangle of ``h`` (all CHOLMOD reads of a symmetric
+    matrix: half the entries to copy each time), and the positions of those entries in ``h.data``;
+    its values sit in CSC order, as in ``h`` (whose row indices are sorted within each column)."""
     n = h.shape[0]
     cols = np.repeat(np.arange(n, dtype=np.int64), np.diff(h.indptr))
-    return _cvx_spmatrix(_cvx_matrix(np.asarray(h.data, np.float64)), _cvx_matrix(h.indices.astype(np.int64)),
-                         _cvx_matrix(cols), (n, n))
+    low = np.flatnonzero(h.indices >= cols)
+    a = _cvx_spmatrix(_cvx_matrix(np.asarray(h.data, np.float64)[low]), _cvx_matrix(h.indices[low].astype(np.int64)),
+                      _cvx_matrix(cols[low]), (n, n))
+    return a, low
 
 
 def _block_ordering(n_free: int, rows: I64, cols: I64) -> I64:
@@ -76,7 +79,11 @@ def _block_ordering(n_free: int, rows: I64, cols: I64) -> I64:
         if _cholmod_order is not None:
             perm = np.asarray(_cholmod_order(a, mode="simplicial", ordering_method="amd").P(), dtype=np.int64)
         else:
-            perm = np.asarray(_cvx_amd.order(_cvx_pattern(a.tocsc())), dtype=np.int64).ravel()
+            low = np.flatnonzero(r > c)  # the pattern's lower triangle and diagonal is all AMD reads
+            diag = np.arange(n_free, dtype=np.int64)
+            pattern = _cvx_spmatrix(1.0, _cvx_matrix(np.r_[r[low], diag].astype(np.int64)),
+                                    _cvx_matrix(np.r_[c[low], diag].astype(np.int64)), (n_free, n_free))
+            perm = np.asarray(_cvx_amd.order(pattern), dtype=np.int64).ravel()
         pos = np.empty(n_free, dtype=np.int64)
         pos[perm] = np.arange(n_free)
         return pos
@@ -200,6 +207,8 @@ class SparseCholesky:
         self._symbolic: Any = None
         self._lu: Any = None
         self._a: Any = None  # CVXOPT: the matrix whose values are replaced before each numeric factorization
+        self._low: I64 = np.zeros(0, np.int64)  # CVXOPT: positions of the lower triangle in the CSC data
+        self._nnz = -1
 
     def factor(self, h: sp.csc_matrix) -> bool:
         """Factor ``h`` (symmetric, already fill-reduced); False when it is singular / not PD."""
@@ -215,13 +224,14 @@ class SparseCholesky:
                 return False
             return True
         if self.provider == "cvxopt":
-            if self._a is None or self._a.size != h.shape or len(self._a) != h.nnz:
-                self._a = _cvx_pattern(h)
+            if self._a is None or self._a.size != h.shape or self._nnz != h.nnz:
+                self._a, self._low = _cvx_lower(h)
+                self._nnz = h.nnz
                 # h is already fill-reduced: the identity permutation keeps that order; the analysis is
                 # done here once and reused (cholmod.numeric) for every matrix with this pattern
                 self._symbolic = _cvx_cholmod.symbolic(self._a, p=_cvx_matrix(np.arange(h.shape[0], dtype=np.int64)))
             else:
-                self._a.V = _cvx_matrix(np.asarray(h.data, np.float64))
+                self._a.V = _cvx_matrix(np.asarray(h.data, np.float64)[self._low])
             try:
                 _cvx_cholmod.numeric(self._a, self._symbolic)
             except ArithmeticError:  # not positive definite
