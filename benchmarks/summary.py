@@ -48,7 +48,8 @@ def table(root: Path) -> list[str]:
         try:
             docs[name] = json.loads(f.read_text()) if f.exists() else None
         except json.JSONDecodeError as err:
-            raise SystemExit(f"summary: {f} is not JSON ({err}); re-run its benchmark with --json {f}") from err
+            print(f"summary: {f} is not JSON ({err}); re-run its benchmark with --json {f}", file=sys.stderr)
+            raise SystemExit(2) from err
     lines = ["| figure | measured | target | met |", "| --- | ---: | ---: | :---: |"]
     for name, path, label, target, unit in ROWS:
         doc = docs[name]
