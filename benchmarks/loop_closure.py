@@ -26,9 +26,9 @@ from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
+from bench_io import write_json  # noqa: E402
 
 from algorithms.topometric import MapperConfig, StepStatus, TopoMetricMapper  # noqa: E402
-from bench_io import write_json  # noqa: E402
 
 STAGES = ("features", "bow", "filter", "validation", "relaxation")
 PAPER_S = 0.016
