@@ -69,25 +69,29 @@ def _block_ordering(n_free: int, rows: I64, cols: I64) -> I64:
     off = rows != cols
     r, c = rows[off], cols[off]
     deg = np.bincount(r, minlength=n_free).astype(np.float64)
-    # A diagonally dominant matrix with the block pattern: its fill-reducing order is what we want.
-    a = sp.csc_matrix(
-        (np.r_[-np.ones(r.size), deg + 1.0], (np.r_[r, np.arange(n_free)], np.r_[c, np.arange(n_free)])),
-        shape=(n_free, n_free),
-    )
+
+    def pattern() -> sp.csc_matrix:
+        """A diagonally dominant matrix with the block pattern: its fill-reducing order is what we want."""
+        return sp.csc_matrix(
+            (np.r_[-np.ones(r.size), deg + 1.0], (np.r_[r, np.arange(n_free)], np.r_[c, np.arange(n_free)])),
+            shape=(n_free, n_free),
+        )
+
     if _cholmod_order is not None or HAVE_CVXOPT:
         # AMD on the block graph: 3x faster than SuperLU's MMD and 2-20 % less fill (M3500, city10000)
         if _cholmod_order is not None:
-            perm = np.asarray(_cholmod_order(a, mode="simplicial", ordering_method="amd").P(), dtype=np.int64)
+            perm = np.asarray(_cholmod_order(pattern(), mode="simplicial", ordering_method="amd").P(),
+                              dtype=np.int64)
         else:
             low = np.flatnonzero(r > c)  # the pattern's lower triangle and diagonal is all AMD reads
             diag = np.arange(n_free, dtype=np.int64)
-            pattern = _cvx_spmatrix(1.0, _cvx_matrix(np.r_[r[low], diag].astype(np.int64)),
-                                    _cvx_matrix(np.r_[c[low], diag].astype(np.int64)), (n_free, n_free))
-            perm = np.asarray(_cvx_amd.order(pattern), dtype=np.int64).ravel()
+            lower = _cvx_spmatrix(1.0, _cvx_matrix(np.r_[r[low], diag].astype(np.int64)),
+                                  _cvx_matrix(np.r_[c[low], diag].astype(np.int64)), (n_free, n_free))
+            perm = np.asarray(_cvx_amd.order(lower), dtype=np.int64).ravel()
         pos = np.empty(n_free, dtype=np.int64)
         pos[perm] = np.arange(n_free)
         return pos
-    lu = sla.splu(a, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    lu = sla.splu(pattern(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     return np.asarray(lu.perm_c, dtype=np.int64)  # perm_c[v] is the new position of block v
 
 
