@@ -56,6 +56,12 @@ def clock() -> float:
     return time.process_time()
 
 
+def solver_name() -> str:
+    """The linear solver the optimizer picks: superlu, or the binding that runs CHOLMOD."""
+    chol = SparseCholesky("auto")
+    return str(getattr(chol, "provider", chol.backend))  # revisions before the CVXOPT binding have no provider
+
+
 def median_time(fn: Callable[[], Any], repeat: int) -> tuple[float, Any]:
     """Median CPU time of ``repeat`` calls and the last result."""
     times, out = [], None
@@ -186,7 +192,7 @@ def batch_table(data: Path, repeat: int, names: list[str]) -> dict[str, dict[str
     none = OptimizerConfig(kernel=Kernel.NONE)
     lm = OptimizerConfig(method="lm", kernel=Kernel.NONE)
     cols = ["ours GN", "ours LM", "ours chordal+GN", *[p for p, f in peers.items() if f is not None]]
-    provider = SparseCholesky("auto").provider
+    provider = solver_name()
     print(f"\nlinear solver: {'SciPy SuperLU' if provider == 'superlu' else f'CHOLMOD ({provider})'}; "
           f"times are CPU ms (median of {repeat})")
     figures: dict[str, dict[str, float]] = {}
@@ -378,7 +384,7 @@ def main() -> None:
     if args.quick:
         args.skip = sorted({*args.skip, "mit", "robust"})
     figures: dict[str, Any] = {"benchmark": "posegraph", "repeat": args.repeat, "clock": "process CPU time",
-                               "linear_solver": SparseCholesky("auto").provider}
+                               "linear_solver": solver_name()}
     if "batch" not in args.skip:
         figures["datasets"] = batch_table(args.data, args.repeat, names)
     if "mit" not in args.skip:
