@@ -32,7 +32,8 @@ class DeadReckoning:
         self._start = start
         self._first_odom: NDArray[np.float64] | None = None
         self._inv_first = (0.0, 0.0, 0.0)
-        self._start_f = tuple(float(v) for v in start)
+        sx, sy, sth = (float(v) for v in start)
+        self._start_f = (sx, sy, sth)
 
     def step(self, odom_pose: ArrayLike) -> NDArray[np.float64]:
         """The pose estimate after the cumulative odometry pose ``odom_pose`` ([x, y, theta])."""
@@ -41,7 +42,8 @@ class DeadReckoning:
             raise ValueError(f"odom_pose must be a (3,) [x, y, theta], got shape {o.shape}")
         if self._first_odom is None:
             self._first_odom = o
-            self._inv_first = tuple(float(v) for v in se2.inverse(o))
+            ix, iy, ith = (float(v) for v in se2.inverse(o))
+            self._inv_first = (ix, iy, ith)
         # se2.compose(start, se2.between(first, o)) on Python floats: the same formulas, evaluated in the same
         # order, without numpy's per-call overhead on 3-vectors (this runs at the odometry rate)
         ix, iy, ith = self._inv_first

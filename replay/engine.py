@@ -110,7 +110,7 @@ def _truth_at(t0: int, truth: Iterable[tuple[int, np.ndarray]]) -> np.ndarray | 
             if before is None or t == t0:
                 return pose
             tb, pb = before
-            return se2.interpolate([float(t0 - tb)], [0.0, float(t - tb)], np.stack([pb, pose]))[0]
+            return np.asarray(se2.interpolate([float(t0 - tb)], [0.0, float(t - tb)], np.stack([pb, pose]))[0])
         before = (t, pose)
     return None if before is None else before[1]
 
