@@ -65,13 +65,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--route", default="")
     ap.add_argument("--rtabmap", type=Path, default=None)
-    ap.add_argument("--quick", action="store_true", help="the simulator's 'left' loop driven twice")
     ap.add_argument("--json", type=Path, metavar="PATH", help="also write the figures as JSON to PATH")
     args = ap.parse_args()
     if args.rtabmap is not None and not (args.rtabmap / "images").is_dir():
         ap.error(f"--rtabmap {args.rtabmap} has no images/ folder (the RTAB-Map loop samples)")
-    if args.quick and not args.route:
-        args.route = "left,left"  # one loop driven twice: the second pass closes loops
     cv2.setNumThreads(1)
     frames = rtabmap_frames(args.rtabmap) if args.rtabmap else corridor_frames(args.seed, args.route)
     mapper = TopoMetricMapper(MapperConfig(), np.random.default_rng(0), clock=time.process_time)
