@@ -56,5 +56,6 @@ class DeadReckoning:
 
 
 def _wrap(theta: float) -> float:
-    """se2.wrap_angle of one float."""
-    return (theta + math.pi) % (2.0 * math.pi) - math.pi
+    """se2.wrap_angle of one float (the same operations: half-open [-pi, pi))."""
+    w = (theta + math.pi) % (2.0 * math.pi) - math.pi
+    return w - 2.0 * math.pi if w >= math.pi else w

@@ -146,10 +146,20 @@ def cmd_record_images(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _mrclam_robot(text: str) -> int | str:
+    if text == "all":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 1-5 or all, got {text!r}") from None
+
+
 def cmd_record_mrclam(args: argparse.Namespace) -> int:
     from recorder.importers.mrclam import import_mrclam
 
-    with progress_bar(f"importing MRCLAM robot {args.robot}", args.quiet) as update:
+    what = "robots 1-5" if args.robot == "all" else f"robot {args.robot}"
+    with progress_bar(f"importing MRCLAM {what}", args.quiet) as update:
         summary = import_mrclam(Path(args.dir), args.robot, Path(args.out), progress=update)
     if not args.quiet:
         _eprint(f"wrote {args.out}: {summary.messages:,} messages ({summary.odometry_poses:,} odometry, "
@@ -182,7 +192,19 @@ def cmd_inspect(args: argparse.Namespace) -> int:
                 rate = "" if t["rate_hz"] is None else f"{t['rate_hz']:.2f}"
                 print(f"{t['topic']:<28} {t['read_as'] or '-':<26} {t['schema']:<32} {t['messages']:>9} {rate:>9}")
             for name, meta in report["metadata"].items():
-                print(f"metadata {name}: " + ", ".join(f"{k}={v}" for k, v in sorted(meta.items())))
+                print(f"metadata {name}: " + ", ".join(f"{k}={v}" for k, v in sorted(meta.items())
+                                                        if k != "sensor_model"))  # printed below, line by line
+            models = {"": report["sensor_model"], **report["robot_sensor_models"]}
+            if len(models) > 1 and models[""] is None:
+                del models[""]  # several robots, each with its own
+            for robot, model in models.items():
+                whose = f"robot {robot} (run --robot {robot})" if robot else "sensor model"
+                if model is None:
+                    print(f"{whose}: not stated (pipelines use their defaults where you set nothing)")
+                    continue
+                print(f"{whose} ({model['source'] or 'source not stated'}); pipelines use it where you set nothing:")
+                for line in model["lines"]:
+                    print(f"  {line}")
     return EXIT_OK if report["health"] == "ok" else EXIT_CHECK_FAILED
 
 
@@ -198,6 +220,7 @@ def cmd_pipelines(args: argparse.Namespace) -> int:
 
     rows: list[dict[str, Any]] = [{"name": name, "summary": cls.summary, "required_topics": list(cls.required_topics),
              "optional_topics": list(cls.optional_topics), "config": config_schema(cls.Config),
+             "presets": {k: dict(v) for k, v in cls.presets.items()},
              "metrics": {k: {"better": m.better, "unit": m.unit, "description": m.description}
                          for k, m in cls.metrics.items()}}
             for name, cls in all_pipelines().items()]
@@ -213,6 +236,9 @@ def cmd_pipelines(args: argparse.Namespace) -> int:
             print(f"  --set {c['key']}=<{c['type']}>  (default {c['default']}) {c['help']}")
         if not r["config"]:
             print("  config:   (no keys)")
+        for preset, values in r["presets"].items():
+            print(f"  --preset {preset}: " + (", ".join(f"{k}={v}" for k, v in values.items())
+                                            or "the defaults (they are already the paper's)"))
         print("  metrics:  " + ", ".join(f"{k} ({m['better']} is better)" if m["better"] != "none" else k
                                          for k, m in r["metrics"].items()))
     return EXIT_OK
@@ -245,7 +271,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         result = run_recording(args.file, args.pipeline, args.out, seed=args.seed, config=config,
                                topic_map=_parse_pairs(args.topic_map, "--topic-map"),
                                start_ns=args.start_ns, end_ns=args.end_ns, log_timings=args.log_timings,
-                               progress=update)
+                               progress=update, preset=args.preset, robot=args.robot)
     if not args.quiet:
         for name, value in sorted(result.metrics.items()):
             print(f"  {name:<28} {value:.6g}")
@@ -387,11 +413,13 @@ def build_parser() -> argparse.ArgumentParser:
     ims.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
     ims.add_argument("--rate-hz", type=float, default=1.0, help="frame rate that sets the stamps (default: 1)")
     ims.set_defaults(func=cmd_record_images)
-    mr = rsub.add_parser("mrclam", parents=[quiet], help="import one robot of the UTIAS MRCLAM dataset",
-                         description="Import one robot of an MRCLAM dataset folder: odometry integrated into "
-                                     "poses, landmark sightings as scans, Vicon ground truth, the landmark map.")
+    mr = rsub.add_parser("mrclam", parents=[quiet], help="import one robot, or all five, of the UTIAS MRCLAM dataset",
+                         description="Import one robot (or all five) of an MRCLAM dataset folder: odometry integrated "
+                                     "into poses, landmark sightings as scans, Vicon ground truth, the landmark map, "
+                                     "and each robot's sensor noise measured against the ground truth.")
     mr.add_argument("dir", help="the dataset folder (with Robot1_Odometry.dat ...)")
-    mr.add_argument("--robot", type=int, required=True, help="robot number, 1-5")
+    mr.add_argument("--robot", type=_mrclam_robot, required=True,
+                    help="robot number, 1-5, or `all`: the five robots in one recording, each under /robotN/")
     mr.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
     mr.set_defaults(func=cmd_record_mrclam)
 
@@ -420,8 +448,13 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--seed", type=int, default=0, help="seed of every random generator (default: 0)")
     run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config value (repeatable)")
     run.add_argument("--config", metavar="FILE.json", help="config values from a JSON object (--set wins)")
+    run.add_argument("--preset", metavar="NAME",
+                     help="a pipeline's named set of config values, e.g. `paper`: the algorithm exactly as its paper "
+                          "says (see `slamreplay pipelines`); --set and --config win over it")
     run.add_argument("--topic-map", action="append", default=[], metavar="FILE_TOPIC=TOPIC",
                      help="read FILE_TOPIC as a slamreplay topic, e.g. /robot/odom=/odom (repeatable)")
+    run.add_argument("--robot", metavar="N", help="which robot of a multi-robot recording (topics under /robotN/, "
+                                                  "e.g. `record mrclam --robot all`) to replay")
     run.add_argument("--start-ns", type=int, default=None, help="replay from this log time (inclusive)")
     run.add_argument("--end-ns", type=int, default=None, help="replay up to this log time (exclusive)")
     run.add_argument("--log-timings", action="store_true",

@@ -74,15 +74,6 @@ def _recordings(out: Path, data: Path | None, quiet: bool) -> list[Path]:
     return made
 
 
-def _config(recording: str, pipeline: str) -> dict[str, float] | None:
-    """MRCLAM's measured noise for the landmark pipelines (their defaults are the simulator's)."""
-    if recording.startswith("mrclam") and pipeline in ("dslam", "ekfslam"):
-        from replay.pipelines.landmark_slam import MRCLAM_CONFIG
-
-        return MRCLAM_CONFIG
-    return None
-
-
 def _navigation(out: Path, map_run: Path, world: Path, quiet: bool) -> Path:
     """Drive the sim-corridor world on the demo's map, NAV_GOAL_ALONG_M along the mapped route (paper section IV)."""
     import numpy as np
@@ -119,7 +110,7 @@ def run_demo(out: Path, data: Path | None, quiet: bool = False) -> int:
             run_dir = out / f"{recording.stem}--{name}"
             with progress_bar(f"{name} on {recording.name}", quiet) as update:
                 result = run_recording(recording, name, run_dir, seed=1, progress=update,
-                                       config=_config(recording.stem, name))
+                                       )
             results.append((recording.stem, name, result))
             if name == "topometric":  # its map: navigate on it, then replay that drive too
                 queue.append(_navigation(out, run_dir, recording, quiet))

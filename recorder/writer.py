@@ -23,6 +23,7 @@ from mcap.writer import CompressionType, Writer
 from recorder import codec
 from recorder.errors import RecorderError
 from recorder.messages import TOPIC_TYPES, Message
+from recorder.sensor_model import SensorModel, sensor_model_key
 from recorder.version import version
 
 METADATA_NAME = "slamreplay.recording"
@@ -45,6 +46,9 @@ class Recorder:
     seed : the seed of a simulator, if any.
     parameters : the generating parameters (JSON-serializable).
     robot : a description of the robot and its sensors (JSON-serializable).
+    sensor_model : the sensors' noise and limits (`recorder.sensor_model.SensorModel`); pipelines
+        use it where the user sets nothing (see `slamreplay inspect`). Several robots in one
+        recording: a mapping of each robot's topic namespace (``/robot1``) to its model.
 
     Examples
     --------
@@ -53,7 +57,8 @@ class Recorder:
     """
 
     def __init__(self, path: str | Path, *, source: Mapping[str, Any], seed: int | None = None,
-                 parameters: Mapping[str, Any] | None = None, robot: Mapping[str, Any] | None = None) -> None:
+                 parameters: Mapping[str, Any] | None = None, robot: Mapping[str, Any] | None = None,
+                 sensor_model: SensorModel | Mapping[str, SensorModel] | None = None) -> None:
         self.path = Path(path)
         self.partial = partial_path(self.path)
         for p in (self.path, self.partial):
@@ -70,6 +75,12 @@ class Recorder:
                 "robot": json.dumps(dict(robot or {}), sort_keys=True),
                 "slamreplay_version": version(),
             }
+            models = {"": sensor_model} if isinstance(sensor_model, SensorModel) else dict(sensor_model or {})
+            for namespace, model in models.items():
+                if not isinstance(model, SensorModel):
+                    raise RecorderError(f"sensor_model must be a SensorModel or a mapping of topic namespaces to "
+                                        f"SensorModels, got {type(model).__name__}")
+                self._metadata[sensor_model_key(namespace)] = model.to_json()
         except TypeError as err:
             raise RecorderError(f"source, parameters and robot must be JSON-serializable: {err}") from err
         self._file: IO[bytes] | None = None

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import itertools
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -117,13 +117,15 @@ def _truth_at(t0: int, truth: Iterable[tuple[int, np.ndarray]]) -> np.ndarray | 
 
 def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, observer: ReplayObserver, *,
            seed: int, start_ns: int | None = None, end_ns: int | None = None, log: Callable[[str], None],
-           progress: Progress | None = None, log_timings: bool = False) -> ReplayStats:
+           progress: Progress | None = None, log_timings: bool = False,
+           config_sources: Mapping[str, str] | None = None) -> ReplayStats:
     """Run one pipeline over a recording and return its metrics."""
     topics = check_topics(reader, pipeline_cls)
     stream = reader.messages(topics, start_ns=start_ns, end_ns=end_ns)
     t0, T_world_start, held = start_from_stream(reader, stream, topics, pipeline_cls.start_topic, start_ns, end_ns)
     total = sum(t.message_count for t in reader.info.topics if t.logical_topic in topics)
-    ctx = ReplayContext(reader.info, seed, np.random.default_rng(seed), observer, T_world_start, t0, log)
+    ctx = ReplayContext(reader.info, seed, np.random.default_rng(seed), observer, T_world_start, t0, log,
+                        dict(config_sources or {}))
     observer.set_time(0, t0)
     if T_world_start is None:
         log("no ground truth at the start: the estimate starts at the origin")

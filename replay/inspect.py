@@ -10,8 +10,11 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from recorder.errors import RecorderError
+from recorder.sensor_model import SensorModel
 from recorder.writer import METADATA_NAME
 from replay.errors import ReplayError
+from replay.pipeline import robots_in
 from replay.reader import RecordingReader, check_framing, resolve_mcap_path
 
 
@@ -66,6 +69,16 @@ def inspect_recording(path: str | Path, topic_map: Mapping[str, str] | None = No
             health = "empty"
             problems.append(f"the recording holds no messages, yet {why}: it is not a complete recording. If it "
                             f"came out of `slamreplay recover`, the damage left nothing readable")
+    models: dict[str, dict[str, Any] | None] = {}
+    for robot in ["", *robots_in(info)]:  # the recording's one robot, or each of several
+        try:
+            model = SensorModel.from_record(info.metadata.get(METADATA_NAME, {}), f"/robot{robot}" if robot else "")
+        except RecorderError as err:
+            model = None
+            problems.append(str(err))
+            health = "corrupt"
+        models[robot] = None if model is None else {"values": model.values(), "source": model.source,
+                                                    "lines": model.describe()}
     duration_s = (info.end_ns - info.start_ns) / 1e9
     return {
         "path": str(info.path),
@@ -86,4 +99,8 @@ def inspect_recording(path: str | Path, topic_map: Mapping[str, str] | None = No
             for t in info.topics
         ],
         "metadata": info.metadata,
+        # what pipelines use where the user sets nothing (`replay.pipeline.resolve_layers`); None: not stated
+        "sensor_model": models.pop(""),
+        # a multi-robot recording (topics under /robotN/): each robot's model, by N
+        "robot_sensor_models": models,
     }

@@ -21,6 +21,9 @@ import numpy as np
 import rerun.blueprint as rrb
 
 from algorithms.observe import Observation
+from recorder.errors import RecorderError
+from recorder.sensor_model import SensorModel
+from recorder.writer import METADATA_NAME
 from replay import views
 from replay.errors import ReplayError
 from replay.reader import Envelope, RecordingInfo
@@ -88,6 +91,12 @@ class ReplayContext:
     T_world_start: np.ndarray | None
     start_ns: int
     log: Callable[[str], None]
+    # where each config value came from (`resolve_layers`): "default", "recording", "preset NAME" or "user"
+    config_sources: Mapping[str, str] = dataclasses.field(default_factory=dict)
+
+    def user_set(self, key: str) -> bool:
+        """Whether the user gave ``key`` (``--set``/``--config``): such a value wins over what messages state."""
+        return self.config_sources.get(key) == "user"
 
 
 class Pipeline(ABC):
@@ -101,6 +110,15 @@ class Pipeline(ABC):
     Config: ClassVar[type]
     metrics: ClassVar[dict[str, MetricSpec]]
     summary_skip: ClassVar[tuple[str, ...]] = views.SUMMARY_SKIP  # map entities left out of the static summary
+    # Named sets of config values (`--preset NAME`). ``paper`` turns off every extra over the paper the
+    # pipeline implements (each such key's help says what it adds); empty when the defaults are the paper's.
+    presets: ClassVar[Mapping[str, Mapping[str, Any]]] = {"paper": {}}
+
+    @classmethod
+    def config_from_sensor_model(cls, model: SensorModel) -> dict[str, Any]:
+        """The config values a recording's sensor model implies: by default its figures whose names are config keys."""
+        keys = {f.name for f in dataclasses.fields(cls.Config)}
+        return {k: v for k, v in model.values().items() if k in keys}
 
     def __init__(self, config: Any, ctx: ReplayContext) -> None:
         self.config = config
@@ -239,8 +257,8 @@ def parse_assignments(items: list[str]) -> dict[str, str]:
     return out
 
 
-def resolve_config(pipeline: type[Pipeline], values: Mapping[str, Any] | None = None) -> Any:
-    """Build the pipeline's config from defaults and ``values``; ReplayError naming a bad key."""
+def parse_values(pipeline: type[Pipeline], values: Mapping[str, Any] | None) -> dict[str, Any]:
+    """``values`` converted to the types of the pipeline's config keys; ReplayError naming a bad key."""
     config_cls = pipeline.Config
     hints = typing.get_type_hints(config_cls)
     known = {f.name for f in dataclasses.fields(config_cls)}
@@ -250,10 +268,79 @@ def resolve_config(pipeline: type[Pipeline], values: Mapping[str, Any] | None = 
             raise ReplayError(f"unknown config key {key!r} for pipeline {pipeline.name}; "
                               f"its keys are: {', '.join(sorted(known)) or '(none)'}")
         kwargs[key] = _parse(key, hints[key], value)
+    return kwargs
+
+
+def resolve_config(pipeline: type[Pipeline], values: Mapping[str, Any] | None = None) -> Any:
+    """Build the pipeline's config from defaults and ``values``; ReplayError naming a bad key."""
+    kwargs = parse_values(pipeline, values)
     try:
-        return config_cls(**kwargs)
+        return pipeline.Config(**kwargs)
     except ValueError as err:
         raise ReplayError(f"invalid config for pipeline {pipeline.name}: {err}") from err
+
+
+def recording_sensor_model(info: RecordingInfo, robot: str | None = None) -> SensorModel | None:
+    """The sensor model a recording carries for its one robot or for ``robot`` of several (None when it
+    carries none); ReplayError when it is damaged."""
+    try:
+        return SensorModel.from_record(info.metadata.get(METADATA_NAME, {}), "" if robot is None else f"/robot{robot}")
+    except RecorderError as err:
+        raise ReplayError(str(err)) from err
+
+
+def robots_in(info: RecordingInfo) -> list[str]:
+    """The robots of a multi-robot recording: N of each topic namespace ``/robotN/`` (``record mrclam --robot all``)."""
+    found = {t.file_topic.split("/")[1][len("robot"):] for t in info.topics
+             if t.file_topic.startswith("/robot") and t.file_topic.count("/") >= 2}
+    return sorted(r for r in found if r)
+
+
+def robot_topic_map(info: RecordingInfo, robot: str) -> dict[str, str]:
+    """Topic map replaying robot ``robot`` of a multi-robot recording: ``/robotN/odom`` read as ``/odom`` ..."""
+    robots = robots_in(info)
+    if robot not in robots:
+        have = f"its robots: {', '.join(robots)}" if robots else "it holds one robot's topics: drop --robot"
+        raise ReplayError(f"{info.path.name} has no robot {robot!r} (no topics under /robot{robot}/); {have}")
+    prefix = f"/robot{robot}"
+    return {t.file_topic: t.file_topic[len(prefix):] for t in info.topics if t.file_topic.startswith(prefix + "/")}
+
+
+@dataclass(frozen=True, slots=True)
+class ResolvedConfig:
+    """A pipeline's config and where each value came from (``sources``: key -> origin)."""
+
+    config: Any
+    sources: dict[str, str]
+    preset: str | None = None
+
+
+def resolve_layers(pipeline: type[Pipeline], user: Mapping[str, Any] | None = None, *,
+                   sensor_model: SensorModel | None = None, preset: str | None = None) -> ResolvedConfig:
+    """Build a pipeline's config from its layers, the first that gives a key winning:
+
+    1. ``user``: what the user set (``--config`` file, then ``--set``);
+    2. ``preset``: a named set of the pipeline's (``Pipeline.presets``, e.g. ``paper``);
+    3. ``sensor_model``: what the recording says of its sensors (``Pipeline.config_from_sensor_model``);
+    4. the pipeline's defaults.
+
+    ReplayError for an unknown preset, an unknown key or a bad value (naming the layer it came from).
+    """
+    sources = {f.name: "default" for f in dataclasses.fields(pipeline.Config)}
+    values: dict[str, Any] = {}
+    if sensor_model is not None:
+        from_model = pipeline.config_from_sensor_model(sensor_model)
+        values.update(from_model)
+        sources.update(dict.fromkeys(from_model, "recording"))
+    if preset is not None:
+        if preset not in pipeline.presets:
+            raise ReplayError(f"pipeline {pipeline.name} has no preset {preset!r}; its presets: "
+                              f"{', '.join(sorted(pipeline.presets)) or '(none)'} (see `slamreplay pipelines`)")
+        values.update(pipeline.presets[preset])
+        sources.update(dict.fromkeys(pipeline.presets[preset], f"preset {preset}"))
+    values.update(parse_values(pipeline, user))  # the user's keys checked alone first: an error names them
+    sources.update(dict.fromkeys(user or {}, "user"))
+    return ResolvedConfig(resolve_config(pipeline, values), sources, preset)
 
 
 def config_dict(config: Any) -> dict[str, Any]:

@@ -35,7 +35,16 @@ from replay import metrics as metrics_mod
 from replay.engine import Progress, replay, text_logger
 from replay.errors import ReplayError
 from replay.observer import RerunObserver
-from replay.pipeline import config_dict, config_hash, get_pipeline, resolve_config
+from replay.pipeline import (
+    Pipeline,
+    config_dict,
+    config_hash,
+    get_pipeline,
+    recording_sensor_model,
+    resolve_layers,
+    robot_topic_map,
+    robots_in,
+)
 from replay.reader import RecordingReader
 
 MANIFEST_FORMAT = 1
@@ -159,11 +168,26 @@ def prepare_run_dir(out_dir: Path) -> None:
         raise ReplayError(f"cannot create the run directory {out_dir}: {err.strerror}") from err
 
 
+def _check_robot_chosen(reader: RecordingReader, pipeline_cls: type[Pipeline], robot: str | None) -> None:
+    """A multi-robot recording replayed without --robot: say which robots there are instead of "no /odom"."""
+    present = reader.info.logical_topics()
+    robots = robots_in(reader.info)
+    if robot is None and robots and any(t not in present for t in pipeline_cls.required_topics):
+        raise ReplayError(f"{reader.path.name} holds {len(robots)} robots (topics under /robotN/: "
+                          f"{', '.join(robots)}); pipeline {pipeline_cls.name} replays one: choose it with --robot N")
+
+
 def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, seed: int = 0,
                   config: Mapping[str, Any] | None = None, topic_map: Mapping[str, str] | None = None,
                   start_ns: int | None = None, end_ns: int | None = None, log_timings: bool = False,
-                  progress: Progress | None = None, run_id: str | None = None) -> RunResult:
+                  progress: Progress | None = None, run_id: str | None = None,
+                  preset: str | None = None, robot: str | None = None) -> RunResult:
     """Replay ``recording`` through ``pipeline`` into ``out_dir``.
+
+    Config values come in layers (`replay.pipeline.resolve_layers`): ``config`` (the user's) wins,
+    then the ``preset``, then the recording's sensor model, then the pipeline's defaults; the
+    manifest records each value's origin under ``config_sources``. ``robot``: which robot of a
+    multi-robot recording (topics under ``/robotN/``) to replay, with that robot's sensor model.
 
     Raises
     ------
@@ -174,7 +198,7 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
     """
     recording, out_dir = Path(recording), Path(out_dir)
     pipeline_cls = get_pipeline(pipeline)
-    cfg = resolve_config(pipeline_cls, config)
+    resolve_layers(pipeline_cls, config, preset=preset)  # bad keys, values and presets fail before anything is written
     prepare_run_dir(out_dir)
     run_id = run_id or uuid.uuid4().hex
     started = datetime.now(timezone.utc)
@@ -183,7 +207,8 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
     manifest: dict[str, Any] = {
         "format": MANIFEST_FORMAT, "run_id": run_id, "status": "running", "error": None,
         "recording": {"path": str(recording.resolve()), "sha256": None, "topic_map": dict(topic_map or {})},
-        "pipeline": pipeline, "config": config_dict(cfg), "config_hash": config_hash(cfg), "seed": seed,
+        "pipeline": pipeline, "config": None, "config_hash": None, "config_sources": None, "preset": preset,
+        "seed": seed,
         "window_ns": {"start": start_ns, "end": end_ns},
         "slamreplay": {"version": version(), "git_commit": git_commit()}, "libraries": library_versions(),
         "host": {"platform": platform.platform(), "cpus": os.cpu_count()},
@@ -194,10 +219,18 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
     values: dict[str, float] = {}
     try:
         tic = time.perf_counter()
+        if robot is not None:
+            topic_map = {**robot_topic_map(RecordingReader(recording).info, str(robot)), **(topic_map or {})}
+            manifest["recording"].update(topic_map=dict(topic_map), robot=str(robot))
         reader = RecordingReader(recording, topic_map)
+        _check_robot_chosen(reader, pipeline_cls, robot)
         manifest["recording"]["sha256"] = sha256_file(reader.path)
         manifest["recording"]["messages"] = reader.info.message_count
         manifest["recording"]["metadata"] = reader.info.metadata
+        resolved = resolve_layers(pipeline_cls, config, sensor_model=recording_sensor_model(reader.info, robot),
+                                 preset=preset)
+        cfg = resolved.config
+        manifest.update(config=config_dict(cfg), config_hash=config_hash(cfg), config_sources=resolved.sources)
         timings["open_s"] = time.perf_counter() - tic
         observer = RerunObserver(rrd_tmp, run_id, f"{pipeline} on {reader.path.name}", kind=pipeline,
                                  time_origin_ns=reader.info.start_ns)
@@ -209,7 +242,7 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
         log(f"{pipeline} on {reader.path.name} ({reader.info.message_count:,} messages), seed {seed}, "
             f"config {manifest['config_hash'][:12]}")
         stats = replay(reader, pipeline_cls, cfg, observer, seed=seed, start_ns=start_ns, end_ns=end_ns,
-                       log=log, progress=progress, log_timings=log_timings)
+                       log=log, progress=progress, log_timings=log_timings, config_sources=resolved.sources)
         timings["replay_s"] = time.perf_counter() - tic
         values = stats.metrics
         timings.update({f"pipeline_{k}": v for k, v in stats.timings.items()})

@@ -18,7 +18,9 @@ F64 = NDArray[np.float64]
 def wrap_angle(theta: ArrayLike) -> F64:
     """Wrap angles to [-pi, pi)."""
     t = np.asarray(theta, dtype=np.float64)
-    return (t + np.pi) % (2.0 * np.pi) - np.pi
+    w = (t + np.pi) % (2.0 * np.pi) - np.pi
+    # just below -pi, the modulo rounds up to 2 pi and gives +pi: fold it back into the half-open range
+    return np.where(w >= np.pi, w - 2.0 * np.pi, w)
 
 
 def rot(theta: ArrayLike) -> F64:

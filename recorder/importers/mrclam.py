@@ -31,7 +31,7 @@ import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Final
+from typing import Any, Final
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,6 +48,7 @@ from recorder.messages import (
     OdometryPose,
     RangeBearingScan,
 )
+from recorder.sensor_model import SensorModel
 from recorder.writer import Recorder
 
 IMPORTER: Final = "mrclam"
@@ -63,7 +64,7 @@ class ImportSummary:
     """What :func:`import_mrclam` wrote."""
 
     path: Path
-    robot: int
+    robot: int | str  # 1..5, or "all"
     messages: int
     odometry_poses: int
     ground_truth_poses: int
@@ -165,41 +166,141 @@ def _scans(t_ns: NDArray[np.int64], subjects: NDArray[np.int64], ranges: NDArray
             for i, (a, b) in enumerate(itertools.pairwise(bounds))]
 
 
-def import_mrclam(data_dir: Path, robot: int, out: Path, progress: Progress | None = None) -> ImportSummary:
-    """Import one robot of an MRCLAM dataset folder into the recording ``out``.
+# How the sensor model is measured at import time (`measure_sensor_model`).
+ODOMETRY_SEGMENT_M: Final = 1.0  # odometry compared with ground truth over segments of this path length...
+ODOMETRY_SEGMENT_RAD: Final = 0.5  # ... or of this much turning, whichever comes first
+OUTLIER_SIGMAS: Final = 5.0  # a residual farther than this many robust sigmas from the median is an outlier
 
-    Parameters
-    ----------
-    data_dir : the dataset folder (e.g. ``../shared/data/mrclam-dataset6``).
-    robot : which robot, 1..5.
-    out : the recording to create; must not exist.
-    progress : called as ``progress(done, total)`` in messages written.
 
-    Returns
-    -------
-    ImportSummary : counts (messages per topic, measurements kept and dropped) and time span.
+def _truth_at(t_ns: NDArray[np.int64], gt_t: NDArray[np.int64], gt: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Ground-truth poses (n, 3) linearly interpolated at ``t_ns`` (yaw unwrapped first); NaN outside its span."""
+    yaw = np.unwrap(gt[:, 2])
+    out = np.stack([np.interp(t_ns, gt_t, gt[:, 0]), np.interp(t_ns, gt_t, gt[:, 1]), np.interp(t_ns, gt_t, yaw)], -1)
+    out[(t_ns < gt_t[0]) | (t_ns > gt_t[-1])] = np.nan
+    return out
 
-    Raises
-    ------
-    RecorderError : a missing folder or file, a bad robot number, a malformed line (named by
-        file and line), or ``out`` already exists.
+
+def _between(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """⊖a ⊕ b row by row (n, 3), yaw wrapped."""
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, np.remainder(b[:, 2] - a[:, 2] + np.pi, 2 * np.pi) - np.pi], -1)
+
+
+def _robust_sigma(residuals: NDArray[np.float64]) -> tuple[float, NDArray[np.bool_]]:
+    """(RMS of the inliers about zero, inlier mask); inliers lie within OUTLIER_SIGMAS MAD-sigmas of the median.
+
+    The RMS about zero, not the spread about the median: a filter knows no bias, so the sigma it is
+    given must cover the dataset's systematic error (MRCLAM's ranges read a few cm long) as well.
     """
-    if isinstance(robot, bool) or not isinstance(robot, (int, np.integer)) or robot not in ROBOTS:
-        raise RecorderError(f"robot must be one of 1..5 (MRCLAM has five robots), got {robot!r}")
-    robot = int(robot)
-    data_dir = Path(data_dir)
-    if not data_dir.is_dir():
-        msg = (f"MRCLAM folder {data_dir} does not exist or is not a folder: pass the folder holding "
-               f"Barcodes.dat, Landmark_Groundtruth.dat and Robot{robot}_*.dat")
-        raise RecorderError(msg)
-    rec = Recorder(out, source={"importer": IMPORTER, "dataset": DATASET, "robot": robot},
-                   parameters={"odometry_model": "unicycle, forward Euler between consecutive timestamps",
-                               "time_resolution_ms": 1},
-                   robot={"name": f"Robot{robot}", "sensor": "monocular camera, barcode range-bearing"})
+    med = float(np.median(residuals))
+    mad_sigma = 1.4826 * float(np.median(np.abs(residuals - med)))
+    inlier = np.abs(residuals - med) <= OUTLIER_SIGMAS * max(mad_sigma, 1e-9)
+    return float(np.sqrt(np.mean(residuals[inlier] ** 2))), inlier
 
-    subject, barcode = _read_dat(data_dir / "Barcodes.dat", ("subject", "barcode"), "ii")
-    lm_id, lm_x, lm_y, _, _ = _read_dat(data_dir / "Landmark_Groundtruth.dat",
-                                        ("subject", "x [m]", "y [m]", "x std-dev [m]", "y std-dev [m]"), "iffff")
+
+def measure_sensor_model(odom_t: NDArray[np.int64], odom: NDArray[np.float64], gt_t: NDArray[np.int64],
+                         gt: NDArray[np.float64], meas_t: NDArray[np.int64], meas_subject: NDArray[np.int64],
+                         ranges: NDArray[np.float64], bearings: NDArray[np.float64], landmark_ids: NDArray[np.int64],
+                         landmarks: NDArray[np.float64]) -> SensorModel:
+    """The robot's odometry and range-bearing noise, measured against the dataset's ground truth.
+
+    - Odometry: the path is cut into segments of ``ODOMETRY_SEGMENT_M`` travelled or ``ODOMETRY_SEGMENT_RAD``
+      turned (by the ground truth); each segment's odometry increment is compared with the truth's. The
+      model's variances (``algorithms/common/motion.py``: ``s_t^2 d`` along the track, ``s_h^2 d + s_r^2
+      |dtheta|`` in heading) are fitted to the squared along-track and heading errors (the latter by
+      non-negative least squares), after dropping the segments whose
+      error is an outlier (Vicon dropouts). Scale errors of the odometry land in the fitted noise, as they
+      must for a filter that models no bias.
+    - Range and bearing: residuals of every landmark measurement against the range and bearing predicted
+      from the interpolated true pose and the true landmark; sigma is the RMS of the inliers about zero
+      (``_robust_sigma``), ``outlier_rate`` the fraction of range or bearing residuals beyond
+      ``OUTLIER_SIGMAS`` robust sigmas.
+    """
+    odometry = _measure_odometry(odom_t, odom, gt_t, gt)
+    ranging = _measure_range_bearing(gt_t, gt, meas_t, meas_subject, ranges, bearings, landmark_ids, landmarks)
+    said = [f"{odometry.pop('segments')} odometry segments" if odometry else "too little motion to measure odometry",
+            f"{ranging.pop('measurements')} landmark measurements" if ranging else "too few landmark measurements"]
+    return SensorModel(**odometry, **ranging, source=f"measured at import against the Vicon ground truth "
+                       f"({', '.join(said)}; recorder/importers/mrclam.py: measure_sensor_model)")
+
+
+MIN_SAMPLES: Final = 20  # fewer odometry segments or landmark measurements than this: that part is not measured
+
+
+def _measure_odometry(odom_t: NDArray[np.int64], odom: NDArray[np.float64], gt_t: NDArray[np.int64],
+                      gt: NDArray[np.float64]) -> dict[str, Any]:
+    from scipy.optimize import nnls
+
+    truth_odom = _truth_at(odom_t, gt_t, gt)
+    ok = ~np.isnan(truth_odom[:, 0])
+    o, g = odom[ok], truth_odom[ok]
+    if len(g) < 2:
+        return {}
+    steps = np.hypot(*np.diff(g[:, :2], axis=0).T)
+    turns = np.abs(np.diff(g[:, 2]))
+    cuts, dist, turn = [0], 0.0, 0.0
+    for k, (d, a) in enumerate(zip(steps.tolist(), turns.tolist(), strict=True), start=1):
+        dist, turn = dist + d, turn + a
+        if dist >= ODOMETRY_SEGMENT_M or turn >= ODOMETRY_SEGMENT_RAD:
+            cuts.append(k)
+            dist, turn = 0.0, 0.0
+    idx = np.asarray(cuts)
+    if len(idx) <= MIN_SAMPLES:
+        return {}
+    err = _between(_between(g[idx[:-1]], g[idx[1:]]), _between(o[idx[:-1]], o[idx[1:]]))
+    seg_d = np.add.reduceat(steps, idx[:-1])[: len(err)]
+    seg_a = np.abs(_between(g[idx[:-1]], g[idx[1:]])[:, 2])
+    e_h2 = err[:, 2] ** 2
+    _, keep_t = _robust_sigma(np.abs(err[:, 0]) / np.sqrt(np.maximum(seg_d, 1e-3)))
+    _, keep_h = _robust_sigma(np.sqrt(e_h2 / np.maximum(seg_d + seg_a, 1e-3)))
+    keep = keep_t & keep_h
+    # along-track only: E[ex^2] = s_t^2 d. The lateral error of a segment comes mostly from its heading error,
+    # which the filter propagates itself when it composes the segment's many small increments.
+    s_t2 = float(np.sum(err[keep, 0] ** 2) / np.sum(seg_d[keep]))
+    (s_h2, s_r2), _ = nnls(np.column_stack([seg_d[keep], seg_a[keep]]), e_h2[keep])
+    return {"translation_sigma_per_sqrt_m": math.sqrt(s_t2), "heading_sigma_per_sqrt_m": math.sqrt(s_h2),
+            "heading_sigma_per_sqrt_rad": math.sqrt(s_r2), "segments": int(keep.sum())}
+
+
+def _measure_range_bearing(gt_t: NDArray[np.int64], gt: NDArray[np.float64], meas_t: NDArray[np.int64],
+                           meas_subject: NDArray[np.int64], ranges: NDArray[np.float64],
+                           bearings: NDArray[np.float64], landmark_ids: NDArray[np.int64],
+                           landmarks: NDArray[np.float64]) -> dict[str, Any]:
+    lookup = {int(i): k for k, i in enumerate(landmark_ids.tolist())}
+    pose = _truth_at(meas_t, gt_t, gt)
+    have = ~np.isnan(pose[:, 0])
+    if have.sum() < MIN_SAMPLES:
+        return {}
+    lm = landmarks[[lookup[int(i)] for i in meas_subject[have]]]
+    p = pose[have]
+    r_pred = np.hypot(lm[:, 0] - p[:, 0], lm[:, 1] - p[:, 1])
+    b_pred = np.arctan2(lm[:, 1] - p[:, 1], lm[:, 0] - p[:, 0]) - p[:, 2]
+    r_res = ranges[have] - r_pred
+    b_res = np.remainder(bearings[have] - b_pred + np.pi, 2 * np.pi) - np.pi
+    sigma_r, in_r = _robust_sigma(r_res)
+    sigma_b, in_b = _robust_sigma(b_res)
+    return {"range_sigma_m": sigma_r, "bearing_sigma_rad": sigma_b, "outlier_rate": float(np.mean(~(in_r & in_b))),
+            "min_range_m": float(ranges.min()), "max_range_m": float(ranges.max()), "measurements": int(have.sum())}
+
+
+@dataclass(frozen=True, slots=True)
+class _Robot:
+    """One robot's streams, ready to write."""
+
+    gt_t: NDArray[np.int64]
+    gt: NDArray[np.float64]
+    odom_t: NDArray[np.int64]
+    odom: NDArray[np.float64]
+    scans: list[RangeBearingScan]
+    kept: int
+    robot_sightings: int
+    unknown: int
+    model: SensorModel
+
+
+def _load_robot(data_dir: Path, robot: int, to_subject: dict[int, int], landmark_ids: NDArray[np.int64],
+                positions: NDArray[np.float64]) -> _Robot:
     prefix = data_dir / f"Robot{robot}"
     od_t, od_v, od_w = _read_dat(Path(f"{prefix}_Odometry.dat"), ("time [s]", "forward velocity [m/s]",
                                  "angular velocity [rad/s]"), "tff", sorted_by_time=True)
@@ -207,44 +308,114 @@ def import_mrclam(data_dir: Path, robot: int, out: Path, progress: Progress | No
                                          "orientation [rad]"), "tfff", sorted_by_time=True)
     me_t, me_code, me_r, me_b = _read_dat(Path(f"{prefix}_Measurement.dat"), ("time [s]", "barcode",
                                           "range [m]", "bearing [rad]"), "tinf", sorted_by_time=True)
-
-    landmark_subjects = sorted(set(map(int, lm_id)))
-    to_subject = {int(b): int(s) for s, b in zip(subject, barcode, strict=True)}
     subjects = np.array([to_subject.get(int(b), -1) for b in me_code], dtype=np.int64)
-    keep = np.isin(subjects, landmark_subjects)
+    keep = np.isin(subjects, landmark_ids)
     robot_sightings = int(np.isin(subjects, list(ROBOTS)).sum())
-    unknown = len(subjects) - int(keep.sum()) - robot_sightings
     ranges = np.asarray(me_r, dtype=np.float64)
+    odom_t, odom = _integrate_odometry(np.asarray(od_t, dtype=np.int64), np.asarray(od_v), np.asarray(od_w))
+    gt_stamps, gt = np.asarray(gt_t, dtype=np.int64), np.column_stack([gt_x, gt_y, gt_yaw])
+    meas_t, bearings = np.asarray(me_t, dtype=np.int64)[keep], np.asarray(me_b, dtype=np.float64)[keep]
+    scans = _scans(meas_t, subjects[keep], ranges[keep], bearings)
+    model = measure_sensor_model(odom_t, odom, gt_stamps, gt, meas_t, subjects[keep], ranges[keep], bearings,
+                                 landmark_ids, positions)
+    return _Robot(gt_stamps, gt, odom_t, odom, scans, int(keep.sum()), robot_sightings,
+                  len(subjects) - int(keep.sum()) - robot_sightings, model)
 
-    landmark_ids, positions = np.asarray(lm_id, dtype=np.int64), np.column_stack([lm_x, lm_y])
+
+def robot_namespace(robot: int) -> str:
+    """Where robot ``robot``'s topics go in an all-robots recording: ``/robotN`` (``/robot1/odom`` ...)."""
+    return f"/robot{robot}"
+
+
+def import_mrclam(data_dir: Path, robot: int | str, out: Path, progress: Progress | None = None) -> ImportSummary:
+    """Import one robot, or all five, of an MRCLAM dataset folder into the recording ``out``.
+
+    Parameters
+    ----------
+    data_dir : the dataset folder (e.g. ``../shared/data/mrclam-dataset6``).
+    robot : which robot, 1..5, or ``"all"``: every robot's topics under its namespace
+        (``/robot1/odom``, ``/robot1/ground_truth/pose``, ``/robot1/landmarks/range_bearing`` ...,
+        `robot_namespace`), the landmark map once at ``/ground_truth/landmarks``, and each robot's
+        sensor model under its namespace. `slamreplay run --robot N` replays one robot of it.
+    out : the recording to create; must not exist.
+    progress : called as ``progress(done, total)`` in messages written.
+
+    Returns
+    -------
+    ImportSummary : counts (messages per topic, measurements kept and dropped, summed over robots) and span.
+
+    Raises
+    ------
+    RecorderError : a missing folder or file, a bad robot number, a malformed line (named by
+        file and line), or ``out`` already exists.
+    """
+    if robot == "all":
+        robots = list(ROBOTS)
+    elif isinstance(robot, bool) or not isinstance(robot, (int, np.integer)) or robot not in ROBOTS:
+        raise RecorderError(f"robot must be one of 1..5 or 'all' (MRCLAM has five robots), got {robot!r}")
+    else:
+        robots = [int(robot)]
+    data_dir = Path(data_dir)
+    if not data_dir.is_dir():
+        msg = (f"MRCLAM folder {data_dir} does not exist or is not a folder: pass the folder holding "
+               f"Barcodes.dat, Landmark_Groundtruth.dat and Robot{robots[0]}_*.dat")
+        raise RecorderError(msg)
+    for p in (Path(out), Path(f"{out}.partial")):  # before minutes of reading (Recorder checks again)
+        if p.exists():
+            raise RecorderError(f"{p} already exists; slamreplay never overwrites a recording: choose another --out "
+                                f"or delete it")
+
+    subject, barcode = _read_dat(data_dir / "Barcodes.dat", ("subject", "barcode"), "ii")
+    lm_id, lm_x, lm_y, _, _ = _read_dat(data_dir / "Landmark_Groundtruth.dat",
+                                        ("subject", "x [m]", "y [m]", "x std-dev [m]", "y std-dev [m]"), "iffff")
     if len(set(lm_id)) != len(lm_id):
         raise RecorderError(f"{data_dir / 'Landmark_Groundtruth.dat'} lists a subject twice; each landmark once")
-    odom_t, odom = _integrate_odometry(np.asarray(od_t, dtype=np.int64), np.asarray(od_v), np.asarray(od_w))
-    gt_stamps = np.asarray(gt_t, dtype=np.int64)
-    scans = _scans(np.asarray(me_t, dtype=np.int64)[keep], subjects[keep], ranges[keep],
-                   np.asarray(me_b, dtype=np.float64)[keep])
-    scan_t = np.array([s.stamp_ns for s in scans], dtype=np.int64)
-    start_ns = int(min(odom_t[0], gt_stamps[0], scan_t[0] if len(scans) else odom_t[0]))
-    end_ns = int(max(odom_t[-1], gt_stamps[-1], scan_t[-1] if len(scans) else odom_t[-1]))
+    to_subject = {int(b): int(s) for s, b in zip(subject, barcode, strict=True)}
+    landmark_ids, positions = np.asarray(lm_id, dtype=np.int64), np.column_stack([lm_x, lm_y])
+    data = [_load_robot(data_dir, k, to_subject, landmark_ids, positions) for k in robots]
+    single = len(robots) == 1
+    namespaces = [""] if single else [robot_namespace(k) for k in robots]
 
-    # One time order for all topics (ties: map, ground truth, odometry, scan) so chunks do not overlap.
-    times = np.concatenate([[start_ns], gt_stamps, odom_t, scan_t])
-    kinds = np.concatenate([[0], np.full(len(gt_stamps), 1), np.full(len(odom_t), 2), np.full(len(scan_t), 3)])
-    index = np.concatenate([[0], np.arange(len(gt_stamps)), np.arange(len(odom_t)), np.arange(len(scan_t))])
-    order = np.lexsort((index, kinds, times))
+    # One time order for all topics (ties: map, ground truth, odometry, scan, then robot) so chunks do not overlap.
+    parts_t, parts_kind, parts_robot, parts_index = [], [], [], []
+    for r, d in enumerate(data):
+        scan_t = np.array([s.stamp_ns for s in d.scans], dtype=np.int64)
+        for kind, stamps in ((1, d.gt_t), (2, d.odom_t), (3, scan_t)):
+            parts_t.append(stamps)
+            parts_kind.append(np.full(len(stamps), kind))
+            parts_robot.append(np.full(len(stamps), r))
+            parts_index.append(np.arange(len(stamps)))
+    all_t = np.concatenate(parts_t)
+    start_ns, end_ns = int(all_t.min()), int(all_t.max())
+    times = np.concatenate([[start_ns], all_t])
+    kinds = np.concatenate([[0], *parts_kind])
+    owner = np.concatenate([[0], *parts_robot])
+    index = np.concatenate([[0], *parts_index])
+    order = np.lexsort((index, owner, kinds, times))
 
     def messages() -> Iterator[tuple[str, Message]]:
-        gt_rows, odom_rows = np.column_stack([gt_x, gt_y, gt_yaw]).tolist(), odom.tolist()
-        for kind, i, stamp in zip(kinds[order].tolist(), index[order].tolist(), times[order].tolist(), strict=True):
+        rows = [(d.gt.tolist(), d.odom.tolist()) for d in data]
+        for kind, r, i, stamp in zip(kinds[order].tolist(), owner[order].tolist(), index[order].tolist(),
+                                     times[order].tolist(), strict=True):
+            ns = namespaces[r]
             if kind == 0:
                 yield TOPIC_GROUND_TRUTH_LANDMARKS, LandmarkMap(stamp, landmark_ids, positions)
             elif kind == 1:
-                yield TOPIC_GROUND_TRUTH_POSE, GroundTruthPose(stamp, *gt_rows[i])
+                yield ns + TOPIC_GROUND_TRUTH_POSE, GroundTruthPose(stamp, *rows[r][0][i])
             elif kind == 2:
-                yield TOPIC_ODOM, OdometryPose(stamp, *odom_rows[i])
+                yield ns + TOPIC_ODOM, OdometryPose(stamp, *rows[r][1][i])
             else:
-                yield TOPIC_RANGE_BEARING, scans[i]
+                yield ns + TOPIC_RANGE_BEARING, data[r].scans[i]
 
+    names = [f"Robot{k}" for k in robots]
+    rec = Recorder(out, source={"importer": IMPORTER, "dataset": DATASET, "robot": robots[0] if single else "all"},
+                   parameters={"odometry_model": "unicycle, forward Euler between consecutive timestamps",
+                               "time_resolution_ms": 1, **({} if single else {"robots": dict(zip(namespaces, names,
+                                                                                                   strict=True))})},
+                   robot={"name": names[0], "sensor": "monocular camera, barcode range-bearing"} if single else
+                   {"names": names, "sensor": "monocular camera, barcode range-bearing (each robot)"},
+                   sensor_model=data[0].model if single else {ns: d.model for ns, d in zip(namespaces, data,
+                                                                                            strict=True)})
     total = len(order)
     every = max(1, total // 200)
     with rec:
@@ -253,7 +424,10 @@ def import_mrclam(data_dir: Path, robot: int, out: Path, progress: Progress | No
             if progress is not None and (done % every == 0 or done == total):
                 progress(done, total)
         written = rec.message_count
-    return ImportSummary(path=Path(out), robot=robot, messages=written, odometry_poses=len(odom_t),
-                         ground_truth_poses=len(gt_stamps), scans=len(scans), measurements_kept=int(keep.sum()),
-                         robot_sightings_dropped=robot_sightings, unknown_barcodes_dropped=unknown,
+    return ImportSummary(path=Path(out), robot=robots[0] if single else "all", messages=written,
+                         odometry_poses=sum(len(d.odom_t) for d in data),
+                         ground_truth_poses=sum(len(d.gt_t) for d in data), scans=sum(len(d.scans) for d in data),
+                         measurements_kept=sum(d.kept for d in data),
+                         robot_sightings_dropped=sum(d.robot_sightings for d in data),
+                         unknown_barcodes_dropped=sum(d.unknown for d in data),
                          landmarks=len(landmark_ids), start_ns=start_ns, end_ns=end_ns)

@@ -57,6 +57,7 @@ from recorder.messages import (
     GroundTruthPose,
     OdometryPose,
 )
+from recorder.sensor_model import SensorModel
 from recorder.sim.corridor_plan import TOURS, PurePursuit
 from recorder.sim.corridor_render import CorridorWorld
 from recorder.sim.unicycle import arc_step, between, wrap_angle
@@ -200,6 +201,19 @@ class CorridorSummary:
     end_ns: int
 
 
+def sensor_model(config: CorridorConfig) -> SensorModel:
+    """The wheel odometry's random error (``wheel_odometry.py``, the same units) and the pinhole camera."""
+    k = config.camera_matrix
+    return SensorModel(translation_sigma_per_sqrt_m=config.odom_sigma_m,
+                       heading_sigma_per_sqrt_m=config.odom_sigma_rad_per_m,
+                       heading_sigma_per_sqrt_rad=config.odom_sigma_rad,
+                       fov_rad=math.radians(config.hfov_deg), fx_px=float(k[0, 0]), fy_px=float(k[1, 1]),
+                       cx_px=float(k[0, 2]), cy_px=float(k[1, 2]), width_px=config.image_width,
+                       height_px=config.image_height,
+                       source=f"{SIMULATOR}: the random odometry noise it simulated (its systematic wheel errors, see "
+                              f"parameters, left out) and its camera")
+
+
 def simulate_corridor(out: Path, config: CorridorConfig, seed: int, progress: Progress | None = None
                       ) -> CorridorSummary:
     """Drive the route of ``config`` through its world and record it to ``out`` (an MCAP file).
@@ -227,7 +241,8 @@ def simulate_corridor(out: Path, config: CorridorConfig, seed: int, progress: Pr
     with Recorder(out, source={"simulator": SIMULATOR}, seed=seed, parameters=dataclasses.asdict(config),
                   robot={"drive": "differential", "wheel_base_m": config.wheel_base_m,
                          "camera": f"forward, +x of the body, {config.camera_height_m} m high, "
-                                   f"hfov {config.hfov_deg} deg", "world": world.describe()}) as rec:
+                                   f"hfov {config.hfov_deg} deg", "world": world.describe()},
+                  sensor_model=sensor_model(config)) as rec:
         rec.write(TOPIC_CAMERA_CALIBRATION, CameraCalibration(EPOCH_NS, config.image_width, config.image_height,
                                                               config.camera_matrix))
         for k in range(total):

@@ -57,6 +57,7 @@ from recorder.messages import (
     OdometryPose,
     RangeBearingScan,
 )
+from recorder.sensor_model import SensorModel
 from recorder.sim.unicycle import arc_step, integrate, wrap_angle
 from recorder.writer import Recorder
 
@@ -280,6 +281,27 @@ def _observe(config: LandmarkSimConfig, stamps_ns: NDArray[np.int64], scan_poses
                                    range_sigma_m=sigma_r, bearing_sigma_rad=sigma_b)
 
 
+def sensor_model(config: LandmarkSimConfig) -> SensorModel:
+    """The noise this simulation draws, in the units of the odometry noise model (`SensorModel`).
+
+    Each odometry sample's speed and turn-rate noise (``odom_*_sigma``, per sample of ``dt``) moves the
+    pose by ``sigma dt`` over ``speed dt`` metres, so per square-root metre travelled it is
+    ``sigma sqrt(dt / speed)``; the turn noise does not grow with the angle turned (0 per sqrt(rad)).
+    Biases are not noise and are not in the model: a biased recording says so in ``source``.
+    """
+    dt = 1.0 / config.odom_rate_hz
+    per_sqrt_m = math.sqrt(dt / config.speed_mps)
+    biased = config.odom_speed_bias != 0 or config.odom_turn_bias_radps != 0
+    return SensorModel(
+        translation_sigma_per_sqrt_m=config.odom_speed_sigma_mps * per_sqrt_m,
+        heading_sigma_per_sqrt_m=config.odom_turn_sigma_radps * per_sqrt_m,
+        heading_sigma_per_sqrt_rad=0.0,
+        range_sigma_m=config.range_sigma_m, bearing_sigma_rad=math.radians(config.bearing_sigma_deg),
+        outlier_rate=0.0, fov_rad=math.radians(config.sensor_fov_deg), max_range_m=config.sensor_range_m,
+        source=f"{SIMULATOR}: the noise it simulated" + (
+            " (plus odometry biases, which the model leaves out: see parameters)" if biased else ""))
+
+
 def simulate_landmarks(out: Path, config: LandmarkSimConfig, seed: int, progress: Progress | None = None
                        ) -> SimSummary:
     """Simulate the landmark world of ``config`` and record it to ``out`` (an MCAP file).
@@ -322,7 +344,8 @@ def simulate_landmarks(out: Path, config: LandmarkSimConfig, seed: int, progress
     observed = np.zeros(len(landmarks), dtype=bool)
     pending: RangeBearingScan | None = next(scans, None)
     with Recorder(out, source={"simulator": SIMULATOR}, seed=seed, parameters=dataclasses.asdict(config),
-                  robot={"kinematics": "unicycle", "sensor": "range-bearing with true landmark ids"}) as rec:
+                  robot={"kinematics": "unicycle", "sensor": "range-bearing with true landmark ids"},
+                  sensor_model=sensor_model(config)) as rec:
         rec.write(TOPIC_GROUND_TRUTH_LANDMARKS, LandmarkMap(EPOCH_NS, np.arange(len(landmarks)), landmarks))
         for k in range(total):
             stamp = EPOCH_NS + k * period_ns

@@ -51,6 +51,7 @@ from recorder.messages import (
     GroundTruthPose,
     OdometryPose,
 )
+from recorder.sensor_model import SensorModel
 from recorder.sim.unicycle import between, compose, wrap_angle
 from recorder.writer import Recorder
 
@@ -305,7 +306,9 @@ def simulate_seabed(out: Path, config: SeabedSimConfig, seed: int, progress: Pro
     period = max(1, round(1e9 / config.frame_rate_hz))
     total = len(truth)
     with Recorder(out, source={"simulator": SIMULATOR}, seed=seed, parameters=dataclasses.asdict(config),
-                  robot={"camera": "downward, image up = body +x", "texture_px": [tw, th]}) as rec:
+                  robot={"camera": "downward, image up = body +x", "texture_px": [tw, th]},
+                  sensor_model=SensorModel(width_px=config.image_px, height_px=config.image_px,
+                                           source=f"{SIMULATOR}: its camera's image size")) as rec:
         for k in range(total):
             stamp = EPOCH_NS + k * period
             image = render(texture, image_to_texture(truth[k], float(scales[k]), config, origin), config, vignette,

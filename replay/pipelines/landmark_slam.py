@@ -38,6 +38,7 @@ from recorder.messages import (
     OdometryPose,
     RangeBearingScan,
 )
+from recorder.sensor_model import SensorModel
 from replay import views
 from replay.metrics import position_errors, rmse
 from replay.pipeline import MetricSpec, Pipeline, ReplayContext
@@ -55,7 +56,7 @@ class LandmarkSlamConfig:
     translation_sigma_per_sqrt_m: float = 0.02  # odometry noise (algorithms/common/motion.py)
     heading_sigma_per_sqrt_m: float = 0.02
     heading_sigma_per_sqrt_rad: float = 0.05
-    range_sigma_m: float = 0.15  # used when a scan states no sigma (0)
+    range_sigma_m: float = 0.15  # when a scan states no sigma (0); a value the user sets wins over the scan's
     bearing_sigma_rad: float = 0.02
     gate_probability: float = 0.99  # unknown ids (algorithms/common/association.py)
     new_feature_probability: float = 0.9999
@@ -99,6 +100,11 @@ METRICS = {
 }
 
 
+# A recording whose sensor model states outliers gets this known-id outlier gate: a consistent observation
+# fails it with probability 1e-4, far below any real outlier rate (MRCLAM: 1-3 % beyond 0.5 m).
+OUTLIER_GATE_PROBABILITY = 0.9999
+
+
 ROBOT_NEES_BAND = (float(chi2.ppf(0.025, 3)), float(chi2.ppf(0.975, 3)))  # one pose NEES, 3 dof, 95 %
 
 
@@ -133,6 +139,14 @@ class LandmarkSlamPipeline(Pipeline):
         self.da_checked = 0
         self.step_s: list[float] = []  # per scan: the filter's observe()
         self.predict_s: list[float] = []
+
+    @classmethod
+    def config_from_sensor_model(cls, model: SensorModel) -> dict[str, Any]:
+        """The odometry and range-bearing noise keys by name, and the outlier gate when outliers are stated."""
+        values = super().config_from_sensor_model(model)
+        if model.outlier_rate:
+            values["outlier_probability"] = OUTLIER_GATE_PROBABILITY
+        return values
 
     # -- to be provided by subclasses
     def make_filter(self, mode: str) -> Any:
@@ -209,8 +223,11 @@ class LandmarkSlamPipeline(Pipeline):
         self.dropped_unknown += int(np.sum(~keep))
         r, b, ids = msg.ranges_m[keep], msg.bearings_rad[keep], ids[keep]
         tic = time.perf_counter()
-        res = self.filter.observe(r, b, ids if self.mode == "known" else None, msg.range_sigma_m,
-                                  msg.bearing_sigma_rad)
+        # a sigma the scan states is used unless the user set one (which always wins); 0 means "not stated",
+        # and the filter falls back to the config's value
+        sr = self.config.range_sigma_m if self.ctx.user_set("range_sigma_m") else msg.range_sigma_m
+        sb = self.config.bearing_sigma_rad if self.ctx.user_set("bearing_sigma_rad") else msg.bearing_sigma_rad
+        res = self.filter.observe(r, b, ids if self.mode == "known" else None, sr, sb)
         self.step_s.append(time.perf_counter() - tic)
         self.scans += 1
         self._score_association(res, ids)
@@ -417,14 +434,3 @@ class LandmarkSlamPipeline(Pipeline):
     def internals(cls) -> tuple[rrb.View | rrb.Container, ...]:
         """The views of the ``Filter internals`` tab."""
         return (views.image_view("Information matrix sparsity", f"/{cls.prefix}/information"),)
-
-
-# Noise settings for MRCLAM recordings (`slamreplay record mrclam`): its odometry and camera measured
-# against its ground truth (the dataset's README): about 0.05 m/sqrt(m) translation, 0.1 rad/sqrt(m) and
-# 0.1 rad/sqrt(rad) heading noise (plus a few % scale bias); range noise ~0.15 m, bearing ~0.02 rad. The
-# scans state no sigma. Use with `--config` (or the demo and benchmarks/dslam_evaluation.py do).
-MRCLAM_CONFIG: dict[str, float] = {
-    "translation_sigma_per_sqrt_m": 0.06, "heading_sigma_per_sqrt_m": 0.1, "heading_sigma_per_sqrt_rad": 0.12,
-    "range_sigma_m": 0.15, "bearing_sigma_rad": 0.02,
-    "outlier_probability": 0.9999,  # MRCLAM has range outliers (1-3 % beyond 0.5 m)
-}

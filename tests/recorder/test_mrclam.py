@@ -152,6 +152,9 @@ def test_tiny_dataset(tmp_path: Path) -> None:
     np.testing.assert_array_equal(second.bearings_rad, [-0.3, 0.3])
     with open(tmp_path / "r.mcap", "rb") as f:
         meta = next(m for m in make_reader(f).iter_metadata() if m.name == "slamreplay.recording").metadata
+    # four odometry samples and four measurements are too few to measure noise: the model says so, states nothing
+    model = json.loads(meta["sensor_model"])
+    assert set(model) == {"source"} and "too little motion" in model["source"] and "too few" in model["source"]
     assert json.loads(meta["source"]) == {"importer": "mrclam", "dataset": "MRCLAM Dataset6", "robot": 1}
 
 
@@ -222,3 +225,44 @@ def test_refuses_to_overwrite(tmp_path: Path) -> None:
     with pytest.raises(RecorderError, match="already exists"):
         import_mrclam(data, 1, out)
     assert out.read_bytes() == b"keep me"
+
+
+def test_all_robots_in_one_recording(tmp_path: Path) -> None:
+    """`--robot all`: each robot's topics under /robotN/, the map once, in one time order; `run --robot N` picks one."""
+    from replay.errors import ReplayError
+    from replay.run import run_recording
+
+    data = write_dataset(tmp_path / "d", odometry="100.000 1.0 0.0\n101.000 1.0 0.0\n102.000 0.0 0.0\n",
+                         measurement="100.500 63 1.5 0.1\n", groundtruth="99.999 0.0 0.0 0.0\n103.000 2.0 0.0 0.0\n")
+    for k in range(2, 6):  # the other four robots: robot k drives at k/10 m/s and sees landmark 7
+        (data / f"Robot{k}_Odometry.dat").write_text(HEADER + f"100.000 {k / 10} 0.0\n102.000 0.0 0.0\n")
+        (data / f"Robot{k}_Measurement.dat").write_text(HEADER + "101.000 81 2.0 0.2\n")
+        (data / f"Robot{k}_Groundtruth.dat").write_text(HEADER + "99.000 0.0 0.0 0.0\n104.000 1.0 0.0 0.0\n")
+    summary = import_mrclam(data, "all", tmp_path / "all.mcap")
+    from replay.pipeline import robot_topic_map
+    from replay.reader import RecordingReader
+
+    info = RecordingReader(tmp_path / "all.mcap").info
+    msgs = read_recording(tmp_path / "all.mcap")  # the map; each robot's topics below, read as that robot's
+    for k in range(1, 6):
+        mapping = robot_topic_map(info, str(k))
+        msgs += [(e.topic if e.topic == TOPIC_GROUND_TRUTH_LANDMARKS else f"/robot{k}{e.topic}", e.log_time_ns, e.msg)
+                 for e in RecordingReader(tmp_path / "all.mcap", mapping).messages(list(mapping.values()))]
+    assert summary.robot == "all" and summary.messages == len(msgs) == 1 + 5 * 2 + (3 + 4 * 2) + 5
+    topics = {t for t, _, _ in msgs}
+    assert topics == {TOPIC_GROUND_TRUTH_LANDMARKS} | {f"/robot{k}{t}" for k in range(1, 6)
+                                                       for t in (TOPIC_GROUND_TRUTH_POSE, TOPIC_ODOM,
+                                                                 TOPIC_RANGE_BEARING)}
+    stamps = [s for _, s, _ in msgs]
+    assert msgs[0][0] == TOPIC_GROUND_TRUTH_LANDMARKS and stamps[0] == min(stamps) == 99_000_000_000
+    _, odom3 = poses(msgs, "/robot3" + TOPIC_ODOM)
+    np.testing.assert_allclose(odom3[-1], [0.6, 0.0, 0.0])  # 2 s at 0.3 m/s
+    with pytest.raises(ReplayError, match=r"holds 5 robots \(topics under /robotN/: 1, 2, 3, 4, 5\); pipeline "
+                                          r"odometry replays one: choose it with --robot N"):
+        run_recording(tmp_path / "all.mcap", "odometry", tmp_path / "none")
+    with pytest.raises(ReplayError, match="has no robot '7'"):
+        run_recording(tmp_path / "all.mcap", "odometry", tmp_path / "seven", robot="7")
+    res = run_recording(tmp_path / "all.mcap", "odometry", tmp_path / "r3", robot="3")
+    assert res.manifest["recording"]["robot"] == "3"
+    assert res.manifest["recording"]["topic_map"]["/robot3/odom"] == TOPIC_ODOM
+    assert res.metrics["robot_ate_rmse_m"] < 1.0  # robot 3's own ground truth, not robot 1's (2 m away at the end)
