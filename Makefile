@@ -87,11 +87,19 @@ test-pythons:
 lint: $(STAMP)
 	$(BIN)/ruff check recorder replay algorithms api tests benchmarks
 
+# Benchmarks against the peers (bench extra), each writing --json into BENCH_DIR, then one table of
+# ratios against issue 17's targets (benchmarks/summary.py; the README's performance table).
+# About 10 minutes on 2 cores; `make bench QUICK=1` takes the short path of replay and pose graph (about 5).
+BENCH_DIR ?= results/bench
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[dev,bench]"
-	$(BIN)/python benchmarks/replay_throughput.py
-	$(BIN)/python benchmarks/posegraph.py --data $(DATA)
-	$(BIN)/python benchmarks/registration.py
+	@mkdir -p $(BENCH_DIR)
+	nice $(BIN)/python benchmarks/replay_throughput.py $(if $(QUICK),--quick) --json $(BENCH_DIR)/replay_throughput.json
+	nice $(BIN)/python benchmarks/posegraph.py --data $(DATA) $(if $(QUICK),--quick) --json $(BENCH_DIR)/posegraph.json
+	nice $(BIN)/python benchmarks/loop_closure.py --json $(BENCH_DIR)/loop_closure_sim.json
+	nice $(BIN)/python benchmarks/loop_closure.py --rtabmap $(DATA)/rtabmap-loop-samples --json $(BENCH_DIR)/loop_closure_rtabmap.json
+	$(if $(QUICK),,nice $(BIN)/python benchmarks/registration.py)
+	@echo; $(BIN)/python benchmarks/summary.py $(BENCH_DIR)
 
 # Optional: CHOLMOD (SuiteSparse) for the pose-graph solver; without it SciPy's SuperLU is used.
 cholmod: $(STAMP)
