@@ -115,10 +115,14 @@ def _job(row: sqlite3.Row) -> JobRow:
 
 
 def set_progress(db_path: str | Path, job_id: str, fraction: float) -> None:
-    """Record a running job's progress (0..1); called from worker processes."""
-    with _connection(Path(db_path)) as conn:
-        conn.execute("UPDATE jobs SET progress = ? WHERE id = ? AND status = 'running'",
-                     (min(max(fraction, 0.0), 1.0), job_id))
+    """Record a running job's progress (0..1); called from worker processes. Progress is advisory: a
+    database that is busy or on a full disk skips this report rather than failing the job."""
+    try:
+        with _connection(Path(db_path)) as conn:
+            conn.execute("UPDATE jobs SET progress = ? WHERE id = ? AND status = 'running'",
+                         (min(max(fraction, 0.0), 1.0), job_id))
+    except sqlite3.OperationalError:
+        pass
 
 
 class Store:
