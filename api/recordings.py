@@ -24,8 +24,15 @@ from typing import Any
 
 from starlette.concurrency import run_in_threadpool
 
-from api.errors import (ConflictError, NotFoundError, NotMcapError, TooLargeError, UnreadableError, disk_full_error,
-                        is_disk_full)
+from api.errors import (
+    ConflictError,
+    NotFoundError,
+    NotMcapError,
+    TooLargeError,
+    UnreadableError,
+    disk_full_error,
+    is_disk_full,
+)
 from api.settings import Settings
 from api.store import RecordingRow, Store
 from recorder.errors import DamageError, RecorderError
