@@ -230,7 +230,7 @@ def test_real_full_disk_tmpfs(tmp_path: Path) -> None:
             small = write_tiny_recording(tmp_path / "small.mcap", n=50, seed=99).read_bytes()
             assert c.post("/recordings", content=small).status_code == 201
     finally:
-        subprocess.run(["umount", str(mnt)], check=False)
+        subprocess.run(["umount", "-l", str(mnt)], check=False)  # lazy: connections may still be open
 
 
 def test_api_error_507_is_an_api_error() -> None:
