@@ -50,11 +50,17 @@ SUITE = """seeds = [0, 1]
 path = "{recording}"
 [recordings.sim]
 sim = "sim-landmarks"
-args = {{ duration-s = 60 }}
-seeds = [{sim_seed}]
-[pipelines.odometry]
-[pipelines.dslam]
+args = {{ duration-s = {sim_s} }}
+seeds = [7]
+{pipelines}
 """
+
+
+def suite_text(recording: Path, light: bool) -> str:
+    """The suite of the trials: odometry and dslam over the recording and a 60 s simulation (light: odometry only,
+    a 10 s simulation)."""
+    pipelines = "[pipelines.odometry]" + ("" if light else "\n[pipelines.dslam]")
+    return SUITE.format(recording=recording, sim_s=10 if light else 60, pipelines=pipelines)
 
 
 def _env(cache: Path | None = None) -> dict[str, str]:
@@ -95,12 +101,12 @@ def alive(pid: int) -> bool:
 # suite run
 
 
-def suite_setup(work: Path, duration_s: float = 240.0) -> tuple[Path, Path]:
+def suite_setup(work: Path, duration_s: float = 240.0, light: bool = False) -> tuple[Path, Path]:
     """A recording for the suite and an unkilled results directory to compare against: (recording, baseline)."""
     recording = work / "suite-rec.mcap"
     cli("record", "sim-landmarks", "--duration-s", str(duration_s), "--seed", "1", "--out", recording, "-q")
     suite = work / "suite-base.toml"
-    suite.write_text(SUITE.format(recording=recording, sim_seed=7))
+    suite.write_text(suite_text(recording, light))
     baseline = work / "suite-baseline"
     p = cli("suite", "run", suite, "--out", baseline, "--jobs", "2", "-q", cache=work / "cache-base")
     if p.returncode != 0:
@@ -115,10 +121,11 @@ def _rows(out: Path) -> list[dict[str, Any]]:
         return []
 
 
-def suite_trial(work: Path, recording: Path, baseline: Path, k: int, delay_s: float) -> dict[str, Any]:
+def suite_trial(work: Path, recording: Path, baseline: Path, k: int, delay_s: float, light: bool = False
+                ) -> dict[str, Any]:
     """Kill `suite run` after ``delay_s``, check what it left, run it again into the same --out."""
     suite = work / f"suite-{k}.toml"
-    suite.write_text(SUITE.format(recording=recording, sim_seed=7))  # the same cells as the baseline
+    suite.write_text(suite_text(recording, light))  # the same cells as the baseline
     out, cache = work / f"suite-{k}", work / f"cache-{k}"
     shutil.copytree(work / "cache-base", cache)  # the simulated recording, as a user's cache would hold it ...
     for f in (cache / "recordings").glob("*.mcap"):
