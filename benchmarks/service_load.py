@@ -340,7 +340,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         first, last = statistics.median(s[2] for s in ss[q:2 * q]), statistics.median(s[2] for s in ss[-q:])
         lines.append(f"server RSS (pid {pid}, {len(ss)} samples): {ss[0][2]:.0f} MiB at the first sample, "
                      f"median {first:.0f} MiB in the 2nd quarter, {last:.0f} MiB in the last, max "
-                     f"{max(s[2] for s in ss):.0f} MiB; workers {max(s[3] for s in ss):.0f} MiB at most (together)")
+                     f"{max(s[2] for s in ss):.0f} MiB; its workers together: median "
+                     f"{statistics.median(s[3] for s in ss[q:2 * q]):.0f} MiB in the 2nd quarter, "
+                     f"{statistics.median(s[3] for s in ss[-q:]):.0f} MiB in the last, "
+                     f"max {max(s[3] for s in ss):.0f} MiB")
         if last > first * 1.25 + 20:
             problems.append(f"server RSS grew from {first:.0f} to {last:.0f} MiB")
     return out
