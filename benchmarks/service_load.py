@@ -110,6 +110,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=2, help="worker processes of the server this script starts")
     p.add_argument("--pollers", type=int, default=4, help="threads timing GET /jobs/{id} meanwhile")
     p.add_argument("--poll-interval-s", type=float, default=0.05, help="pause of each poller between requests")
+    p.add_argument("--idle-s", type=float, default=30.0, help="polling goes on this long after the last job, "
+                                                              "the workers idle: the reference latency")
     p.add_argument("--kill-at", type=float, default=0.5, help="kill -9 the server when this fraction of jobs "
                                                              "has ended, then restart it (0: never)")
     p.add_argument("--p95-ms", type=float, default=50.0, help="the bound on p95 of GET /jobs/{id}")
@@ -137,7 +139,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     sampler.start()
     out: dict[str, Any] = {"lines": [], "problems": []}
     lines, problems = out["lines"], out["problems"]
-    latencies: dict[str, list[float]] = {"before the kill": [], "after the restart": []}
+    idle = "with the workers idle, after every job ended (the machine's own share of the latency)"
+    latencies: dict[str, list[float]] = {"before the kill": [], "after the restart": [], idle: []}
     phase = ["before the kill"]
     if args.url:
         import contextlib
@@ -290,6 +293,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     continue
                 time.sleep(1.0)
             wall = time.perf_counter() - t_jobs
+            phase[0] = idle
+            time.sleep(args.idle_s)
             done.set()
             for t in pollers:
                 t.join()
@@ -325,12 +330,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     for name, lat in latencies.items():
         if lat:
             ms = [x * 1e3 for x in lat]
-            lines.append(f"GET /jobs/{{id}} {name}, workers busy ({args.pollers} pollers, "
+            lines.append(f"GET /jobs/{{id}} {name}{', workers busy' if name != idle else ''} ({args.pollers} pollers, "
                          f"{args.poll_interval_s * 1e3:.0f} ms pause each; machine load average "
                          f"{statistics.median(sampler.load) if sampler.load else 0:.1f} on {os.cpu_count()} CPUs): "
                          f"{len(ms)} requests, p50 {percentile(ms, 50):.1f} ms, "
                          f"p95 {percentile(ms, 95):.1f} ms, p99 {percentile(ms, 99):.1f} ms")
-            if percentile(ms, 95) > args.p95_ms:
+            if percentile(ms, 95) > args.p95_ms and name != idle:
                 problems.append(f"p95 of GET /jobs/{{id}} {name}: {percentile(ms, 95):.1f} ms > {args.p95_ms} ms")
     for pid in dict.fromkeys(s[1] for s in sampler.samples):
         ss = [s for s in sampler.samples if s[1] == pid]
