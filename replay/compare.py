@@ -41,7 +41,7 @@ from scipy import stats
 
 from replay.diff import judge_metric
 from replay.errors import ReplayError
-from replay.suite_run import add_metrics, read_results
+from replay.suite_run import add_metrics, read_results, unfinished
 
 ALPHA = 0.05
 VERDICT_ORDER = ("regression", "failed", "improvement", "noise", "unchanged", "changed", "missing")
@@ -149,6 +149,8 @@ def load_side(path: str | Path, label: str | None = None, kind: str | None = Non
     if not p.is_dir():
         raise ReplayError(f"{p} does not exist: give a run directory, a suite results directory, "
                           f"or rev:GITREV with --suite")
+    if (why := unfinished(p)) is not None:
+        raise ReplayError(why)
     if (p / "results.jsonl").is_file():
         rows, k = read_results(p), "results"
     else:
