@@ -7,7 +7,8 @@ data array. Each iteration then only fills numbers with ``np.bincount`` [1]_.
 :class:`SparseCholesky` uses CHOLMOD, with its symbolic analysis done on the first factorization and
 reused for every later one (same pattern, new numbers): through scikit-sparse (``sksparse``) when it
 is importable (the ``cholmod`` extra, built against the system's SuiteSparse), else through CVXOPT's
-``cvxopt.cholmod``, a core dependency that installs from a wheel with SuiteSparse inside. Measured on
+``cvxopt.cholmod``, which installs from a wheel with SuiteSparse inside (the ``solver`` extra: not a
+core dependency, as CVXOPT is GPL-3.0 and slamreplay MIT). Measured on
 the first normal equations of M3500 / intel / city10000 (CPU ms, numeric factorization + solve, one
 run on a shared 2-core machine): CVXOPT 4.0 / 1.5 / 23.3, SciPy SuperLU 9.2 / 2.5 / 64.0, cholespy
 16.6 / 5.8 / 90.0 (cholespy has no reuse of the analysis: each factorization starts over).
@@ -37,7 +38,7 @@ try:  # optional: CHOLMOD where SuiteSparse and scikit-sparse are installed
     from sksparse.cholmod import analyze as _cholmod_analyze  # type: ignore[import-not-found, unused-ignore]
 except ImportError:
     _cholmod_analyze = None
-try:  # CHOLMOD and AMD from CVXOPT's wheel (a core dependency)
+try:  # CHOLMOD and AMD from CVXOPT's wheel (the solver extra)
     from cvxopt import amd as _cvx_amd  # type: ignore[import-untyped, unused-ignore]
     from cvxopt import cholmod as _cvx_cholmod  # type: ignore[import-untyped, unused-ignore]
     from cvxopt import matrix as _cvx_matrix  # type: ignore[import-untyped, unused-ignore]
