@@ -86,10 +86,10 @@ templates.env.filters["num"] = _fmt
 templates.env.filters["short"] = lambda s: str(s)[:8]
 
 
-def _page(request: Request, name: str, status: int = 200, **ctx: Any) -> HTMLResponse:
+def _page(request: Request, name: str, status_code: int = 200, **ctx: Any) -> HTMLResponse:
     settings: Settings = request.app.state.settings
     ctx.setdefault("guarded", settings.token is not None)
-    return templates.TemplateResponse(request, name, ctx, status_code=status)
+    return templates.TemplateResponse(request, name, ctx, status_code=status_code)
 
 
 def _error(request: Request, exc: Exception) -> HTMLResponse:
