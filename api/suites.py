@@ -213,5 +213,7 @@ class SuiteService:
         if self.jobs.store.get_job(ref) is None:
             raise NotFoundError(f"{ref} is neither a suite nor a job id")
         run = run_row(self.jobs.finished_run(ref))
-        run["job_id"] = ref
+        job = self.jobs.get(ref)
+        rec = self.jobs.store.get_recording(job.recording_id)
+        run.update(job_id=ref, recording=rec.filename if rec is not None else run["recording"])
         return side_of_rows(f"job {ref[:8]}", [run], "run")

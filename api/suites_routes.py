@@ -137,7 +137,7 @@ def get_suite(suite_id: SuiteId, suites: SuitesDep) -> SuiteOut:
     return SuiteOut.of(suites, row, cells)
 
 
-def service_links(base_url: str) -> Links:
+def service_links(base_url: str, token: str | None) -> Links:
     """Report links into the web page: each run's job page, each A/B pair in the Rerun web viewer."""
     from api.web import viewer_href
 
@@ -149,7 +149,7 @@ def service_links(base_url: str) -> Links:
         ja, jb = ra.get("job_id"), rb.get("job_id")
         if not ja or not jb or ra.get("status") != "succeeded" or rb.get("status") != "succeeded":
             return None
-        return viewer_href(base_url, f"/ui/diff/{ja}-{jb}.rrd")
+        return viewer_href(base_url, token, f"/diff/{ja}-{jb}.rrd")
 
     return Links(run=run, pair=pair)
 
@@ -170,7 +170,8 @@ def compare_route(request: Request, a: RefQuery, b: RefQuery, suites: SuitesDep,
     wants_html = format == "html" or (format is None and "text/html" in request.headers.get("accept", ""))
     if wants_html:
         from pathlib import Path as FsPath
-        return HTMLResponse(render_html(c, FsPath("/"), service_links(str(request.base_url))))
+        return HTMLResponse(render_html(c, FsPath("/"), service_links(str(request.base_url),
+                                                                          request.app.state.settings.token)))
     return JSONResponse(_finite(c.to_json() | {"a_id": a, "b_id": b}))
 
 

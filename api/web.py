@@ -28,7 +28,7 @@ from fastapi.templating import Jinja2Templates
 from starlette.concurrency import run_in_threadpool
 
 from api.app import JobsDep, RecordingsDep, SettingsDep, get_jobs
-from api.errors import ApiError
+from api.errors import ApiError, UnauthorizedError
 from api.models import JOB_ID
 from api.multipart import form_file, is_form
 from api.settings import Settings
@@ -71,9 +71,18 @@ async def login_required(request: Request, exc: Exception) -> Response:
     return JSONResponse({"detail": "log in at /login with the server's token first"}, 401)
 
 
-def viewer_href(base_url: str, rrd_path: str) -> str:
-    """The Rerun web viewer (served here) opening the .rrd at ``rrd_path`` of this server."""
-    return "/viewer/?url=" + quote(base_url.rstrip("/") + rrd_path, safe="")
+def rrd_key(token: str | None, rrd_path: str) -> str:
+    """The key in a viewer's .rrd URL: a MAC of the path under the token (any key does without a token)."""
+    return hmac.new((token or "").encode(), rrd_path.encode(), hashlib.sha256).hexdigest()[:32]
+
+
+def viewer_href(base_url: str, token: str | None, rrd_path: str) -> str:
+    """The Rerun web viewer (served here) opening the .rrd at ``/ui/shared/KEY{rrd_path}`` of this server.
+
+    The viewer fetches the file itself, without the page's cookie, so the URL carries its own
+    key: it opens that one file and nothing else (a link to share, like the token's holder can)."""
+    url = f"{base_url.rstrip('/')}/ui/shared/{rrd_key(token, rrd_path)}{rrd_path}"
+    return "/viewer/?url=" + quote(url, safe="")
 
 
 def _fmt(v: Any) -> str:
@@ -111,7 +120,8 @@ def _job_ctx(request: Request, jobs: Any, job_id: str) -> dict[str, Any]:
     ctx: dict[str, Any] = {"job": job, "active": job.status not in ENDED, "metrics": [], "manifest": None}
     if job.status == "succeeded":
         ctx["metrics"] = _metrics(run_dir)
-        ctx["rerun"] = viewer_href(str(request.base_url), f"/ui/jobs/{job_id}/run.rrd")
+        ctx["rerun"] = viewer_href(str(request.base_url), request.app.state.settings.token,
+                                   f"/jobs/{job_id}/run.rrd")
     with contextlib.suppress(OSError, json.JSONDecodeError):
         ctx["manifest"] = json.loads((run_dir / "manifest.json").read_text())
     return ctx
@@ -265,14 +275,23 @@ def compare_page(request: Request, suites: SuitesDep, a: Annotated[str, Query(pa
     from replay.report import render_html
 
     try:
-        c = comparison(suites, a, b, tolerance)
+        c = comparison(suites, a, b, [t for t in tolerance or [] if t.strip()])  # the form sends an empty field
     except PAGE_ERRORS as err:
         return _error(request, err)
-    report = render_html(c, Path("/"), service_links(str(request.base_url)))
+    report = render_html(c, Path("/"), service_links(str(request.base_url), request.app.state.settings.token))
     nav = templates.get_template("_nav.html").render(guarded=request.app.state.settings.token is not None)
     head, _, body = report.partition("<body>")
     style = "<style>" + (HERE / "static" / "web.css").read_text() + "</style>"
-    return HTMLResponse(head.replace("</head>", style + "</head>") + "<body>" + nav + body)
+    body = body.replace("</body>", "</main></body>")
+    return HTMLResponse(head.replace("</head>", style + "</head>") + "<body>" + nav + "<main>" + body)
+
+
+Key = Annotated[str, PathParam(pattern=r"^[0-9a-f]{32}$")]
+
+
+def _check_key(settings: Settings, key: str, rrd_path: str) -> None:
+    if settings.token is not None and not hmac.compare_digest(key, rrd_key(settings.token, rrd_path)):
+        raise UnauthorizedError("wrong key in the .rrd URL: open the run from the web page")
 
 
 @page.get("/ui/jobs/{job_id}/run.rrd")
@@ -280,8 +299,16 @@ def job_rrd(job_id: JobPath, jobs: JobsDep) -> FileResponse:
     return FileResponse(jobs.artifact(job_id, "run.rrd"), media_type="application/octet-stream")
 
 
-@page.get("/ui/diff/{a}-{b}.rrd")
-def diff_rrd(a: JobPath, b: JobPath, jobs: JobsDep) -> FileResponse:
+@public.get("/ui/shared/{key}/jobs/{job_id}/run.rrd")
+def shared_job_rrd(key: Key, job_id: JobPath, jobs: JobsDep, settings: SettingsDep) -> FileResponse:
+    _check_key(settings, key, f"/jobs/{job_id}/run.rrd")
+    return FileResponse(jobs.artifact(job_id, "run.rrd"), media_type="application/octet-stream")
+
+
+@public.get("/ui/shared/{key}/diff/{a}-{b}.rrd")
+def shared_diff_rrd(key: Key, a: JobPath, b: JobPath, jobs: JobsDep, settings: SettingsDep) -> FileResponse:
+    """One .rrd with job A under runs/A and job B under runs/B (made on the first request)."""
+    _check_key(settings, key, f"/diff/{a}-{b}.rrd")
     return FileResponse(jobs.comparison_rrd(a, b), media_type="application/octet-stream")
 
 
