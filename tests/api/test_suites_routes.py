@@ -20,7 +20,7 @@ with warnings.catch_warnings():
 from api.app import create_app
 from api.cli import main
 from api.settings import Settings
-from api.web import COOKIE, session_value
+from api.web import COOKIE, rrd_key, session_value
 
 UNKNOWN = "0" * 32
 
@@ -159,7 +159,7 @@ def test_compare_html_by_accept_or_format(client: TestClient, two_suites: tuple[
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
         row = next(line for line in r.text.splitlines() if "robot_ate_rmse_m" in line and "<tr" in line)
         assert "class='regression'" in row
-        assert "/ui/jobs/" in row and "/viewer/?url=" in row and "%2Fui%2Fdiff%2F" in row
+        assert "/ui/jobs/" in row and "/viewer/?url=" in row and "%2Fui%2Fshared%2F" in row and "%2Fdiff%2F" in row
     assert client.get("/compare", params={"a": a, "b": b, "format": "json"}).headers["content-type"].startswith(
         "application/json")
 
@@ -212,9 +212,11 @@ def test_page_upload_job_and_compare(client: TestClient, tmp_path: Path, two_sui
     assert wait_for(client, job_id)["status"] == "succeeded"
     page = client.get(f"/ui/jobs/{job_id}").text
     assert 'id="metrics-table"' in page and "robot_ate_rmse_m" in page
-    assert f"/viewer/?url=http%3A%2F%2Ftestserver%2Fui%2Fjobs%2F{job_id}%2Frun.rrd" in page
-    rrd = client.get(f"/ui/jobs/{job_id}/run.rrd")
-    assert rrd.status_code == 200 and rrd.content[:4] == b"RRF2"
+    key = rrd_key(None, f"/jobs/{job_id}/run.rrd")
+    assert f"/viewer/?url=http%3A%2F%2Ftestserver%2Fui%2Fshared%2F{key}%2Fjobs%2F{job_id}%2Frun.rrd" in page
+    for url in (f"/ui/jobs/{job_id}/run.rrd", f"/ui/shared/{key}/jobs/{job_id}/run.rrd"):
+        rrd = client.get(url)
+        assert rrd.status_code == 200 and rrd.content[:4] == b"RRF2"
     report = client.get("/ui/compare", params={"a": two_suites[0], "b": two_suites[1]})
     assert report.status_code == 200 and "class='regression'" in report.text and 'class="top"' in report.text
 
@@ -264,6 +266,12 @@ def test_token_page_asks_for_it_and_api_keeps_requiring_it(tmp_path: Path) -> No
     assert "This server needs its token" in guarded.get("/login").text
     assert guarded.get("/viewer/", follow_redirects=False).status_code == 303
     assert guarded.get(f"/ui/jobs/{UNKNOWN}/run.rrd").status_code == 401
+    bad = guarded.get(f"/ui/shared/{rrd_key('other', f'/jobs/{UNKNOWN}/run.rrd')}/jobs/{UNKNOWN}/run.rrd")
+    assert bad.status_code == 401 and "wrong key" in bad.json()["detail"]
+    good = guarded.get(f"/ui/shared/{rrd_key('s3cret', f'/jobs/{UNKNOWN}/run.rrd')}/jobs/{UNKNOWN}/run.rrd")
+    assert good.status_code == 404  # the key opens that path only, and there is no such job
+    moved = guarded.get(f"/ui/shared/{rrd_key('s3cret', f'/jobs/{UNKNOWN}/run.rrd')}/diff/{UNKNOWN}-{UNKNOWN}.rrd")
+    assert moved.status_code == 401
     wrong = guarded.post("/login", data={"token": "nope", "next": "/"}, follow_redirects=False)
     assert wrong.status_code == 401 and 'id="login-error"' in wrong.text and COOKIE not in wrong.cookies
     ok = guarded.post("/login", data={"token": "s3cret", "next": "//evil.example"}, follow_redirects=False)

@@ -54,7 +54,8 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
                 break
             except OSError:
                 if proc.poll() is not None or time.monotonic() > deadline:
-                    raise AssertionError("the server did not start: " + (data.parent / "serve.log").read_text())
+                    log_text = (data.parent / "serve.log").read_text()
+                    raise AssertionError(f"the server did not start: {log_text}") from None
                 time.sleep(0.2)
         yield base
     finally:
