@@ -136,13 +136,17 @@ def _suite_ctx(suites: SuiteService, suite_id: str) -> dict[str, Any]:
             "active": progress["ended"] < progress["cells"]}
 
 
+JOBS_SHOWN = 12  # the newest; a suite's page lists its own, GET /jobs all of them
+
+
 def _lists(request: Request) -> dict[str, Any]:
     jobs = get_jobs(request)
     suites: SuiteService = request.app.state.suites
     recs = jobs.store.list_recordings()
-    job_rows = jobs.store.list_jobs(limit=50)
+    job_rows = jobs.store.list_jobs(limit=JOBS_SHOWN)
     suite_rows = [(s, suites.progress(suites.get(s.id)[2])) for s in suites.list(50)]
-    return {"recordings": recs, "jobs": job_rows, "suites": suite_rows,
+    return {"recordings": recs, "jobs": job_rows, "suites": suite_rows, "rec_names": {r.id: r.filename for r in recs},
+            "jobs_total": sum(jobs.store.count_by_status().values()),
             "jobs_active": any(j.status not in ENDED for j in job_rows),
             "suites_active": any(p["ended"] < p["cells"] for _, p in suite_rows)}
 

@@ -30,7 +30,7 @@ body{font-family:system-ui,sans-serif;margin:2em;color:#222}
 table{border-collapse:collapse;font-size:13px}td,th{padding:3px 8px;border-bottom:1px solid #ddd;text-align:right}
 td.l,th.l{text-align:left}tr.regression,tr.failed{background:#fde0e0;color:#8b0000;font-weight:bold}
 tr.improvement{background:#e3f4e3;color:#1b5e20}tr.unchanged,tr.noise,tr.changed,tr.missing{color:#777}
-code{background:#f3f3f3;padding:0 3px}.legend span{margin-right:1em}
+code{background:#f3f3f3;padding:0 3px}.legend span{margin-right:1em}td a{white-space:nowrap}
 """
 
 
@@ -159,6 +159,14 @@ def seed_pairs(c: Comparison, r: MetricResult) -> list[tuple[Row, Row]]:
     return [(a[s], b[s]) for s in sorted(set(a) & set(b))]
 
 
+def _links_here(r: MetricResult, shown: set[tuple[str, str, str]]) -> bool:
+    """A cell's links go on its first row and on each of its regressions, not on every metric's row."""
+    key = (r.recording, r.pipeline, r.variant)
+    first = key not in shown
+    shown.add(key)
+    return first or r.verdict in ("regression", "failed")
+
+
 def _pair_label(ra: Row) -> str:
     rs = ra.get("recording_seed")
     return f"A/B {'' if rs is None else f'r{rs}'}s{ra.get('seed', 0)}"
@@ -230,14 +238,16 @@ def render_html(c: Comparison, base: Path, links: Links | None = None) -> str:
             "<table><tr><th class='l'>cell</th><th class='l'>metric</th><th>better</th><th>A mean ± sd</th>"
             "<th>B mean ± sd</th><th>B - A</th><th>tolerance</th><th>p</th><th class='l'>test</th>"
             "<th class='l'>verdict</th><th class='l'>seeds</th><th class='l'>runs</th></tr>"]
+    shown: set[tuple[str, str, str]] = set()
     for r in c.results:
+        cell_links = _cell_links(c, r, base, links) if _links_here(r, shown) else ""
         out.append(f"<tr class='{r.verdict}'><td class='l'>{e(r.recording)}/{e(r.pipeline)}/{e(r.variant)}</td>"
                    f"<td class='l'>{e(r.metric)} {e(r.unit)}</td><td>{e(r.better)}</td>"
                    f"<td>{e(fmt_ms(r.a_mean, r.a_sd))}</td><td>{e(fmt_ms(r.b_mean, r.b_sd))}</td>"
                    f"<td>{e(fmt(r.delta, signed=True))}</td><td>{e(fmt(r.tolerance))}</td>"
                    f"<td>{e(fmt(r.p_value, 3))}</td><td class='l'>{e(r.test)}</td>"
                    f"<td class='l'>{e(r.verdict)}</td><td class='l'>{_strip_plot(r)}</td>"
-                   f"<td class='l'>{_cell_links(c, r, base, links)}</td></tr>")
+                   f"<td class='l'>{cell_links}</td></tr>")
     out.append("</table>")
     plots = _trajectories(c)
     if plots:
@@ -270,10 +280,12 @@ def render_markdown(c: Comparison, base: Path, links: Links | None = None) -> st
         lines.append(f"- changed `{ch['field']}`: `{ch['a']!r}` → `{ch['b']!r}`")
     lines += ["", "| cell | metric | A mean ± sd | B mean ± sd | B - A | p | verdict | runs |",
               "| --- | --- | ---: | ---: | ---: | ---: | --- | --- |"]
+    shown: set[tuple[str, str, str]] = set()
     for r in c.results:
+        here = _links_here(r, shown)
         runs = " ".join(f"[{s}{i + 1}]({href})" for s in ("A", "B")
-                        for i, x in enumerate(_group_rows(c, r, s)) if (href := _run_href(x, base, links)))
-        if links.pair is not None:
+                        for i, x in enumerate(_group_rows(c, r, s)) if here and (href := _run_href(x, base, links)))
+        if links.pair is not None and here:
             runs += "".join(f" [{_pair_label(ra)}]({href})" for ra, rb in seed_pairs(c, r)
                             if (href := links.pair(ra, rb)))
         lines.append(f"| {r.recording}/{r.pipeline}/{r.variant} | {r.metric} | {fmt_ms(r.a_mean, r.a_sd)} | "
