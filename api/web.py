@@ -130,9 +130,12 @@ def _job_ctx(request: Request, jobs: Any, job_id: str) -> dict[str, Any]:
 def _suite_ctx(suites: SuiteService, suite_id: str) -> dict[str, Any]:
     row, text, cells = suites.get(suite_id)
     rows = [suites.result_row(c) for c in cells]
-    names = sorted({m for r in rows for m in r["metrics"]})
+    tables = []  # one table per pipeline: each has its own metrics
+    for pipeline in dict.fromkeys(r["pipeline"] for r in rows):
+        mine = [r for r in rows if r["pipeline"] == pipeline]
+        tables.append((pipeline, sorted({m for r in mine for m in r["metrics"]}), mine))
     progress = suites.progress(cells)
-    return {"suite": row, "text": text, "rows": rows, "names": names, "progress": progress,
+    return {"suite": row, "text": text, "tables": tables, "progress": progress,
             "active": progress["ended"] < progress["cells"]}
 
 
