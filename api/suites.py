@@ -141,7 +141,7 @@ class SuiteService:
 
     # -- reading --------------------------------------------------------------------------------
 
-    def list(self, limit: int = 100) -> list[SuiteRow]:
+    def recent(self, limit: int = 100) -> list[SuiteRow]:
         with self._conn() as conn:
             rows = conn.execute("SELECT id, name, format, created FROM suites ORDER BY created DESC LIMIT ?",
                                 (limit,)).fetchall()

@@ -127,7 +127,7 @@ async def submit_suite(request: Request, suites: SuitesDep) -> SuiteOut:
 @router.get("/suites")
 def list_suites(suites: SuitesDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> list[SuiteOut]:
     """Suites, newest first, with their progress."""
-    return [SuiteOut.of(suites, row, suites.get(row.id)[2]) for row in suites.list(limit)]
+    return [SuiteOut.of(suites, row, suites.get(row.id)[2]) for row in suites.recent(limit)]
 
 
 @router.get("/suites/{suite_id}")

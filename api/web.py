@@ -147,7 +147,7 @@ def _lists(request: Request) -> dict[str, Any]:
     suites: SuiteService = request.app.state.suites
     recs = jobs.store.list_recordings()
     job_rows = jobs.store.list_jobs(limit=JOBS_SHOWN)
-    suite_rows = [(s, suites.progress(suites.get(s.id)[2])) for s in suites.list(50)]
+    suite_rows = [(s, suites.progress(suites.get(s.id)[2])) for s in suites.recent(50)]
     return {"recordings": recs, "jobs": job_rows, "suites": suite_rows, "rec_names": {r.id: r.filename for r in recs},
             "jobs_total": sum(jobs.store.count_by_status().values()),
             "jobs_active": any(j.status not in ENDED for j in job_rows),
@@ -262,7 +262,7 @@ def job_part(request: Request, job_id: JobPath, jobs: JobsDep) -> HTMLResponse:
 @page.get("/ui/suites/{suite_id}")
 def suite_page(request: Request, suite_id: JobPath, suites: SuitesDep) -> HTMLResponse:
     try:
-        others = [s for s in suites.list(50) if s.id != suite_id]
+        others = [s for s in suites.recent(50) if s.id != suite_id]
         return _page(request, "suite.html", **_suite_ctx(suites, suite_id), others=others)
     except PAGE_ERRORS as err:
         return _error(request, err)
