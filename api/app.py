@@ -274,6 +274,8 @@ def create_app(settings: Settings | None = None, executor: Executor | None = Non
         app.add_exception_handler(exc, handle_error)
     app.include_router(public)
     app.include_router(router)
+    from api.web import install_web  # suites, compare, the web page at / (api/suites_routes.py, api/web.py)
+    install_web(app)
     if not docs:
         @app.get("/openapi.json", include_in_schema=False, dependencies=[Depends(require_token)])
         def openapi() -> JSONResponse:

@@ -157,8 +157,18 @@ def load_side(path: str | Path, label: str | None = None, kind: str | None = Non
         rows, k = [_run_row(p)], "run"
     if not rows:
         raise ReplayError(f"{p}/results.jsonl has no rows: the suite ran no cells")
+    return side_of_rows(label or str(p), rows, kind or k, sha)
+
+
+def side_of_rows(label: str, rows: list[dict[str, Any]], kind: str, sha: str | None = None) -> Side:
+    """One side from results rows (as ``results.jsonl`` holds them), e.g. a suite the service ran."""
     versions = sorted({str(r.get("code_version")) for r in rows})
-    return Side(label or str(p), rows, kind or k, versions, sha, _libraries(rows))
+    return Side(label, rows, kind, versions, sha, _libraries(rows))
+
+
+def run_row(run_dir: Path) -> dict[str, Any]:
+    """A results row for one run directory (recording named by its file, variant ``default``)."""
+    return _run_row(run_dir)
 
 
 # ---------------------------------------------------------------------------------------
