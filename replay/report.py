@@ -34,6 +34,11 @@ code{background:#f3f3f3;padding:0 3px}.legend span{margin-right:1em}td a{white-s
 """
 
 
+
+def _named(metric: str, unit: str) -> str:
+    """A metric's name with its unit, unless the name already ends with it (``landmark_rmse_m``, unit m)."""
+    return metric if not unit or metric.endswith(f"_{unit}") else f"{metric} ({unit})"
+
 def _strip_plot(r: MetricResult, width: int = 220, height: int = 34) -> str:
     """Per-seed values: A (grey) on the upper row, B (blue) on the lower, pairs joined."""
     vals = [*r.a, *r.b]
@@ -242,7 +247,7 @@ def render_html(c: Comparison, base: Path, links: Links | None = None) -> str:
     for r in c.results:
         cell_links = _cell_links(c, r, base, links) if _links_here(r, shown) else ""
         out.append(f"<tr class='{r.verdict}'><td class='l'>{e(r.recording)}/{e(r.pipeline)}/{e(r.variant)}</td>"
-                   f"<td class='l'>{e(r.metric)} {e(r.unit)}</td><td>{e(r.better)}</td>"
+                   f"<td class='l'>{e(_named(r.metric, r.unit))}</td><td>{e(r.better)}</td>"
                    f"<td>{e(fmt_ms(r.a_mean, r.a_sd))}</td><td>{e(fmt_ms(r.b_mean, r.b_sd))}</td>"
                    f"<td>{e(fmt(r.delta, signed=True))}</td><td>{e(fmt(r.tolerance))}</td>"
                    f"<td>{e(fmt(r.p_value, 3))}</td><td class='l'>{e(r.test)}</td>"
