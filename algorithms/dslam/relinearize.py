@@ -186,12 +186,12 @@ class MeasurementLog:
             nu[1] = wrap_angle(nu[1])
             info.add(np.array([f]), *_terms(h_l[0], entry.lam, nu, pts[f]))
         for entry in self._recast.values():
-            f = np.asarray(entry.features, dtype=np.int64)
-            h, jac = map_invariants(pts[f])
+            fs = np.asarray(entry.features, dtype=np.int64)
+            h, jac = map_invariants(pts[fs])
             nu = entry_mean(entry) - h
-            rows = angle_rows(len(f))
+            rows = angle_rows(len(fs))
             nu[rows] = wrap_angle(nu[rows])
-            info.add(f, *_terms(jac, entry.lam, nu, pts[f].reshape(-1)))
+            info.add(fs, *_terms(jac, entry.lam, nu, pts[fs].reshape(-1)))
         return info
 
 
