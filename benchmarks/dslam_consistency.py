@@ -14,11 +14,11 @@ drawing). Per seed and estimator:
   joint covariance P. All landmarks share the map's rigid error, so the mean of the N marginal
   NEES values is not chi2(2N)/N (the ``naive_band95``): it is ``e^T B e / N`` with
   ``B = blockdiag(P_ii^-1)``, a sum of chi2(1) terms weighted by the eigenvalues of
-  ``P^1/2 B P^1/2 / N``; mean 2, variance ``2 sum(lambda^2)``, and the band is that of the
-  moment-matched scaled chi-square (Satterthwaite).
+  ``P^1/2 B P^1/2 / N``; mean 2, variance ``2 sum(lambda^2)``; the band is Pearson's three-cumulant
+  approximation (``replay.metrics.mean_nees_band``).
 
 Over the seeds: the mean of each column, the mean NEES's 95 % bands (naive and correlation-aware,
-the latter the moment-matched sum of the seeds' independent terms), and per seed the landmark RMSE
+the latter from the summed cumulants of the seeds' independent terms), and per seed the landmark RMSE
 ratio to EKF-SLAM. Runs with single-threaded BLAS (small matrices; a shared machine).
 
 Run: ``.venv/bin/python benchmarks/dslam_consistency.py [--seeds 1 ... 20] [--estimators dslam
@@ -42,6 +42,8 @@ from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 from scipy.stats import chi2  # noqa: E402
+
+from replay.metrics import pearson_band, satterthwaite  # noqa: E402
 
 ESTIMATORS: dict[str, tuple[str, dict[str, Any]]] = {
     "dslam": ("dslam", {}),  # the default configuration (final relinearisation on)
@@ -69,12 +71,6 @@ class NullObserver:
 
     def send_series(self, path: str, steps: Any, times_ns: Any, values: Any) -> None:
         pass
-
-
-def satterthwaite(mean: float, var: float, level: float = 0.95) -> tuple[float, float]:
-    """The central ``level`` band of the scaled chi-square with this mean and variance."""
-    scale, dof = var / (2 * mean), 2 * mean**2 / var
-    return (float(scale * chi2.ppf((1 - level) / 2, dof)), float(scale * chi2.ppf((1 + level) / 2, dof)))
 
 
 def consistency(err: np.ndarray, p: np.ndarray, rel: np.ndarray) -> dict[str, Any]:
@@ -105,7 +101,8 @@ def consistency(err: np.ndarray, p: np.ndarray, rel: np.ndarray) -> dict[str, An
             "global_rotation_sigma_deg": float(np.degrees(np.sqrt(pg[2, 2]))),
             "shape_rmse_m": float(np.sqrt(np.mean(np.sum(shape.reshape(-1, 2) ** 2, 1)))),
             "nees_mean_expected": float(np.sum(lam)), "nees_mean_var": var,
-            "band95": satterthwaite(float(np.sum(lam)), var),
+            "nees_mean_k3": float(8 * np.sum(lam**3)),
+            "band95": pearson_band(float(np.sum(lam)), var, float(8 * np.sum(lam**3))),
             "naive_band95": (float(chi2.ppf(0.025, 2 * n) / n), float(chi2.ppf(0.975, 2 * n) / n))}
 
 
@@ -165,8 +162,12 @@ def summarise(rows: list[dict[str, Any]], estimators: list[str], seeds: list[int
         k = len(rs)
         mean_nees = float(np.mean([r["landmark_nees_mean"] for r in rs]))
         n_total = sum(int(r["landmarks_mapped"]) for r in rs)
-        band = satterthwaite(float(np.mean([r["nees_mean_expected"] for r in rs])),
-                             float(np.sum([r["nees_mean_var"] for r in rs])) / k**2)
+        k1 = float(np.mean([r["nees_mean_expected"] for r in rs]))
+        k2 = float(np.sum([r["nees_mean_var"] for r in rs])) / k**2  # cumulants of independent seeds add
+        if all("nees_mean_k3" in r for r in rs):
+            band = pearson_band(k1, k2, float(np.sum([r["nees_mean_k3"] for r in rs])) / k**3)
+        else:  # rows cached by an earlier version: two moments
+            band = satterthwaite(k1, k2)
         naive = (float(chi2.ppf(0.025, 2 * n_total) / n_total), float(chi2.ppf(0.975, 2 * n_total) / n_total))
         scans = sum(int(r["steps"]) for r in rs)
         entry: dict[str, Any] = {

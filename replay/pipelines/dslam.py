@@ -113,6 +113,10 @@ class DSlamPipeline(LandmarkSlamPipeline):
         cov = self.filter.covariance
         return cov.marginals(features) if cov.known(features) else None
 
+    def observed_joint_covariance(self, features: list[int]) -> np.ndarray | None:
+        cov = self.filter.covariance
+        return cov.block(features) if features and all(f in cov.position for f in features) else None
+
     def draw_scan(self, result: Any, world_xy: np.ndarray) -> None:
         obs = self.ctx.observer
         self.statuses[result.status] = self.statuses.get(result.status, 0) + 1

@@ -57,6 +57,12 @@ class EkfSlamPipeline(LandmarkSlamPipeline):
     def observed_covariances(self, features: list[int]) -> np.ndarray | None:
         return self.filter.marginal_covariances()[features] if features else None
 
+    def observed_joint_covariance(self, features: list[int]) -> np.ndarray | None:
+        if not features:
+            return None
+        idx = (3 + 2 * np.asarray(features)[:, None] + np.arange(2)).reshape(-1)
+        return np.array(self.filter.P[np.ix_(idx, idx)])
+
     def draw_map(self, world_xy: np.ndarray) -> None:
         super().draw_map(world_xy)
         self.ctx.observer.log("ekfslam/covariance/correlation", Image(correlation_image(self.filter.P)))
