@@ -34,11 +34,12 @@ each timed segment to report how far the recovered state is from ``I^-1 i``).
 ``--durations 1800 7200`` instead runs D-SLAM (the default configuration, final relinearisation
 on) over the paper scenario (``sim-landmarks`` defaults, that many seconds, ``--seed``), each in a
 fresh process that reads the recording message by message, and reports the memory as the run
-grows: the peak resident memory of the process (``ru_maxrss``, minus the resident memory before the
-filter was built), the final relinearisation's summary (entries, bytes) against the bytes the
-previous design's log of every measurement would hold, and the per-scan time of all scans, of the
-scans that close a loop (a feature unseen for ``loop_closure_gap_scans`` re-observed) and of the 25
-scans after each. A memory that does not grow with the duration is O(map), not O(time).
+grows: the growth of the process's resident memory over the run and of its peak (``ru_maxrss``,
+a high-water mark, so reading the recording can hide the filter's growth), the final
+relinearisation's summary (entries, bytes) against the bytes the previous design's log of every
+measurement would hold, and the per-scan time of all scans, of the scans that close a loop (a
+feature unseen for ``loop_closure_gap_scans`` re-observed) and of the 25 scans after each. A
+memory that does not grow with the duration is O(map), not O(time).
 """
 
 from __future__ import annotations
@@ -267,7 +268,7 @@ def duration_run(duration: float, seed: int, out: Path) -> dict[str, object]:
     from replay.reader import RecordingReader
 
     rec = recording(duration, seed, out)
-    rss0 = peak_rss_mb()
+    rss0, peak0 = rss_mb(), peak_rss_mb()
     slam = DSlam(DSlamConfig(odometry_noise=NOISE))
     old_bytes = 0
     record = slam.map_log.recast
@@ -302,7 +303,8 @@ def duration_run(duration: float, seed: int, out: Path) -> dict[str, object]:
     after = sorted({k for i in loops for k in range(i, min(len(t), i + 26))})
     log = slam.map_log
     return {"duration_s": duration, "scans": len(t), "mapped": slam.n, "loop_closures": len(loops),
-            "peak_rss_growth_mb": peak_rss_mb() - rss0, "summary_entries": log.entries,
+            "rss_growth_mb": rss_mb() - rss0, "peak_rss_growth_mb": peak_rss_mb() - peak0,
+            "summary_entries": log.entries,
             "summary_kb": log.nbytes / 1e3, "measurements": len(log), "full_log_kb": old_bytes / 1e3,
             "step_mean_ms": float(t.mean()), "step_p95_ms": float(np.percentile(t, 95)),
             "loop_step_mean_ms": float(t[loops].mean()) if loops else float("nan"),
