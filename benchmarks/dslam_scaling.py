@@ -30,6 +30,16 @@ and the same fit for its memory. Run:
 ``.venv/bin/python benchmarks/dslam_scaling.py [--sizes 250 1000 4000 16000] [--steps 300]``
 (about 20 minutes with the defaults on two cores; ``--check`` adds an exact solve at the end of
 each timed segment to report how far the recovered state is from ``I^-1 i``).
+
+``--durations 1800 7200`` instead runs D-SLAM (the default configuration, final relinearisation
+on) over the paper scenario (``sim-landmarks`` defaults, that many seconds, ``--seed``), each in a
+fresh process that reads the recording message by message, and reports the memory as the run
+grows: the growth of the process's resident memory over the run and of its peak (``ru_maxrss``,
+a high-water mark, so reading the recording can hide the filter's growth), the final
+relinearisation's summary (entries, bytes) against the bytes the previous design's log of every
+measurement would hold, and the per-scan time of all scans, of the scans that close a loop (a
+feature unseen for ``loop_closure_gap_scans`` re-observed) and of the 25 scans after each. A
+memory that does not grow with the duration is O(map), not O(time).
 """
 
 from __future__ import annotations
@@ -238,6 +248,72 @@ def one_size(n: int, args: argparse.Namespace) -> dict[str, object]:
     return row
 
 
+def recording(duration: float, seed: int, out: Path) -> Path:
+    """The paper-scenario recording of ``duration`` s (simulated by the parent process, so that its memory
+    does not count in the child's peak)."""
+    from recorder.sim import simulate_landmarks
+
+    rec = out / f"sim-{int(duration)}s-seed{seed}.mcap"
+    if not rec.exists():
+        tmp = rec.with_suffix(".partial")
+        simulate_landmarks(tmp, LandmarkSimConfig(duration_s=duration), seed=seed)
+        tmp.replace(rec)
+    return rec
+
+
+def duration_run(duration: float, seed: int, out: Path) -> dict[str, object]:
+    """D-SLAM over one paper-scenario recording of ``duration`` s (module docstring; run in its own process)."""
+    from algorithms.common.motion import between1
+    from recorder.messages import TOPIC_ODOM, TOPIC_RANGE_BEARING
+    from replay.reader import RecordingReader
+
+    rec = recording(duration, seed, out)
+    rss0, peak0 = rss_mb(), peak_rss_mb()
+    slam = DSlam(DSlamConfig(odometry_noise=NOISE))
+    old_bytes = 0
+    record = slam.map_log.recast
+
+    def counted(features: list[int], z_map: np.ndarray, r_map: np.ndarray) -> None:
+        nonlocal old_bytes  # what the previous design kept: z, R and the feature ids of every measurement
+        old_bytes += 8 * (len(z_map) + r_map.size + len(features))
+        record(features, z_map, r_map)
+
+    slam.map_log.recast = counted  # type: ignore[method-assign]
+    prev = None
+    times: list[float] = []
+    loops: list[int] = []
+    for env in RecordingReader(rec).messages([TOPIC_ODOM, TOPIC_RANGE_BEARING]):
+        msg = env.msg
+        if env.topic == TOPIC_ODOM:
+            odom = msg.xy_yaw  # type: ignore[union-attr]
+            if prev is not None:
+                slam.predict(between1(prev, odom))
+            prev = odom
+            continue
+        tic = time.perf_counter()
+        res = slam.observe(msg.ranges_m, msg.bearings_rad, msg.landmark_ids,  # type: ignore[union-attr]
+                           msg.range_sigma_m, msg.bearing_sigma_rad)  # type: ignore[union-attr]
+        times.append(time.perf_counter() - tic)
+        if res.loop_closure:
+            loops.append(len(times) - 1)
+    tic = time.perf_counter()
+    slam.finalize()
+    final_s = time.perf_counter() - tic
+    t = 1e3 * np.asarray(times)
+    after = sorted({k for i in loops for k in range(i, min(len(t), i + 26))})
+    log = slam.map_log
+    return {"duration_s": duration, "scans": len(t), "mapped": slam.n, "loop_closures": len(loops),
+            "rss_growth_mb": rss_mb() - rss0, "peak_rss_growth_mb": peak_rss_mb() - peak0,
+            "summary_entries": log.entries,
+            "summary_kb": log.nbytes / 1e3, "measurements": len(log), "full_log_kb": old_bytes / 1e3,
+            "step_mean_ms": float(t.mean()), "step_p95_ms": float(np.percentile(t, 95)),
+            "loop_step_mean_ms": float(t[loops].mean()) if loops else float("nan"),
+            "loop_step_max_ms": float(t[loops].max()) if loops else float("nan"),
+            "after_loop_mean_ms": float(t[after].mean()) if after else float("nan"),
+            "after_loop_p95_ms": float(np.percentile(t[after], 95)) if after else float("nan"),
+            "finalize_s": final_s}
+
+
 def fmt(v: object) -> str:
     if isinstance(v, float):
         return f"{v:.3g}" if abs(v) < 1000 else f"{v:.0f}"
@@ -260,9 +336,36 @@ def main() -> None:
     parser.add_argument("--check", action="store_true", help="compare the recovered state with a direct solve")
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # internal: run one size, print JSON
     parser.add_argument("--json", type=Path, help="also write the rows to this file")
+    parser.add_argument("--durations", type=float, nargs="*",
+                        help="instead: D-SLAM memory and loop-closure step times on paper-scenario runs this long (s)")
+    parser.add_argument("--out", type=Path, default=Path("/tmp/dslam-scaling"), help="--durations: recordings here")
+    parser.add_argument("--duration-one", type=float, help=argparse.SUPPRESS)  # internal: one duration, print JSON
     args = parser.parse_args()
     if args.one is not None:
         print(json.dumps(one_size(args.one, args)))
+        return
+    if args.duration_one is not None:
+        print(json.dumps(duration_run(args.duration_one, args.seed, args.out)))
+        return
+    if args.durations:
+        if any(not d > 0 for d in args.durations):
+            sys.exit("--durations must be > 0 seconds")
+        args.out.mkdir(parents=True, exist_ok=True)
+        rows = []
+        for d in args.durations:
+            recording(d, args.seed, args.out)
+            cmd = [sys.executable, __file__, "--duration-one", str(d), "--seed", str(args.seed), "--out", str(args.out)]
+            done = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, **SINGLE_THREAD})
+            if done.returncode:
+                sys.exit(f"duration {d} s failed:\n{done.stderr}")
+            rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
+            print(json.dumps(rows[-1]), flush=True)
+        if args.json:
+            args.json.write_text(json.dumps(rows, indent=1))
+        keys = list(rows[0])
+        print("\n| " + " | ".join(keys) + " |\n" + "|---" * len(keys) + "|")
+        for r in rows:
+            print("| " + " | ".join(fmt(r[k]) for k in keys) + " |")
         return
     rows = []
     max_ekf = args.max_ekf

@@ -95,3 +95,49 @@ def metrics_markdown(title: str, values: Mapping[str, float], specs: Mapping[str
     if not values:
         lines.append("| (no metric applies to this run) | | | | |")
     return "\n".join(lines) + "\n"
+
+
+def mean_nees_band(joint_cov: F64, level: float = 0.95) -> tuple[float, float]:
+    """The central ``level`` band of the mean of k landmark NEES values when the estimate is consistent.
+
+    ``joint_cov`` (2k, 2k) is the joint covariance of the k landmarks' errors. The mean of their
+    marginal NEES values is ``e^T B e / k`` with ``B = blockdiag(P_ii^-1)``: a sum of chi2(1) terms
+    weighted by the eigenvalues of ``L^T B L / k`` (``P = L L^T``), of mean 2 and variance
+    ``2 sum(lambda^2)``. Landmarks that share an error (a map's common translation or rotation)
+    widen it far beyond the chi2(2k)/k of independent ones, which it equals when P is block
+    diagonal. The band is that of Pearson's shifted, scaled chi-square with the same first three
+    cumulants (``kappa_r = 2^(r-1) (r-1)! sum(lambda^r)``): on map-like covariances (a shared
+    translation plus independent parts) its upper end is within 1 % of the sampled quantile and
+    its lower end up to 0.15 above it.
+    """
+    k = len(joint_cov) // 2
+    if joint_cov.shape != (2 * k, 2 * k) or k == 0:
+        raise ValueError(f"joint_cov must be (2k, 2k) with k >= 1, got {joint_cov.shape}")
+    p = 0.5 * (joint_cov + joint_cov.T)
+    chol = np.linalg.cholesky(p)
+    blocks = p.reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :]
+    b = np.zeros_like(p)
+    inv = np.linalg.inv(blocks)
+    for i in range(k):
+        b[2 * i:2 * i + 2, 2 * i:2 * i + 2] = inv[i]
+    lam = np.linalg.eigvalsh(chol.T @ b @ chol) / k
+    return pearson_band(float(np.sum(lam)), float(2 * np.sum(lam**2)), float(8 * np.sum(lam**3)), level)
+
+
+def pearson_band(k1: float, k2: float, k3: float, level: float = 0.95) -> tuple[float, float]:
+    """The central ``level`` band of ``c + a chi2(nu)`` with cumulants ``k1, k2, k3`` (Pearson's approximation of
+    a weighted sum of chi-squares)."""
+    from scipy.stats import chi2
+
+    nu = 8 * k2**3 / k3**2
+    a = k3 / (4 * k2)
+    c = k1 - a * nu
+    return (float(c + a * chi2.ppf((1 - level) / 2, nu)), float(c + a * chi2.ppf((1 + level) / 2, nu)))
+
+
+def satterthwaite(mean: float, var: float, level: float = 0.95) -> tuple[float, float]:
+    """The central ``level`` band of the scaled chi-square ``a chi2(nu)`` with this mean and variance."""
+    from scipy.stats import chi2
+
+    scale, dof = var / (2 * mean), 2 * mean**2 / var
+    return (float(scale * chi2.ppf((1 - level) / 2, dof)), float(scale * chi2.ppf((1 + level) / 2, dof)))

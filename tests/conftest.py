@@ -68,3 +68,12 @@ def write_tiny_recording(path: Path, n: int = 100, *, drift: float = 0.05, seed:
 def tiny_recording(tmp_path: Path) -> Path:
     """A 100-step synthetic recording with odometry, ground truth, scans and a landmark map."""
     return write_tiny_recording(tmp_path / "tiny.mcap")
+
+
+@pytest.fixture(scope="session")
+def pipeline_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """One run directory per built-in pipeline on short seeded simulations (tests/replay/view_runs.py),
+    made once per session: the golden metrics and the view tests share them."""
+    from tests.replay.view_runs import make_runs
+
+    return make_runs(tmp_path_factory.mktemp("pipeline-runs"))

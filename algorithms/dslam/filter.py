@@ -15,9 +15,10 @@ of :mod:`algorithms.common.motion`). Per scan, :meth:`DSlam.observe`
 4. recovers the state (sections 3.2-3.3) without inverting I, and carries the joint covariance
    of the features near the robot in covariance form (:mod:`algorithms.dslam.covariance`).
 
-Every measurement the map used is also kept (:mod:`algorithms.dslam.relinearize`): at the end
-of a run, :meth:`DSlam.finalize` relinearises them all at the final estimate (not in the paper;
-``final_relinearization_iterations = 0`` keeps the EIF estimate ``I^-1 i``).
+Every measurement the map used is also summarised (:mod:`algorithms.dslam.relinearize`: an exact
+sufficient statistic of O(N) size, whatever the run's length): at the end of a run,
+:meth:`DSlam.finalize` relinearises them all at the final estimate (not in the paper;
+``final_relinearization_iterations = 0`` keeps the EIF estimate ``I^-1 i`` and no summary).
 
 Cost per scan: everything above works on the scan's features, the features near the robot and
 their neighbours in I, so a scan costs the same whatever the map size N, except for the
@@ -161,7 +162,8 @@ class DSlam:
         self.observer = observer
         self.info = InformationMatrix()
         self.recovery = self._new_recovery()
-        self.map_log = MeasurementLog()  # every measurement of eq. (10), for the final relinearisation
+        self.map_log = MeasurementLog()  # every measurement of eq. (10), summarised, for the final relinearisation
+        self._log = config.final_relinearization_iterations > 0
         self.covariance = CovarianceCache()
         self.pose = np.zeros(3)
         self.pose_cov = np.zeros((3, 3))
@@ -416,7 +418,8 @@ class DSlam:
                 d_matrix, d_vector, h = mapping.phase_one_terms(self.recovery.x[2 * f:2 * f + 2],
                                                                 np.array([r[j], b[j]]), r_blocks[j])
                 self._apply([f], d_matrix, d_vector)
-                self.map_log.phase_one(f, np.array([r[j], b[j]]), r_blocks[j])
+                if self._log:
+                    self.map_log.phase_one(f, np.array([r[j], b[j]]), r_blocks[j])
                 jacs.append(h)
             self._phase_one_covariance(touched, jacs, r_blocks[old + new])
         elif new and self.n < 2:
@@ -426,7 +429,8 @@ class DSlam:
             created = self._add_features(lm, new, features)
             touched = created
             self._apply(created, d_matrix, d_vector)
-            self.map_log.prior(created, d_matrix, d_vector)
+            if self._log:
+                self.map_log.prior(created, d_matrix, d_vector)
             cov.insert(created, np.asarray(np.linalg.inv(d_matrix), dtype=np.float64))
         elif len(old) >= 2 and not self._map_outlier(r, b, r_old, features, old, new):
             status = ScanStatus.MAPPED
@@ -442,7 +446,8 @@ class DSlam:
             ordered = [int(features[j]) for j in order]
             d_matrix, d_vector, jac = mapping.recast_terms(self.recovery.x.reshape(-1, 2)[ordered], rc)
             self._apply(ordered, d_matrix, d_vector)
-            self.map_log.recast(ordered, rc.z_map, rc.r_map)
+            if self._log:
+                self.map_log.recast(ordered, rc.z_map, rc.r_map)
             cov.recast_update(ordered[:k_v], ordered[k_v:], jac, rc.r_map)
             loop = any(self.scans - self.last_seen[int(features[j])] >= self.config.loop_closure_gap_scans
                        for j in old)

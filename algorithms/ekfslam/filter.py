@@ -13,12 +13,23 @@ association modes as :class:`algorithms.dslam.DSlam`:
   covariance (robot-landmark correlation included) and the confirmed/tentative lists of
   :mod:`algorithms.common.association`.
 
+``jacobians = "first_estimates"`` is the first-estimates-Jacobian EKF (FEJ-EKF) of [3]_, the
+consistent baseline: the standard EKF linearises each step at the latest estimates, so the
+linearised system gains information along the global rotation, which no measurement carries
+(the map's orientation is held by the known start alone), and becomes overconfident. FEJ keeps
+the unobservable directions of the nonlinear system: the propagation Jacobian's position-heading
+block is ``J (p_{k+1|k} - p_{k|k-1})`` (the propagated, not the updated, previous position) and
+the measurement Jacobians are evaluated at the propagated robot pose and at each landmark's
+first estimate (its position when it was added). Innovations still use the latest estimates.
+
 References
 ----------
 .. [1] Z. Wang, S. Huang, G. Dissanayake, "Implementation issues and experimental evaluation
    of D-SLAM", FSR 2005.
 .. [2] G. Dissanayake et al., "A solution to the simultaneous localization and map building
    (SLAM) problem", IEEE TRA 17:229-241, 2001.
+.. [3] G. P. Huang, A. I. Mourikis, S. I. Roumeliotis, "Observability-based rules for designing
+   consistent EKF SLAM estimators", IJRR 29(5):502-528, 2010 (FEJ-EKF, section 5).
 """
 
 from __future__ import annotations
@@ -74,10 +85,13 @@ class EkfSlamConfig:
     association: Literal["known", "unknown"] = "known"
     association_params: AssociationConfig = field(default_factory=AssociationConfig)
     vicinity_margin_m: float = 1.0
+    jacobians: Literal["standard", "first_estimates"] = "standard"  # module docstring: FEJ-EKF [3]
 
     def __post_init__(self) -> None:
         if not (self.default_range_sigma_m > 0 and self.default_bearing_sigma_rad > 0):
             raise ValueError("default_range_sigma_m and default_bearing_sigma_rad must be > 0")
+        if self.jacobians not in ("standard", "first_estimates"):
+            raise ValueError(f"jacobians must be 'standard' or 'first_estimates', got {self.jacobians!r}")
         if self.association not in ("known", "unknown"):
             raise ValueError(f"association must be 'known' or 'unknown', got {self.association!r}")
 
@@ -106,6 +120,9 @@ class EkfSlam:
         self.dim = 3
         self._x = np.zeros(3 + 2 * capacity)
         self._p = np.zeros((3 + 2 * capacity, 3 + 2 * capacity))
+        self._fej = config.jacobians == "first_estimates"
+        self._first = np.zeros(2 * capacity)  # FEJ: each landmark's position when it was added
+        self._propagated = np.zeros(3)  # FEJ: the last propagated pose p_{k|k-1} (the start before any)
         self.feature_ids: list[int] = []
         self.by_id: dict[int, int] = {}
         self.tentative = TentativeList()
@@ -158,6 +175,14 @@ class EkfSlam:
         u = motion.check_increment(increment)
         q = self.config.odometry_noise.covariance(u)
         pose, p_rr, f = motion.predict(self._x[:3], self._p[:3, :3], u, q)
+        if self._fej:  # [3] section 5: J (p_{k+1|k} - p_{k|k-1}), not J (p_{k+1|k} - p_{k|k})
+            f = np.array(f)
+            f[0, 2], f[1, 2] = -(pose[1] - self._propagated[1]), pose[0] - self._propagated[0]
+            c, s = math.cos(self._x[2]), math.sin(self._x[2])
+            g = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            p_rr = f @ self._p[:3, :3] @ f.T + g @ q @ g.T
+            p_rr = 0.5 * (p_rr + p_rr.T)
+            self._propagated = pose.copy()
         self._x[:3] = pose
         p = self.P
         cross = f @ p[:3, 3:]
@@ -170,10 +195,11 @@ class EkfSlam:
         need = self.dim + 2 * k
         if need > len(self._x):
             cap = max(need, int(1.5 * len(self._x)))
-            x, p = np.zeros(cap), np.zeros((cap, cap))
+            x, p, first = np.zeros(cap), np.zeros((cap, cap)), np.zeros(cap)
             x[: self.dim] = self.x
             p[: self.dim, : self.dim] = self.P
-            self._x, self._p = x, p
+            first[: self.dim - 3] = self._first[: self.dim - 3]
+            self._x, self._p, self._first = x, p, first
 
     def observe(self, ranges: ArrayLike, bearings: ArrayLike, ids: ArrayLike | None = None,
                 range_sigma: float = 0.0, bearing_sigma: float = 0.0) -> EkfScanResult:
@@ -259,10 +285,19 @@ class EkfSlam:
         features[ok] = cand[assigned[ok]]
         return features, np.flatnonzero(far).tolist()
 
+    def _measurement_model(self, landmarks: I64) -> tuple[F64, F64, F64]:
+        """Predicted measurements (k, 2) of landmarks from the latest estimates, and the Jacobians
+        (k, 2, 3), (k, 2, 2): at the latest estimates, or (FEJ) at the propagated pose and the first estimates."""
+        z_pred, h_r, h_l = rangebearing.predict(self._x[:3], self.x[3:].reshape(-1, 2)[landmarks])
+        if self._fej:
+            first = self._first[: self.dim - 3].reshape(-1, 2)[landmarks]
+            _, h_r, h_l = rangebearing.predict(self._propagated, first)
+        return z_pred, h_r, h_l
+
     def _predicted(self, landmarks: I64, r_cov: F64) -> tuple[F64, F64]:
         """Predicted measurements (k, 2) of landmarks and their exact innovation covariances (k, 2, 2)."""
         p = self.P
-        z_pred, h_r, h_l = rangebearing.predict(self._x[:3], self.x[3:].reshape(-1, 2)[landmarks])
+        z_pred, h_r, h_l = self._measurement_model(landmarks)
         rows = 3 + 2 * landmarks
         p_rl = np.stack([p[:3, rows], p[:3, rows + 1]], -1).transpose(1, 0, 2)  # (k, 3, 2)
         p_ll = np.stack([np.stack([p[rows, rows], p[rows, rows + 1]], -1),
@@ -274,7 +309,7 @@ class EkfSlam:
         obs = np.flatnonzero(features >= 0)
         f = features[obs]
         k = len(obs)
-        z_pred, h_r, h_l = rangebearing.predict(self._x[:3], self.x[3:].reshape(-1, 2)[f])
+        z_pred, h_r, h_l = self._measurement_model(f)
         cols = np.concatenate([[0, 1, 2], np.stack([3 + 2 * f, 4 + 2 * f], -1).reshape(-1)])
         h = np.zeros((2 * k, len(cols)))
         h[:, :3] = h_r.reshape(2 * k, 3)
@@ -318,4 +353,5 @@ class EkfSlam:
         p[:old, old:] = cross.T
         p[old:, old:] = gr @ p[:3, :3] @ gr.T + sla.block_diag(*(g @ r_cov @ g.T for g in g_z))
         self._x[old:self.dim] = lm.reshape(-1)
+        self._first[old - 3:self.dim - 3] = lm.reshape(-1)
         return list(range((old - 3) // 2, self.n))

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import rerun.blueprint as rrb
@@ -22,12 +23,24 @@ from replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, Landmark
 
 @dataclass(frozen=True, slots=True)
 class EkfSlamPipelineConfig(LandmarkSlamConfig):
-    """The parameters shared with ``dslam``."""
+    """The parameters shared with ``dslam``, and where the EKF linearises.
+
+    ``jacobians``: ``"standard"`` (at the latest estimates, the textbook EKF-SLAM the D-SLAM paper
+    compares with) or ``"first_estimates"`` (FEJ-EKF, Huang, Mourikis, Roumeliotis 2010: at each
+    landmark's first estimate and the propagated pose, so that the map's global rotation stays
+    unobservable, as it is; the consistent baseline of benchmarks/dslam_consistency.py).
+    """
+
+    jacobians: Literal["standard", "first_estimates"] = "standard"
+
+    def __post_init__(self) -> None:
+        LandmarkSlamConfig.__post_init__(self)
+        self.algorithm("known")
 
     def algorithm(self, mode: str) -> EkfSlamConfig:
         return EkfSlamConfig(odometry_noise=self.odometry_noise(), default_range_sigma_m=self.range_sigma_m,
                              default_bearing_sigma_rad=self.bearing_sigma_rad, association=mode,  # type: ignore[arg-type]
-                             association_params=self.association_params())
+                             association_params=self.association_params(), jacobians=self.jacobians)
 
 
 @register
@@ -43,6 +56,12 @@ class EkfSlamPipeline(LandmarkSlamPipeline):
 
     def observed_covariances(self, features: list[int]) -> np.ndarray | None:
         return self.filter.marginal_covariances()[features] if features else None
+
+    def observed_joint_covariance(self, features: list[int]) -> np.ndarray | None:
+        if not features:
+            return None
+        idx = (3 + 2 * np.asarray(features)[:, None] + np.arange(2)).reshape(-1)
+        return np.array(self.filter.P[np.ix_(idx, idx)])
 
     def draw_map(self, world_xy: np.ndarray) -> None:
         super().draw_map(world_xy)

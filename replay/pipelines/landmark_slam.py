@@ -41,7 +41,7 @@ from recorder.messages import (
 from recorder.sensor_model import SensorModel
 from replay import views
 from replay.errors import ReplayError
-from replay.metrics import position_errors, rmse
+from replay.metrics import mean_nees_band, position_errors, rmse
 from replay.pipeline import MetricSpec, Pipeline, ReplayContext
 from replay.reader import Envelope
 from replay.trajectory import TrajectoryLog
@@ -155,6 +155,11 @@ class LandmarkSlamPipeline(Pipeline):
 
     def observed_covariances(self, features: list[int]) -> np.ndarray | None:
         """Marginal covariances (k, 2, 2) of observed features in the map frame, or None."""
+        return None
+
+    def observed_joint_covariance(self, features: list[int]) -> np.ndarray | None:
+        """Joint covariance (2k, 2k) of observed features in the map frame, or None (the NEES band then
+        treats them as independent)."""
         return None
 
     def draw_scan(self, result: Any, world_xy: np.ndarray) -> None:
@@ -321,10 +326,16 @@ class LandmarkSlamPipeline(Pipeline):
             c = self.to_world_cov(covs[ok])
             obs = self.ctx.observer
             obs.log("metrics/landmark_nees", Scalar(float(np.mean(np.einsum("ni,nij,nj->n", e, np.linalg.inv(c), e)))))
-            # The mean of k independent chi2(2) NEES values is chi2(2k) / k when the filter is consistent.
+            # The band of the mean NEES of a consistent filter: from the features' joint covariance (they
+            # share errors, replay.metrics.mean_nees_band), else chi2(2k) / k as if they were independent.
             k = int(ok.sum())
-            obs.log("metrics/nees_band/landmark_95_low", Scalar(float(chi2.ppf(0.025, 2 * k) / k)))
-            obs.log("metrics/nees_band/landmark_95_high", Scalar(float(chi2.ppf(0.975, 2 * k) / k)))
+            joint = self.observed_joint_covariance([f for f, good in zip(seen, ok.tolist(), strict=True) if good])
+            if joint is not None:
+                low, high = mean_nees_band(joint)
+            else:
+                low, high = float(chi2.ppf(0.025, 2 * k) / k), float(chi2.ppf(0.975, 2 * k) / k)
+            obs.log("metrics/nees_band/landmark_95_low", Scalar(low))
+            obs.log("metrics/nees_band/landmark_95_high", Scalar(high))
 
     def _truth_of(self, features: list[int]) -> np.ndarray | None:
         """True world positions (k, 2) of features by id or label (NaN where unknown); None without a truth map."""

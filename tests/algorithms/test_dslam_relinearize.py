@@ -70,9 +70,8 @@ def test_log_rebuilds_the_filter_terms() -> None:
 
 
 def test_finalize_relinearizes_and_can_be_turned_off() -> None:
-    """finalize: a fixed point of the logged measurements (relinearised), or the EIF's I^-1 i (0 iterations)."""
+    """finalize: a fixed point of the logged measurements (relinearised), or the EIF's I^-1 i (0: no summary kept)."""
     rng = np.random.default_rng(3)
-    out = {}
     for iterations in (0, 10):
         slam = DSlam(DSlamConfig(final_relinearization_iterations=iterations))
         for k in range(60):
@@ -82,10 +81,46 @@ def test_finalize_relinearizes_and_can_be_turned_off() -> None:
             z, _, _ = predict(pose, TRUTH)
             slam.observe(z[:, 0] + rng.normal(0, 0.05, 5), z[:, 1] + rng.normal(0, 0.02, 5), np.arange(5), 0.05, 0.02)
         report = slam.finalize()
+        assert np.all(np.linalg.eigvalsh(slam.marginal_covariances()) > 0)
+        if iterations == 0:
+            assert report.method == "direct" and len(slam.map_log) == 0  # the paper's rule keeps no summary
+            continue
         x = slam.recovery.x
         info = slam.map_log.information(slam.n, np.array(x))
-        step = np.max(np.abs(direct(info, np.array(info.vector)) - x))
-        out[iterations] = (report.method, step)
-        assert len(slam.map_log) > 0 and np.all(np.linalg.eigvalsh(slam.marginal_covariances()) > 0)
-    assert out[0][0] == "direct" and out[10][0] == "relinearized"
-    assert out[10][1] < 1e-5
+        assert report.method == "relinearized" and len(slam.map_log) > 0
+        assert np.max(np.abs(direct(info, np.array(info.vector)) - x)) < 1e-5
+
+
+def test_summary_is_exact_and_bounded() -> None:
+    """Many noisy scans sharing anchor pairs, angles near +-pi: the summary's I and i equal the sum of every
+    scan's eq. (10) terms, and its size stops growing once every anchor pair and feature has been seen."""
+    rng = np.random.default_rng(7)
+    truth = np.array([[2.0, 0.0], [4.0, 0.0], [1.0, 0.05], [3.0, -2.0], [5.0, 1.5], [3.0, 2.5]])  # f3 near alpha = pi
+    x = (truth + rng.normal(0, 0.05, truth.shape)).reshape(-1)
+    log = MeasurementLog()
+    dense, vec = np.zeros((12, 12)), np.zeros(12)
+    sizes = []
+    for k in range(400):
+        scan = [[0, 1, 2, 3], [0, 1, 4], [0, 1, 5, 3, 2], [3, 4, 5]][k % 4]
+        pose = np.array([rng.uniform(2, 3), rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3)])
+        zz, _, _ = predict(pose, truth[scan])
+        rc = recast(zz[:, 0] + rng.normal(0, 0.05, len(scan)), zz[:, 1] + rng.normal(0, 0.02, len(scan)),
+                    noise(len(scan), 0.05, 0.02))
+        log.recast(scan, rc.z_map, rc.r_map)
+        if k % 4 == 3:
+            z0, _, _ = predict(np.zeros(3), truth[:1])
+            z0 = z0[0] + rng.normal(0, [0.05, 0.02])
+            log.phase_one(0, z0, np.diag([0.05**2, 0.02**2]))
+            d_matrix, d_vector, _ = phase_one_terms(x.reshape(-1, 2)[0], z0, np.diag([0.05**2, 0.02**2]))
+            dense[:2, :2] += d_matrix
+            vec[:2] += d_vector
+        d_matrix, d_vector, _ = recast_terms(x.reshape(-1, 2)[scan], rc)
+        idx = np.array([[2 * f, 2 * f + 1] for f in scan]).reshape(-1)
+        dense[np.ix_(idx, idx)] += d_matrix
+        vec[idx] += d_vector
+        sizes.append(log.nbytes)
+    info = log.information(6, x)
+    np.testing.assert_allclose(info.csc().toarray(), dense, rtol=1e-9, atol=1e-6)
+    np.testing.assert_allclose(info.vector, vec, rtol=1e-9, atol=1e-6)
+    assert len(log) == 500 and log.entries == 3  # phase I of f0, anchor pairs (0, 1) and (3, 4)
+    assert sizes[8] == sizes[-1]  # O(map), not O(time)

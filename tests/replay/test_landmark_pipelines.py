@@ -135,3 +135,34 @@ def test_mrclam_robot1(shared_data: Path, tmp_path: Path) -> None:
     assert 0.08 < run.manifest["config"]["range_sigma_m"] < 0.13  # README of the data: robust std 0.084, bias 0.038
     assert d["false_landmarks"] == 0 and d["landmarks_mapped"] >= 5  # a camera seeing 1-2 landmarks starves D-SLAM
     assert d["robot_ate_rmse_m"] < 1.0
+
+
+def test_paper_preset_turns_every_extra_off() -> None:
+    """dslam's "paper" preset: every key is a documented config key, and each changes what its note says."""
+    from algorithms.dslam import DSlam, ScanStatus
+    from algorithms.dslam.localization import PoseStatus
+    from replay.pipelines.dslam import DSlamPipeline
+
+    cls = get_pipeline("dslam")
+    assert cls is DSlamPipeline
+    paper = DSlamPipeline.presets["paper"]
+    assert set(paper) == set(DSlamPipeline.preset_notes)
+    default, faithful = resolve_config(cls), resolve_config(cls, paper)
+    for key, value in paper.items():
+        assert getattr(faithful, key) == value and key in DSlamPipeline.preset_notes
+    assert default.final_relinearization_iterations > 0 and default.map_gate_probability < 1
+    truth = np.array([[2.0, 1.0], [2.5, -1.5], [4.0, 0.5]])
+    statuses = {}
+    for name, cfg in (("default", default), ("paper", faithful)):
+        slam = DSlam(cfg.algorithm("known"))
+        for _ in range(3):  # phase I
+            d = truth
+            slam.observe(np.hypot(*d.T), np.arctan2(d[:, 1], d[:, 0]), [0, 1, 2], 0.05, 0.02)
+        slam.predict([0.5, 0.0, 0.0])
+        d = truth - [0.5, 0.0]
+        r = np.hypot(*d.T) + [0.0, 0.0, 1.0]  # feature 2 read 1 m long: a wrong association
+        res = slam.observe(r, np.arctan2(d[:, 1], d[:, 0]), [0, 1, 2], 0.05, 0.02)
+        statuses[name] = (res.status, res.measurement.status if res.measurement else None,
+                          slam.finalize().method)
+    assert statuses["default"] == (ScanStatus.MAP_REJECTED, PoseStatus.INCONSISTENT, "relinearized")
+    assert statuses["paper"] == (ScanStatus.MAPPED, PoseStatus.OK, "direct")

@@ -14,15 +14,15 @@ from replay.diff import write_comparison_rrd
 from replay.diff_view import _RunContent, first_divergence
 from replay.errors import ReplayError
 from replay.pipeline import get_pipeline
-from tests.replay.view_runs import blueprint_views, make_runs, matches, rrd_entities
+from tests.replay.view_runs import blueprint_views, matches, rrd_entities
 
 pytestmark = pytest.mark.slow
 PIPELINES = ("odometry", "dslam", "ekfslam", "ifmi", "topometric", "topometric-nav")
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    return make_runs(tmp_path_factory.mktemp("views"))
+def runs(pipeline_runs: dict[str, Path]) -> dict[str, Path]:
+    return pipeline_runs
 
 
 def test_role_colors_follow_the_palette() -> None:
