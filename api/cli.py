@@ -317,32 +317,52 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
 
 def cmd_pipelines(args: argparse.Namespace) -> int:
-    from replay.pipeline import all_pipelines, config_schema
+    from replay.pipeline import config_schema, pipeline_plugins
 
-    rows: list[dict[str, Any]] = [{"name": name, "summary": cls.summary, "required_topics": list(cls.required_topics),
-             "optional_topics": list(cls.optional_topics), "config": config_schema(cls.Config),
-             "presets": {k: dict(v) for k, v in cls.presets.items()},
-             "metrics": {k: {"better": m.better, "unit": m.unit, "description": m.description}
-                         for k, m in cls.metrics.items()}}
-            for name, cls in all_pipelines().items()]
+    rows: list[dict[str, Any]] = []
+    broken: list[str] = []
+    for name, plugin in pipeline_plugins().items():
+        where = {"name": name, "origin": plugin.origin, "distribution": plugin.distribution,
+                 "version": plugin.version, "entry_point": plugin.value}
+        if plugin.error is not None:
+            rows.append({**where, "error": plugin.error})
+            broken.append(plugin.describe() + " " + plugin.error)
+            continue
+        cls = plugin.load()
+        rows.append({**where, "error": None, "summary": cls.summary, "required_topics": list(cls.required_topics),
+                     "optional_topics": list(cls.optional_topics), "config": config_schema(cls.Config),
+                     "presets": {k: dict(v) for k, v in cls.presets.items()},
+                     "metrics": {k: {"better": m.better, "unit": m.unit, "description": m.description}
+                                 for k, m in cls.metrics.items()}})
+    if not rows:
+        from recorder.plugins import missing_builtins_hint
+        from replay.pipeline import PIPELINE_GROUP
+
+        raise CliError(missing_builtins_hint(PIPELINE_GROUP))
     if args.json:
         print(json.dumps(rows, indent=2, default=str))
-        return EXIT_OK
-    for r in rows:
-        print(f"{r['name']}: {r['summary']}")
-        print(f"  needs:    {', '.join(r['required_topics'])}")
-        if r["optional_topics"]:
-            print(f"  uses:     {', '.join(r['optional_topics'])}")
-        for c in r["config"]:
-            print(f"  --set {c['key']}=<{c['type']}>  (default {c['default']}) {c['help']}")
-        if not r["config"]:
-            print("  config:   (no keys)")
-        for preset, values in r["presets"].items():
-            print(f"  --preset {preset}: " + (", ".join(f"{k}={v}" for k, v in values.items())
-                                            or "the defaults (they are already the paper's)"))
-        print("  metrics:  " + ", ".join(f"{k} ({m['better']} is better)" if m["better"] != "none" else k
-                                         for k, m in r["metrics"].items()))
-    return EXIT_OK
+    else:
+        for r in rows:
+            if r["error"] is not None:
+                print(f"{r['name']}: BROKEN ({r['origin']}, {r['entry_point']}): {r['error']}")
+                continue
+            print(f"{r['name']}: {r['summary']}")
+            print(f"  from:     {r['origin']}" + ("" if r["origin"] == "built-in" else f" ({r['entry_point']})"))
+            print(f"  needs:    {', '.join(r['required_topics'])}")
+            if r["optional_topics"]:
+                print(f"  uses:     {', '.join(r['optional_topics'])}")
+            for c in r["config"]:
+                print(f"  --set {c['key']}=<{c['type']}>  (default {c['default']}) {c['help']}")
+            if not r["config"]:
+                print("  config:   (no keys)")
+            for preset, values in r["presets"].items():
+                print(f"  --preset {preset}: " + (", ".join(f"{k}={v}" for k, v in values.items())
+                                                or "the defaults (they are already the paper's)"))
+            print("  metrics:  " + ", ".join(f"{k} ({m['better']} is better)" if m["better"] != "none" else k
+                                             for k, m in r["metrics"].items()))
+    for line in broken:  # listed above; and one line each on stderr, exit 2: an installed plugin does not work
+        _eprint(f"slamreplay: error: {line}")
+    return EXIT_BAD_INPUT if broken else EXIT_OK
 
 
 # ---------------------------------------------------------------------------------------

@@ -43,7 +43,7 @@ from algorithms.ifmi.mapping import edge_from_registration, flatten_illumination
 from algorithms.observe import CovarianceEllipses, Image, LineStrips, Points, Scalar, Segments, State, Text
 from recorder.messages import TOPIC_CAMERA_IMAGE, TOPIC_GROUND_TRUTH_POSE, CameraImage, GroundTruthPose
 from replay import views
-from replay.pipeline import MetricSpec, Pipeline, ReplayContext, register
+from replay.pipeline import MetricSpec, Pipeline, ReplayContext
 from replay.reader import Envelope
 
 WEAK_SIGMA = 1e3  # a rejected consecutive registration keeps the graph connected with a nearly free edge
@@ -89,7 +89,6 @@ class IfmiPipelineConfig:
             raise ValueError("loop_gate_deg and loop_gate_footprints must be > 0")
 
 
-@register
 class IfmiPipeline(Pipeline):
     name = "ifmi"
     summary = "iFMI photo-mapping: spectral registration with POMF covariance and PNR, pose graph, mosaics"
