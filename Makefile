@@ -85,7 +85,7 @@ test-pythons:
 	else echo "test-pythons: the cross-interpreter diff needs both 3.10 and 3.13: skipped"; fi
 
 lint: $(STAMP)
-	$(BIN)/ruff check recorder replay algorithms api tests benchmarks
+	$(BIN)/ruff check recorder replay algorithms api tests benchmarks examples
 
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[dev,bench]"
