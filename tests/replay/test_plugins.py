@@ -37,12 +37,12 @@ def helper():
 
 
 def make_distribution(root: Path, name: str, version: str, entry_points: dict[str, str],
-                      modules: dict[str, str]) -> None:
+                      modules: dict[str, str], group: str = "slamreplay.pipelines") -> None:
     """An installed distribution as importlib.metadata sees one: a .dist-info folder and modules on sys.path."""
     info = root / f"{name.replace('-', '_')}-{version}.dist-info"
     info.mkdir(parents=True)
     (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: {version}\n")
-    lines = ["[slamreplay.pipelines]", *(f"{k} = {v}" for k, v in entry_points.items())]
+    lines = [f"[{group}]", *(f"{k} = {v}" for k, v in entry_points.items())]
     (info / "entry_points.txt").write_text("\n".join(lines) + "\n")
     for module, source in modules.items():
         path = root / (module.replace(".", "/") + ".py")
