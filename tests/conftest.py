@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import textwrap
 from pathlib import Path
 
 import pytest
@@ -68,3 +69,17 @@ def write_tiny_recording(path: Path, n: int = 100, *, drift: float = 0.05, seed:
 def tiny_recording(tmp_path: Path) -> Path:
     """A 100-step synthetic recording with odometry, ground truth, scans and a landmark map."""
     return write_tiny_recording(tmp_path / "tiny.mcap")
+
+
+def make_distribution(root: Path, name: str, version: str, entry_points: dict[str, str],
+                      modules: dict[str, str], group: str = "slamreplay.pipelines") -> None:
+    """An installed distribution as importlib.metadata sees one: a .dist-info folder and modules on sys.path."""
+    info = root / f"{name.replace('-', '_')}-{version}.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: {version}\n")
+    lines = [f"[{group}]", *(f"{k} = {v}" for k, v in entry_points.items())]
+    (info / "entry_points.txt").write_text("\n".join(lines) + "\n")
+    for module, source in modules.items():
+        path = root / (module.replace(".", "/") + ".py")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(textwrap.dedent(source))

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import make_distribution
 
 from api.cli import main
 from recorder.errors import RecorderError
 from recorder.plugins import refresh
 from recorder.sources import get_importer, importer_plugins
 from replay.reader import RecordingReader
-from tests.replay.test_plugins import make_distribution
 
 BUILTINS = {"images", "mrclam", "ros2", "sim-corridor", "sim-landmarks", "sim-seabed", "victoria-park"}
 

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import json
 import sys
-import textwrap
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import write_tiny_recording
+from conftest import make_distribution, write_tiny_recording
 
 from api.cli import main
 from recorder.plugins import refresh
@@ -34,20 +33,6 @@ class Misnamed(OdometryPipeline):
 def helper():
     return 1
 '''
-
-
-def make_distribution(root: Path, name: str, version: str, entry_points: dict[str, str],
-                      modules: dict[str, str], group: str = "slamreplay.pipelines") -> None:
-    """An installed distribution as importlib.metadata sees one: a .dist-info folder and modules on sys.path."""
-    info = root / f"{name.replace('-', '_')}-{version}.dist-info"
-    info.mkdir(parents=True)
-    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: {version}\n")
-    lines = [f"[{group}]", *(f"{k} = {v}" for k, v in entry_points.items())]
-    (info / "entry_points.txt").write_text("\n".join(lines) + "\n")
-    for module, source in modules.items():
-        path = root / (module.replace(".", "/") + ".py")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(textwrap.dedent(source))
 
 
 @pytest.fixture
