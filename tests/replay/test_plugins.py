@@ -133,3 +133,20 @@ def test_unknown_pipeline_names_the_known_ones() -> None:
     """An unknown name lists the known pipelines."""
     with pytest.raises(ReplayError, match=r"unknown pipeline 'nope'; known pipelines: dslam, ekfslam"):
         get_pipeline("nope")
+
+
+def test_uninstalled_source_tree_says_to_install(monkeypatch: pytest.MonkeyPatch,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """With no entry points at all (a source tree that was never installed): one line saying to install it."""
+    import recorder.plugins
+
+    monkeypatch.setattr(recorder.plugins.md, "entry_points", lambda group: [])
+    refresh()
+    try:
+        with pytest.raises(ReplayError, match=r"only seen once it is installed \(`pip install -e \.`"):
+            get_pipeline("odometry")
+        assert main(["pipelines"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "no entry points in group 'slamreplay.pipelines'" in err[0]
+    finally:
+        refresh()
