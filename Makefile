@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.installed-py$(PY_VERSION)
 DATA   ?= ../shared/data
 ARGS   ?=
 
-.PHONY: venv demo serve test test-ray test-docs test-pythons test-viewer snapshots viewer-deps lint bench cholmod clean
+.PHONY: venv demo serve test test-ray test-docs test-pythons test-viewer test-browser snapshots viewer-deps lint bench cholmod clean
 
 venv: $(STAMP)
 
@@ -36,7 +36,7 @@ serve: $(STAMP)
 	$(BIN)/slamreplay serve --data-dir . $(ARGS)
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -n 2 -q -m "not ray and not docs and not viewer" $(ARGS)
+	$(BIN)/python -m pytest -n 2 -q -m "not ray and not docs and not viewer and not browser" $(ARGS)
 
 # The headless Rerun viewer draws with Vulkan; without a GPU, Mesa's software rasterizer (lavapipe).
 VIEWER_DEBS := mesa-vulkan-drivers libvulkan1 libegl1
@@ -46,6 +46,14 @@ viewer-deps:
 # Runs drawn by the real Rerun viewer: orientation from pixels, no blank view in any pipeline (about 2 min).
 test-viewer: $(STAMP) viewer-deps
 	$(BIN)/python -m pytest -q -m viewer tests/viewer $(ARGS)
+
+# The web page in a real browser: Debian's headless chromium driven by Playwright for Python (the
+# browser extra; PLAYWRIGHT_SKIP_BROWSER_DOWNLOAD: Playwright's own browser download is never used).
+# Upload, a job, a regression in red, the Rerun web viewer loading a job's .rrd (about 1 min).
+test-browser: $(STAMP)
+	@test -x /usr/bin/chromium || { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium; }
+	PLAYWRIGHT_SKIP_BROWSER_DOWNLOAD=1 $(BIN)/python -m pip install --quiet -e ".[dev,browser]"
+	$(BIN)/python -m pytest -q -m browser tests/web $(ARGS)
 
 # The README's pictures: every demo pipeline and a diff, rendered by `slamreplay snapshot` into docs/images/.
 snapshots: $(STAMP) viewer-deps
@@ -67,7 +75,7 @@ test-docs: $(STAMP)
 # with a message. In each: the suite but its slow tests (PYTHONS_TESTS, about 3 min) and the
 # README's blocks (about 3 min); then the same cells run under both must pass `slamreplay diff`
 # (.ci/cross-python-diff.sh, about 2 min). About 15 minutes in all on 2 cores.
-PYTHONS_TESTS ?= -m "not ray and not docs and not slow and not viewer"
+PYTHONS_TESTS ?= -m "not ray and not docs and not slow and not viewer and not browser"
 test-pythons:
 	@found=""; for v in 3.10 3.13; do \
 		py=""; for c in "$$(eval echo \$${PYTHON_$$(echo $$v | tr . _)})" python$$v \
@@ -87,11 +95,19 @@ test-pythons:
 lint: $(STAMP)
 	$(BIN)/ruff check recorder replay algorithms api tests benchmarks examples
 
+# Benchmarks against the peers (bench extra), each writing --json into BENCH_DIR, then one table of
+# ratios against issue 17's targets (benchmarks/summary.py; the README's performance table).
+# About 10 minutes on 2 cores; `make bench QUICK=1` takes the short path of replay and pose graph (about 5).
+BENCH_DIR ?= results/bench
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[dev,bench]"
-	$(BIN)/python benchmarks/replay_throughput.py
-	$(BIN)/python benchmarks/posegraph.py --data $(DATA)
-	$(BIN)/python benchmarks/registration.py
+	@mkdir -p $(BENCH_DIR)
+	nice $(BIN)/python benchmarks/replay_throughput.py $(if $(QUICK),--quick) --json $(BENCH_DIR)/replay_throughput.json
+	nice $(BIN)/python benchmarks/posegraph.py --data $(DATA) $(if $(QUICK),--quick) --json $(BENCH_DIR)/posegraph.json
+	nice $(BIN)/python benchmarks/loop_closure.py --json $(BENCH_DIR)/loop_closure_sim.json
+	nice $(BIN)/python benchmarks/loop_closure.py --rtabmap $(DATA)/rtabmap-loop-samples --json $(BENCH_DIR)/loop_closure_rtabmap.json
+	$(if $(QUICK),,nice $(BIN)/python benchmarks/registration.py)
+	@echo; $(BIN)/python benchmarks/summary.py $(BENCH_DIR)
 
 # Optional: CHOLMOD (SuiteSparse) for the pose-graph solver; without it SciPy's SuperLU is used.
 cholmod: $(STAMP)

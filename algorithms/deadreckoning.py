@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,10 +31,31 @@ class DeadReckoning:
         self.config = config
         self._start = start
         self._first_odom: NDArray[np.float64] | None = None
+        self._inv_first = (0.0, 0.0, 0.0)
+        sx, sy, sth = (float(v) for v in start)
+        self._start_f = (sx, sy, sth)
 
     def step(self, odom_pose: ArrayLike) -> NDArray[np.float64]:
         """The pose estimate after the cumulative odometry pose ``odom_pose`` ([x, y, theta])."""
         o = np.asarray(odom_pose, dtype=np.float64)
+        if o.shape != (3,):
+            raise ValueError(f"odom_pose must be a (3,) [x, y, theta], got shape {o.shape}")
         if self._first_odom is None:
             self._first_odom = o
-        return se2.compose(self._start, se2.between(self._first_odom, o))
+            ix, iy, ith = (float(v) for v in se2.inverse(o))
+            self._inv_first = (ix, iy, ith)
+        # se2.compose(start, se2.between(first, o)) on Python floats: the same formulas, evaluated in the same
+        # order, without numpy's per-call overhead on 3-vectors (this runs at the odometry rate)
+        ix, iy, ith = self._inv_first
+        x, y, th = o.tolist()
+        c, s = math.cos(ith), math.sin(ith)
+        bx, by, bth = ix + c * x - s * y, iy + s * x + c * y, _wrap(ith + th)
+        sx, sy, sth = self._start_f
+        c, s = math.cos(sth), math.sin(sth)
+        return np.array([sx + c * bx - s * by, sy + s * bx + c * by, _wrap(sth + bth)])
+
+
+def _wrap(theta: float) -> float:
+    """se2.wrap_angle of one float (the same operations: half-open [-pi, pi))."""
+    w = (theta + math.pi) % (2.0 * math.pi) - math.pi
+    return w - 2.0 * math.pi if w >= math.pi else w

@@ -10,6 +10,7 @@ interactive ``/docs`` page is then off, as a browser cannot send the token from 
 from __future__ import annotations
 
 import hmac
+import sqlite3
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Annotated, Any
@@ -19,7 +20,7 @@ from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.concurrency import run_in_threadpool
 
-from api.errors import ApiError, UnauthorizedError
+from api.errors import ApiError, UnauthorizedError, disk_full_error, is_disk_full
 from api.executor import Executor, LocalExecutor
 from api.jobs import JobService
 from api.models import JOB_ID, SHA256, DiffOut, ErrorOut, HealthOut, JobOut, JobSpec, JobStatusName, RecordingOut
@@ -40,7 +41,7 @@ JobQuery = Annotated[str, Query(pattern=JOB_ID, description="job id (32 hex digi
 # Errors are JSON on every route, file downloads included (FastAPI would document them with the route's media type).
 ERRORS: dict[int | str, dict[str, Any]] = {
     code: {"model": ErrorOut, "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}}}
-    for code in (400, 401, 404, 409, 413, 415, 422)}
+    for code in (400, 401, 404, 409, 413, 415, 422, 507)}
 _bearer = HTTPBearer(auto_error=False, description="SLAMREPLAY_TOKEN, when the server has one")
 
 
@@ -70,7 +71,12 @@ def require_token(settings: SettingsDep,
 
 
 async def handle_error(request: Request, exc: Exception) -> JSONResponse:
-    """The one error handler: service errors carry their status; ReplayError/RecorderError are bad input (422)."""
+    """The one error handler: service errors carry their status; a full disk is 507 (the service keeps serving);
+    ReplayError/RecorderError are bad input (422); any other OSError or SQLite error stays an internal error."""
+    if not isinstance(exc, ApiError) and is_disk_full(exc):
+        exc = disk_full_error(f"answering {request.method} {request.url.path}")
+    elif isinstance(exc, (OSError, sqlite3.Error)):
+        raise exc
     if isinstance(exc, ApiError):
         status, body = exc.status, {"detail": exc.detail, **exc.extra}
     else:
@@ -245,9 +251,11 @@ def create_app(settings: Settings | None = None, executor: Executor | None = Non
     settings.make_dirs()
     store = Store(settings.db_path)
     jobs = JobService(settings, store, executor or make_executor(settings))
+    recordings = RecordingService(settings, store)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        await run_in_threadpool(recordings.sweep)
         await run_in_threadpool(jobs.start)
         try:
             yield
@@ -261,11 +269,13 @@ def create_app(settings: Settings | None = None, executor: Executor | None = Non
                               "fetch metrics and Rerun recordings, and diff runs.")
     app.state.settings = settings
     app.state.jobs = jobs
-    app.state.recordings = RecordingService(settings, store)
-    for exc in (ApiError, ReplayError, RecorderError):
+    app.state.recordings = recordings
+    for exc in (ApiError, ReplayError, RecorderError, OSError, sqlite3.Error):
         app.add_exception_handler(exc, handle_error)
     app.include_router(public)
     app.include_router(router)
+    from api.web import install_web  # suites, compare, the web page at / (api/suites_routes.py, api/web.py)
+    install_web(app)
     if not docs:
         @app.get("/openapi.json", include_in_schema=False, dependencies=[Depends(require_token)])
         def openapi() -> JSONResponse:

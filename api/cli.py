@@ -330,8 +330,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
     except ValidationError as err:
         problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'settings'}: {e['msg']}" for e in err.errors())
         raise CliError(f"invalid setting (from SLAMREPLAY_* or the options): {problems}") from None
-    if not settings.data_dir.is_dir():
-        raise CliError(f"--data-dir {settings.data_dir} does not exist: create it first")
+    try:
+        settings.make_dirs()
+    except OSError as err:
+        raise CliError(f"--data-dir {settings.data_dir}: cannot create it: {err.strerror or err}") from None
     auth = "bearer token required" if settings.token else "no token (set SLAMREPLAY_TOKEN to require one)"
     _eprint(f"slamreplay serve: http://{args.host}:{args.port} over {settings.data_dir.resolve()} "
             f"({settings.workers} {settings.executor} worker(s), {auth})")

@@ -3,6 +3,8 @@ ReplayError/RecorderError (bad input to the platform: 422), into ``{"detail": me
 
 from __future__ import annotations
 
+import errno
+import sqlite3
 from typing import Any
 
 
@@ -51,3 +53,34 @@ class UnauthorizedError(ApiError):
     """A missing or wrong bearer token."""
 
     status = 401
+
+
+class InsufficientStorageError(ApiError):
+    """The data directory's disk is full: nothing was stored; the service keeps serving."""
+
+    status = 507
+
+
+DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` (or an error it was raised from) is a full disk: ENOSPC/EDQUOT, or SQLite's SQLITE_FULL."""
+    seen: BaseException | None = exc
+    for _ in range(5):  # follow ``raise ... from err`` a few steps
+        if seen is None:
+            return False
+        if isinstance(seen, OSError) and seen.errno in DISK_FULL_ERRNOS:
+            return True
+        if isinstance(seen, sqlite3.Error) and (getattr(seen, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL
+                                                or "database or disk is full" in str(seen)):
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
+
+
+def disk_full_error(what: str) -> InsufficientStorageError:
+    """The 507 answer for a full disk met while doing ``what``."""
+    return InsufficientStorageError(f"no space left on the device of the service's data directory while {what}: "
+                                    "nothing was stored; retry once space has been freed (delete recordings or "
+                                    "runs, or give SLAMREPLAY_DATA_DIR a larger disk)")

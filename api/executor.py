@@ -13,7 +13,8 @@ Both executors run the same job function, ``run_task``, under the same ``Watchdo
 (``api.limits``): a job past its memory or wall-time limit fails alone with that limit in
 its error. ``LocalExecutor`` also watches each worker from outside and kills one that stays
 past a limit (a job stuck in native code), and replaces a worker after a limit failure so
-that the next job starts with a fresh process. ``RayExecutor`` (``api.ray_executor``) runs
+that the next job starts with a fresh process, and after ``MAX_JOBS_PER_WORKER`` jobs (memory a
+library keeps is given back). ``RayExecutor`` (``api.ray_executor``) runs
 the job as a Ray task.
 """
 
@@ -36,6 +37,10 @@ from api.limits import GRACE_S, JobLimitExceeded, JobLimits, Watchdog, rss_mib
 OutcomeStatus = Literal["succeeded", "failed", "cancelled", "interrupted"]
 PROGRESS_INTERVAL_S = 0.25
 WORKER_NICENESS = 10  # replays yield the CPU to the server process, so status requests stay fast under load
+# A worker is replaced by a fresh process after this many jobs: rerun-sdk 0.41 keeps about 0.6 MiB
+# of native memory per RecordingStream after it is disconnected and deleted (a replay grows a
+# worker by about 1.7 MiB), so a long-lived worker would grow without bound (benchmarks/service_load.py).
+MAX_JOBS_PER_WORKER = 100
 
 
 @dataclass(frozen=True, slots=True)
@@ -191,6 +196,7 @@ class _Worker:
     proc: BaseProcess | None = None
     conn: Connection | None = None
     job_id: str | None = None
+    jobs: int = 0  # jobs this process has run
 
     def alive(self) -> bool:
         return self.proc is not None and self.proc.is_alive()
@@ -214,7 +220,7 @@ class _Worker:
                            name="slamreplay-worker")
         proc.start()
         child.close()
-        self.proc, self.conn = proc, parent
+        self.proc, self.conn, self.jobs = proc, parent, 0
 
 
 class LocalExecutor:
@@ -223,8 +229,10 @@ class LocalExecutor:
     ``job`` is what workers run (``run_task``; a module-level function, as it is pickled).
     """
 
-    def __init__(self, workers: int, limits: JobLimits | None = None, job: Job = run_task) -> None:
+    def __init__(self, workers: int, limits: JobLimits | None = None, job: Job = run_task,
+                 max_jobs_per_worker: int = MAX_JOBS_PER_WORKER) -> None:
         self.slots = workers
+        self.max_jobs_per_worker = max_jobs_per_worker
         self.limits = limits or JobLimits()
         self._job = job
         self._ctx = multiprocessing.get_context("spawn")
@@ -283,9 +291,10 @@ class LocalExecutor:
         finally:
             with self._lock:
                 worker.job_id = None
+                worker.jobs += 1
                 self._cancelled.discard(task.job_id)
-                if not self._closed and not worker.alive():
-                    worker.replace(self._ctx, os.getpid(), self._job, self.limits)
+                if not self._closed and (not worker.alive() or worker.jobs >= self.max_jobs_per_worker):
+                    worker.replace(self._ctx, os.getpid(), self._job, self.limits)  # idle now: safe to stop
             self._idle.put(worker)
 
     def _wait(self, conn: Connection, proc: BaseProcess) -> str | None:

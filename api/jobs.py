@@ -91,12 +91,21 @@ class JobService:
             if outcome.status == "interrupted":
                 continue  # left running on purpose: the next start re-queues it
             outcome = self._collect(job.id, outcome)
-            for attempt in range(3):
-                try:
-                    self.store.finish_job(job.id, outcome.status, outcome.error)
-                    break
-                except Exception:  # a busy database: retry; the job stays running and is re-queued at start-up
-                    log.exception("could not record the end of job %s (try %d)", job.id, attempt + 1)
+            self._record_end(job.id, outcome)
+
+    def _record_end(self, job_id: str, outcome: Outcome) -> None:
+        """Write how a job ended, retrying (backing off to 5 s) while the database is busy or its disk is full,
+        so no job stays ``running`` while the server lives; at a stop it is re-queued at start-up."""
+        attempt = 0
+        while True:
+            try:
+                self.store.finish_job(job_id, outcome.status, outcome.error)
+                return
+            except Exception:
+                attempt += 1
+                log.exception("could not record the end of job %s (try %d)", job_id, attempt)
+            if self._stopping.wait(min(0.1 * 2 ** attempt, 5.0)):
+                return
 
     def task_of(self, job: JobRow) -> Task:
         """The task of ``job``; with a storage URL, its recording is copied there first (once)."""

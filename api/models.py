@@ -39,11 +39,30 @@ class TopicOut(BaseModel):
     messages: int
 
 
+class DroppedRangeOut(BaseModel):
+    start: int = Field(description="first byte left out (offset in the damaged upload)")
+    end: int = Field(description="one past the last byte left out")
+    bytes: int
+    reason: str
+
+
 class RecoveryOut(BaseModel):
     from_id: str = Field(description="sha256 of the damaged upload")
-    messages: int
+    messages: int = Field(description="messages kept")
     channels: int
+    lost: int = Field(description="messages lost: exact when lost_exact, else a lower bound")
+    lost_exact: bool = Field(description="lost is counted against the file's Statistics record")
+    expected: int | None = Field(description="messages the damaged file's statistics count; null when unreadable")
+    dropped: list[DroppedRangeOut] = Field(description="byte ranges left out, each with its reason")
+    notes: list[str]
     stopped_at: str | None = Field(description="where and why reading stopped; null when no damage was found")
+
+    @classmethod
+    def of(cls, report: RecoveryReport, from_id: str) -> RecoveryOut:
+        return cls(from_id=from_id, messages=report.messages, channels=report.channels, lost=report.lost,
+                   lost_exact=report.lost_exact, expected=report.expected,
+                   dropped=[DroppedRangeOut(start=a, end=b, bytes=b - a, reason=why) for a, b, why in report.dropped],
+                   notes=list(report.notes), stopped_at=report.stopped_at)
 
 
 class RecordingOut(BaseModel):
@@ -61,8 +80,7 @@ class RecordingOut(BaseModel):
 
     @classmethod
     def of(cls, rec: RecordingRow, report: RecoveryReport | None = None, from_id: str | None = None) -> RecordingOut:
-        recovered = None if report is None else RecoveryOut(from_id=from_id or "", messages=report.messages,
-                                                            channels=report.channels, stopped_at=report.stopped_at)
+        recovered = None if report is None else RecoveryOut.of(report, from_id or "")
         return cls(id=rec.id, filename=rec.filename, size_bytes=rec.size, message_count=rec.message_count,
                    start_ns=rec.start_ns, end_ns=rec.end_ns, duration_s=(rec.end_ns - rec.start_ns) / 1e9,
                    topics=[TopicOut(**t) for t in rec.topics], created_at=_time(rec.created),

@@ -24,7 +24,15 @@ from typing import Any
 
 from starlette.concurrency import run_in_threadpool
 
-from api.errors import ConflictError, NotFoundError, NotMcapError, TooLargeError, UnreadableError
+from api.errors import (
+    ConflictError,
+    NotFoundError,
+    NotMcapError,
+    TooLargeError,
+    UnreadableError,
+    disk_full_error,
+    is_disk_full,
+)
 from api.settings import Settings
 from api.store import RecordingRow, Store
 from recorder.errors import DamageError, RecorderError
@@ -78,6 +86,15 @@ class RecordingService:
         self.settings = settings
         self.store = store
 
+    def sweep(self) -> list[str]:
+        """Remove what uploads and recoveries cut off by a server stop left (temporary files no row names);
+        the names removed. Called at start-up: a server is the only writer of its data directory."""
+        left = [*self.settings.recordings_dir.glob(".upload-*.partial"),
+                *self.settings.recordings_dir.glob(".recover-*.mcap")]
+        for p in left:
+            p.unlink(missing_ok=True)
+        return sorted(p.name for p in left)
+
     def path(self, recording_id: str) -> Path:
         return self.settings.recordings_dir / f"{recording_id}.mcap"
 
@@ -119,13 +136,19 @@ class RecordingService:
         tmp = self.settings.recordings_dir / f".upload-{uuid.uuid4().hex}.partial"
         digest, size = hashlib.sha256(), 0
         try:
-            with open(tmp, "xb") as f:
-                async for chunk in chunks:
-                    size += len(chunk)
-                    if size > limit:
-                        raise TooLargeError(f"upload is over the limit of {limit} bytes (SLAMREPLAY_MAX_UPLOAD_BYTES)")
-                    digest.update(chunk)
-                    f.write(chunk)
+            try:
+                with open(tmp, "xb") as f:
+                    async for chunk in chunks:
+                        size += len(chunk)
+                        if size > limit:
+                            raise TooLargeError(f"upload is over the limit of {limit} bytes "
+                                                "(SLAMREPLAY_MAX_UPLOAD_BYTES)")
+                        digest.update(chunk)
+                        f.write(chunk)
+            except OSError as err:
+                if is_disk_full(err):
+                    raise disk_full_error(f"storing the upload {label} ({size:,} bytes received)") from err
+                raise
             return await run_in_threadpool(self._accept, tmp, digest.hexdigest(), size, label, recover_damaged)
         finally:
             tmp.unlink(missing_ok=True)

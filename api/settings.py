@@ -83,9 +83,8 @@ class Settings(BaseModel):
         return self.runs_dir / "jobs.sqlite"
 
     def make_dirs(self) -> None:
-        """Create the data directories (the data directory itself must exist)."""
-        if not self.data_dir.is_dir():
-            raise FileNotFoundError(f"data directory {self.data_dir} does not exist: create it first")
+        """Create the data directory (with its parents) and the directories in it."""
+        self.data_dir.mkdir(parents=True, exist_ok=True)
         for d in (self.recordings_dir, self.recordings_dir / "damaged", self.runs_dir, self.runs_dir / "diffs"):
             d.mkdir(exist_ok=True)
 

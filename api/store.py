@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import sqlite3
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -91,6 +92,10 @@ def _connect(path: Path) -> sqlite3.Connection:
     conn.row_factory = sqlite3.Row
     conn.execute("PRAGMA busy_timeout = 30000")
     conn.execute("PRAGMA synchronous = NORMAL")
+    # Checkpoint after every commit, so that the next write restarts the WAL from its start: it
+    # never grows past a few pages, and writes on a full disk (deleting a recording to make
+    # room) reuse its space instead of needing more.
+    conn.execute("PRAGMA wal_autocheckpoint = 1")
     return conn
 
 
@@ -115,32 +120,59 @@ def _job(row: sqlite3.Row) -> JobRow:
 
 
 def set_progress(db_path: str | Path, job_id: str, fraction: float) -> None:
-    """Record a running job's progress (0..1); called from worker processes."""
-    with _connection(Path(db_path)) as conn:
-        conn.execute("UPDATE jobs SET progress = ? WHERE id = ? AND status = 'running'",
-                     (min(max(fraction, 0.0), 1.0), job_id))
+    """Record a running job's progress (0..1); called from worker processes. Progress is advisory: a
+    database that is busy or on a full disk skips this report rather than failing the job."""
+    try:
+        with _connection(Path(db_path)) as conn:
+            conn.execute("UPDATE jobs SET progress = ? WHERE id = ? AND status = 'running'",
+                         (min(max(fraction, 0.0), 1.0), job_id))
+    except sqlite3.OperationalError:
+        pass
 
 
 class Store:
-    """Recordings and jobs in one SQLite file (created, in WAL mode, when missing)."""
+    """Recordings and jobs in one SQLite file (created, in WAL mode, when missing).
+
+    Each thread keeps one connection for the life of the store: opening one per call cost
+    more than most queries, and while a connection stays open SQLite keeps the WAL and
+    shared-memory files in place, so reads go on when the disk is full (a first connection
+    must create them, which a full disk refuses as "disk I/O error").
+    """
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        with _connection(path) as conn:
+        self._local = threading.local()
+        with self._read() as conn:
             conn.execute("PRAGMA journal_mode = WAL")
             conn.executescript(SCHEMA)
+
+    def _conn(self) -> sqlite3.Connection:
+        conn: sqlite3.Connection | None = getattr(self._local, "conn", None)
+        if conn is None:
+            conn = self._local.conn = _connect(self.path)
+        return conn
+
+    @contextmanager
+    def _read(self) -> Iterator[sqlite3.Connection]:
+        """This thread's connection, for statements that each run in their own implicit transaction."""
+        yield self._conn()
 
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
         """A write transaction that takes the lock up front (no upgrade deadlocks)."""
-        with _connection(self.path) as conn:
-            conn.execute("BEGIN IMMEDIATE")
-            try:
-                yield conn
-            except BaseException:
-                conn.execute("ROLLBACK")
-                raise
+        conn = self._conn()
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            yield conn
             conn.execute("COMMIT")
+        except BaseException:
+            if conn.in_transaction:  # also when COMMIT itself failed (a full disk)
+                try:
+                    conn.execute("ROLLBACK")
+                except sqlite3.Error:
+                    self._local.conn = None  # a connection that cannot roll back is not reused
+                    conn.close()
+            raise
 
     # -- recordings ----------------------------------------------------------------------
 
@@ -156,12 +188,12 @@ class Store:
         return _recording(row), cur.rowcount == 1
 
     def get_recording(self, recording_id: str) -> RecordingRow | None:
-        with _connection(self.path) as conn:
+        with self._read() as conn:
             row = conn.execute("SELECT * FROM recordings WHERE id = ?", (recording_id,)).fetchone()
         return None if row is None else _recording(row)
 
     def list_recordings(self) -> list[RecordingRow]:
-        with _connection(self.path) as conn:
+        with self._read() as conn:
             rows = conn.execute("SELECT * FROM recordings ORDER BY created DESC, id").fetchall()
         return [_recording(r) for r in rows]
 
@@ -193,7 +225,7 @@ class Store:
         return _job(row)
 
     def get_job(self, job_id: str) -> JobRow | None:
-        with _connection(self.path) as conn:
+        with self._read() as conn:
             row = conn.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
         return None if row is None else _job(row)
 
@@ -206,7 +238,7 @@ class Store:
                 where.append(f"{column} = ?")
                 args.append(value)
         sql = "SELECT * FROM jobs" + (" WHERE " + " AND ".join(where) if where else "") + " ORDER BY seq DESC LIMIT ?"
-        with _connection(self.path) as conn:
+        with self._read() as conn:
             rows = conn.execute(sql, (*args, limit)).fetchall()
         return [_job(r) for r in rows]
 
@@ -262,7 +294,7 @@ class Store:
         return requeued, interrupted
 
     def count_by_status(self) -> dict[str, int]:
-        with _connection(self.path) as conn:
+        with self._read() as conn:
             rows = conn.execute("SELECT status, COUNT(*) AS n FROM jobs GROUP BY status").fetchall()
         counts: dict[str, int] = dict.fromkeys(JOB_STATUSES, 0)
         counts.update({r["status"]: r["n"] for r in rows})
@@ -270,17 +302,17 @@ class Store:
 
     def durations(self) -> list[tuple[str, float]]:
         """(status, seconds from start to end) of every finished job that started."""
-        with _connection(self.path) as conn:
+        with self._read() as conn:
             rows = conn.execute("SELECT status, finished - started AS d FROM jobs "
                                 "WHERE started IS NOT NULL AND finished IS NOT NULL").fetchall()
         return [(r["status"], max(float(r["d"]), 0.0)) for r in rows]
 
     def count_recordings(self) -> int:
-        with _connection(self.path) as conn:
+        with self._read() as conn:
             return int(conn.execute("SELECT COUNT(*) FROM recordings").fetchone()[0])
 
     def active_jobs_of(self, recording_id: str) -> int:
-        with _connection(self.path) as conn:
+        with self._read() as conn:
             row = conn.execute("SELECT COUNT(*) FROM jobs WHERE recording_id = ? AND status IN ('queued', 'running')",
                                (recording_id,)).fetchone()
         return int(row[0])

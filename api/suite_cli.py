@@ -156,7 +156,12 @@ def cmd_compare(args: argparse.Namespace) -> int:
     result = compare(a, b, tolerances)
     if a.sha and b.sha:
         result.commits = commit_range(find_repo(), a.sha, b.sha)
-    write_reports(result, args.report, args.markdown)
+    pair_links = None
+    if args.rrd_dir is not None:
+        from replay.diff import write_comparison_rrd
+        from replay.report import pair_file_links, write_pair_rrds
+        pair_links = pair_file_links(write_pair_rrds(result, Path(args.rrd_dir), write_comparison_rrd))
+    write_reports(result, args.report, args.markdown, pair_links)
     if args.json:
         print(json.dumps(result.to_json(), indent=2, default=str))
     else:
@@ -231,6 +236,8 @@ def add_suite_parsers(sub: Any, quiet: argparse.ArgumentParser) -> None:
     cp.add_argument("--suite", metavar="SUITE.toml", help="the suite to run at a rev: side (cached)")
     cp.add_argument("--report", metavar="REPORT.html", help="write a self-contained HTML report")
     cp.add_argument("--markdown", metavar="SUMMARY.md", help="write the table as markdown (CI job summary)")
+    cp.add_argument("--rrd-dir", metavar="DIR", help="write one comparison .rrd per A/B run pair (both runs, "
+                                                     "same axes) into DIR; the report links each cell's pairs")
     cp.add_argument("--tolerance", action="append", default=[], metavar="NAME=VALUE",
                     help="allowed worsening of a metric: absolute, or N%% of A's mean; NAME * means every metric")
     cp.add_argument("--jobs", type=int, default=1, metavar="N", help="cells at once when a rev: side runs")

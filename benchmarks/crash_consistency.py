@@ -1,4 +1,4 @@
-"""kill -9 at random moments of `slamreplay record` and `slamreplay run`: what is left must never look whole.
+"""kill -9 at random moments of `slamreplay record`, `run`, `suite run` and `serve`: what is left must never look whole.
 
 Each trial starts the command as a process, sends SIGKILL after a seeded random delay (from
 just after start-up to past the end of the work), then checks what is on disk:
@@ -15,7 +15,9 @@ just after start-up to past the end of the work), then checks what is on disk:
 - disk full (a 2 MiB tmpfs, when this process may mount one): `record` and `run` exit 2 saying no
   space is left; no FILE, the .partial is recovered; no run.rrd or metrics.json is left.
 
-    .venv/bin/python benchmarks/crash_consistency.py --trials 20 [--json out.json]
+- suite run and serve (and the service on a full disk): see ``benchmarks/crash_suite_service.py``.
+
+    .venv/bin/python benchmarks/crash_consistency.py --trials 20 [--commands suite,serve] [--json out.json]
 
 Exit 1 when any trial breaks one of these rules.
 """
@@ -34,6 +36,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import crash_suite_service as cs
 
 SLAMREPLAY = [sys.executable, "-c", "import sys; from api.cli import main; sys.exit(main(sys.argv[1:]))"]
 REPO = Path(__file__).resolve().parents[1]
@@ -170,30 +175,68 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--trials", type=int, default=20, help="per command")
     p.add_argument("--seed", type=int, default=18)
     p.add_argument("--json", type=Path)
+    p.add_argument("--commands", default="record,run,suite,serve",
+                   help="comma-separated, of record, run, suite, serve (default: all)")
     args = p.parse_args(argv)
+    commands = set(args.commands.split(","))
+    if not commands <= {"record", "run", "suite", "serve"}:
+        p.error(f"--commands: unknown {sorted(commands - {'record', 'run', 'suite', 'serve'})}")
     rng = np.random.default_rng(args.seed)
     trials: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="slamreplay-kill-") as tmp:
         work = Path(tmp)
         t0 = time.perf_counter()
-        for k in range(args.trials):
-            trials.append(record_trial(work, k, float(rng.uniform(0.5, 7.0))))
-        recording = work / "long.mcap"
-        cli("record", "sim-landmarks", "--duration-s", "7200", "--seed", "1", "--out", recording, "-q")
-        baseline = work / "baseline"
-        cli("run", recording, "--pipeline", "odometry", "--out", baseline, "-q")
-        for k in range(args.trials):
-            trials.append(run_trial(work, recording, baseline, k, float(rng.uniform(0.5, 9.0))))
-        trials.extend(disk_full_trials(work, recording))
+        delays = {c: rng.uniform(lo, hi, args.trials) for c, lo, hi in (
+            ("record", 0.5, 7.0), ("run", 0.5, 9.0), ("suite", 0.5, 13.0), ("serve", 0.3, 5.0))}
+        if "record" in commands:
+            for k in range(args.trials):
+                trials.append(record_trial(work, k, float(delays["record"][k])))
+        if "run" in commands:
+            recording = work / "long.mcap"
+            cli("record", "sim-landmarks", "--duration-s", "7200", "--seed", "1", "--out", recording, "-q")
+            baseline = work / "baseline"
+            cli("run", recording, "--pipeline", "odometry", "--out", baseline, "-q")
+            for k in range(args.trials):
+                trials.append(run_trial(work, recording, baseline, k, float(delays["run"][k])))
+            trials.extend(disk_full_trials(work, recording))
+        if "suite" in commands or "serve" in commands:
+            suite_rec, suite_base = cs.suite_setup(work)
+        if "suite" in commands:
+            for k in range(args.trials):
+                trials.append(cs.suite_trial(work, suite_rec, suite_base, k, float(delays["suite"][k])))
+        if "serve" in commands:
+            upload = work / "upload.mcap"
+            cli("record", "sim-landmarks", "--duration-s", "300", "--seed", "2", "--out", upload, "-q")
+            data, rid, base = cs.serve_setup(work, suite_rec)
+            for k in range(args.trials):
+                trials.append(cs.serve_trial(work, data, rid, base, upload.read_bytes(), k,
+                                             float(delays["serve"][k])))
+            trials.append(cs.serve_disk_full(work, suite_rec, upload.read_bytes()))
         wall = time.perf_counter() - t0
-    for command in ("record", "run"):
+    for t in trials:
+        t.setdefault("finished", False)
+        t.setdefault("kill_after_s", None)
+    for command in ("record", "run", "suite run", "serve"):
         ts = [t for t in trials if t["command"] == command]
+        if not ts:
+            continue
         bad = [t for t in ts if t["problems"]]
         extra = ""
         if command == "record":
             rec = [t for t in ts if "partial_bytes" in t]
             extra = (f"; {len(rec)} left a .partial, recovered {sum(1 for t in rec if t.get('recovered'))} with "
                      f"messages, {sum(1 for t in rec if t.get('recovered') == 0)} refused as holding none")
+        elif command == "suite run":
+            extra = (f"; re-run resumed: {sum(t.get('reused', 0) for t in ts)} cells reused, "
+                     f"{sum(t.get('rerun', 0) for t in ts)} run again; results equal to an unkilled run")
+        elif command == "serve":
+            at_kill = {s: sum(t["at_kill"].get(s, 0) for t in ts) for s in ("queued", "running", "succeeded")}
+            ended = {s: sum(t.get("ended", {}).get(s, 0) for t in ts) for s in ("succeeded", "failed", "interrupted")}
+            ups = [t["upload"] for t in ts]
+            extra = (f"; jobs at the kill {at_kill}, after the restart {ended} "
+                     f"({sum(t.get('requeued', 0) for t in ts)} re-queued); slow uploads: "
+                     f"{sum(u in (200, 201) for u in ups)} completed, {sum(u not in (200, 201) for u in ups)} cut "
+                     f"({sum(t['partial_uploads_left'] for t in ts)} left a temporary file, removed at restart)")
         print(f"{command}: {len(ts)} kill -9 trials, {sum(t['finished'] for t in ts)} finished before the kill, "
               f"{len(ts) - len(bad)} left nothing that looks whole{extra}")
         for t in bad:
@@ -201,8 +244,13 @@ def main(argv: list[str] | None = None) -> int:
     for t in trials:
         if "disk full" in t["command"]:
             state = "ok" if not t["problems"] else "; ".join(t["problems"])
-            print(f"{t['command']}: {state}" + (f" ({t['recovered']} messages recovered from the .partial)"
-                                               if "recovered" in t else f" (left {t.get('left')})"))
+            if "skipped" in t:
+                print(f"{t['command']}: skipped, {t['skipped']}")
+            elif t["command"] == "serve (disk full)":
+                print(f"{t['command']}: {state} (upload {t.get('upload')}; job {t.get('job')})")
+            else:
+                print(f"{t['command']}: {state}" + (f" ({t['recovered']} messages recovered from the .partial)"
+                                                   if "recovered" in t else f" (left {t.get('left')})"))
     print(f"{wall:.0f} s")
     if args.json:
         args.json.write_text(json.dumps(trials, indent=1))

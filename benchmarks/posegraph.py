@@ -26,13 +26,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from bench_io import write_json
 
 from algorithms.common.posegraph import OptimizerConfig, PoseGraph, chi2, optimize
 from algorithms.common.posegraph_analysis import aligned_position_rmse
 from algorithms.common.posegraph_incremental import IncrementalConfig, IncrementalOptimizer
 from algorithms.common.posegraph_init import init_chordal, init_odometry
 from algorithms.common.robust import Kernel
-from algorithms.common.sparse_cholesky import HAVE_CHOLMOD
+from algorithms.common.sparse_cholesky import SparseCholesky
 from replay.graph_io import read_graph
 
 DATASETS = [
@@ -49,13 +50,25 @@ REL_TOL = 1e-6
 MAX_IT = 100
 
 
+def clock() -> float:
+    """The benchmark's clock: CPU time of the process (all threads), not wall time, which on a machine
+    shared with other jobs mostly measures their load; the same clock times ours and the peers'."""
+    return time.process_time()
+
+
+def solver_name() -> str:
+    """The linear solver the optimizer picks: superlu, or the binding that runs CHOLMOD."""
+    chol = SparseCholesky("auto")
+    return str(getattr(chol, "provider", chol.backend))  # revisions before the CVXOPT binding have no provider
+
+
 def median_time(fn: Callable[[], Any], repeat: int) -> tuple[float, Any]:
-    """Median wall time of ``repeat`` calls and the last result."""
+    """Median CPU time of ``repeat`` calls and the last result."""
     times, out = [], None
     for _ in range(repeat):
-        t = time.perf_counter()
+        t = clock()
         out = fn()
-        times.append(time.perf_counter() - t)
+        times.append(clock() - t)
     return float(np.median(times)), out
 
 
@@ -92,10 +105,10 @@ def g2o_solver(method: str) -> Callable[[PoseGraph], Callable[[], np.ndarray]] |
             term.set_gain_threshold(REL_TOL)
             term.set_max_iterations(MAX_IT)
             opt.add_post_iteration_action(term)
-            t = time.perf_counter()
+            t = clock()
             opt.initialize_optimization()
             opt.optimize(MAX_IT)
-            run.elapsed = time.perf_counter() - t  # type: ignore[attr-defined]
+            run.elapsed = clock() - t  # type: ignore[attr-defined]
             out = np.empty((g.n_vertices, 3))
             for k in range(g.n_vertices):
                 est = opt.vertex(k).estimate()
@@ -126,7 +139,7 @@ def gtsam_solver(method: str) -> Callable[[PoseGraph], Callable[[], np.ndarray]]
             initial.insert(k, gtsam.Pose2(*p))
 
         def run() -> np.ndarray:
-            t = time.perf_counter()
+            t = clock()
             if method == "gn":
                 params = gtsam.GaussNewtonParams()
                 params.setRelativeErrorTol(REL_TOL)
@@ -137,7 +150,7 @@ def gtsam_solver(method: str) -> Callable[[PoseGraph], Callable[[], np.ndarray]]
                 lm.setRelativeErrorTol(REL_TOL)
                 lm.setMaxIterations(MAX_IT)
                 result = gtsam.LevenbergMarquardtOptimizer(graph, initial, lm).optimize()
-            run.elapsed = time.perf_counter() - t  # type: ignore[attr-defined]
+            run.elapsed = clock() - t  # type: ignore[attr-defined]
             run.own_chi2 = 2.0 * graph.error(result)  # type: ignore[attr-defined]  # GTSAM's Logmap residual
             return np.asarray(gtsam.utilities.extractPose2(result))
 
@@ -170,7 +183,7 @@ def peer_chi2(g: PoseGraph, poses: np.ndarray | str) -> float:
 
 # ---- sections ------------------------------------------------------------------------------------
 
-def batch_table(data: Path, repeat: int, names: list[str]) -> None:
+def batch_table(data: Path, repeat: int, names: list[str]) -> dict[str, dict[str, float]]:
     """Time and chi2 of every solver on every dataset; our GN time divided by each peer's."""
     peers = {"g2o GN": g2o_solver("gn"), "GTSAM GN": gtsam_solver("gn"), "GTSAM LM": gtsam_solver("lm")}
     for name, prep in peers.items():
@@ -179,7 +192,10 @@ def batch_table(data: Path, repeat: int, names: list[str]) -> None:
     none = OptimizerConfig(kernel=Kernel.NONE)
     lm = OptimizerConfig(method="lm", kernel=Kernel.NONE)
     cols = ["ours GN", "ours LM", "ours chordal+GN", *[p for p, f in peers.items() if f is not None]]
-    print(f"\nlinear solver: {'CHOLMOD (scikit-sparse)' if HAVE_CHOLMOD else 'SciPy SuperLU (no scikit-sparse)'}")
+    provider = solver_name()
+    print(f"\nlinear solver: {'SciPy SuperLU' if provider == 'superlu' else f'CHOLMOD ({provider})'}; "
+          f"times are CPU ms (median of {repeat})")
+    figures: dict[str, dict[str, float]] = {}
     print(f"{'dataset':<17}{'ref chi2':>10} | " + " | ".join(f"{c:>22}" for c in cols) + " | ours GN / peer")
     for label, rel, ref in DATASETS:
         if label not in names:
@@ -202,8 +218,17 @@ def batch_table(data: Path, repeat: int, names: list[str]) -> None:
         ratios = [f"{cells['ours GN'][0] / cells[p][0]:.2f}x {p}" for p in cols[3:]]
         row = " | ".join(f"{cells[c][0] * 1e3:8.1f} ms {cells[c][1]:11.3f}" for c in cols)
         print(f"{label:<17}{ref:>10.3f} | {row} | " + ", ".join(ratios))
+        key = label.split(" ")[0].lower()
+        figures[key] = {"ours_gn_ms": 1e3 * cells["ours GN"][0], "chi2": cells["ours GN"][1],
+                        "ours_lm_ms": 1e3 * cells["ours LM"][0]}
+        for pname, field in (("g2o GN", "g2o_gn"), ("GTSAM GN", "gtsam_gn"), ("GTSAM LM", "gtsam_lm")):
+            if pname in cells:
+                figures[key][f"{field}_ms"] = 1e3 * cells[pname][0]
+                figures[key][f"{field}_chi2"] = cells[pname][1]
+                figures[key][f"ours_over_{field}"] = cells["ours GN"][0] / cells[pname][0]
         if own:
             print(f"{'':<17}{'':>10}   (GTSAM's own objective, 2 x error with its Logmap residual: {', '.join(own)})")
+    return figures
 
 
 def mit_minima(data: Path) -> None:
@@ -225,8 +250,46 @@ def mit_minima(data: Path) -> None:
                 print(f"  {pname} from {sname:<9}: {what}")
 
 
-def incremental_m3500(data: Path, every: int, iterations: int) -> None:
-    """Replay M3500 vertex by vertex; time the updates that carry loop closures."""
+def isam2_updates(g: PoseGraph, order: np.ndarray, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """GTSAM's iSAM2 (default ISAM2Params) fed the same updates: CPU time of each update that carries loop
+    closures, and its final poses; None without gtsam. A new vertex starts at its placing edge composed
+    onto the current estimate of the vertex it links to, as in ours."""
+    try:
+        import gtsam
+    except ImportError:
+        return None
+    isam = gtsam.ISAM2(gtsam.ISAM2Params())
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*g.poses[0]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
+    values.insert(0, gtsam.Pose2(*g.poses[0]))
+    isam.update(graph, values)
+    known = {0}
+    costs = []
+    for a, b in itertools.pairwise(bounds):
+        k = order[a:b]
+        if k.size == 0:
+            continue
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        for e in k:
+            i, j = int(g.i[e]), int(g.j[e])
+            z = gtsam.Pose2(*g.measurements[e])
+            graph.add(gtsam.BetweenFactorPose2(i, j, z, gtsam.noiseModel.Gaussian.Information(g.information[e])))
+            for new, old, rel in ((j, i, z), (i, j, z.inverse())):
+                if new not in known and old in known:
+                    base = values.atPose2(old) if values.exists(old) else isam.calculateEstimatePose2(old)
+                    values.insert(new, base.compose(rel))
+                    known.add(new)
+        t = clock()
+        isam.update(graph, values)
+        dt = clock() - t
+        if k.size > values.size():  # edges beyond the ones placing new vertices: loop closures
+            costs.append(dt)
+    est = isam.calculateEstimate()
+    return np.array(costs), np.asarray(gtsam.utilities.extractPose2(est))
+
+
+def incremental_m3500(data: Path, every: int, iterations: int) -> dict[str, float]:
+    """Replay M3500 vertex by vertex; time the updates that carry loop closures, ours and iSAM2's."""
     g = read_graph(data / "posegraph-m3500/manhattanOlson3500.g2o").graph
     inc = IncrementalOptimizer(IncrementalConfig(OptimizerConfig(kernel=Kernel.NONE, max_iterations=iterations,
                                                                  rel_tol=1e-5)))
@@ -234,30 +297,42 @@ def incremental_m3500(data: Path, every: int, iterations: int) -> None:
     order = np.argsort(newest, kind="stable")
     bounds = np.searchsorted(newest[order], np.arange(1, g.n_vertices + 1, every))
     costs, closures, iters = [], 0, 0
-    t_all = time.perf_counter()
+    t_all = clock()
     for a, b in itertools.pairwise(bounds):
         k = order[a:b]
         if k.size == 0:
             continue
-        t = time.perf_counter()
+        t = clock()
         res = inc.step(g.i[k], g.j[k], g.measurements[k], g.information[k])
-        dt = time.perf_counter() - t
+        dt = clock() - t
         if res.loop_closures:
             costs.append(dt)
             closures += res.loop_closures
             iters += res.iterations
-    total = time.perf_counter() - t_all
+    total = clock() - t_all
     k = order[bounds[-1]:]
     if k.size:
         inc.step(g.i[k], g.j[k], g.measurements[k], g.information[k])
     c = np.array(costs)
     final = chi2(g, inc.poses)
-    print(f"\nincremental M3500 ({every} vertex/update; GN <= {iterations} it/update, no kernel):")
+    print(f"\nincremental M3500 ({every} vertex/update; GN <= {iterations} it/update, no kernel), CPU time:")
     print(f"  {c.size} updates with loop closures ({closures} closures), total {total:.1f} s")
     print(f"  per loop-closure update: median {np.median(c) * 1e3:.1f} ms, mean {c.mean() * 1e3:.1f} ms, "
           f"max {c.max() * 1e3:.1f} ms, last 100 mean {c[-100:].mean() * 1e3:.1f} ms; "
           f"per loop closure {c.sum() / closures * 1e3:.1f} ms; {iters / c.size:.2f} GN it/update")
     print(f"  final chi2 {final:.3f} (batch optimum 146.077)")
+    figures = {"ours_update_median_ms": float(np.median(c) * 1e3), "ours_update_mean_ms": float(c.mean() * 1e3),
+               "ours_final_chi2": final, "closure_updates": int(c.size)}
+    peer = isam2_updates(g, order, bounds) if every == 1 else None
+    if peer is not None:
+        pc, poses = peer
+        print(f"  GTSAM iSAM2 (default parameters), same updates: median {np.median(pc) * 1e3:.1f} ms, "
+              f"mean {pc.mean() * 1e3:.1f} ms per loop-closure update ({pc.size}); final chi2 {chi2(g, poses):.3f}; "
+              f"ours / iSAM2 (median) {np.median(c) / np.median(pc):.2f}x")
+        figures.update({"isam2_update_median_ms": float(np.median(pc) * 1e3),
+                        "isam2_update_mean_ms": float(pc.mean() * 1e3), "isam2_final_chi2": chi2(g, poses),
+                        "ours_over_isam2": float(np.median(c) / np.median(pc))})
+    return figures
 
 
 def robustness_m3500(data: Path) -> None:
@@ -282,9 +357,9 @@ def robustness_m3500(data: Path) -> None:
             ("none", OptimizerConfig(kernel=Kernel.NONE, max_iterations=30))]
     false = np.arange(g.n_edges, bad.n_edges)
     for name, cfg in runs:
-        t = time.perf_counter()
+        t = clock()
         r = optimize(bad, cfg)
-        dt = time.perf_counter() - t
+        dt = clock() - t
         print(f"  outliers, {name:<15}: {aligned_position_rmse(r.poses, truth):8.4f} m "
               f"({r.iterations} it, {r.status.value}, {dt:.1f} s; rejected {r.edges_rejected}, "
               f"of them false {int((~r.inliers[false]).sum())}/{k})")
@@ -294,21 +369,32 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=Path(os.environ.get("SLAMREPLAY_DATA", "../shared/data")))
     parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--quick", action="store_true", help="batch table on m3500, intel and city10000 only")
+    parser.add_argument("--quick", action="store_true",
+                        help="batch table on m3500, intel and city10000, and the incremental M3500 only")
+    parser.add_argument("--json", type=Path, metavar="PATH", help="also write the figures as JSON to PATH")
     parser.add_argument("--skip", nargs="*", default=[], choices=["batch", "mit", "incremental", "robust"])
     parser.add_argument("--every", type=int, default=1, help="vertices per incremental update")
     parser.add_argument("--inc-iterations", type=int, default=1, help="GN iterations per incremental update")
     args = parser.parse_args()
+    if args.repeat < 1 or args.every < 1 or args.inc_iterations < 1:
+        parser.error("--repeat, --every and --inc-iterations must be >= 1")
+    if not args.data.is_dir():
+        parser.error(f"--data {args.data} is not a directory (the shared data sets: ../shared/data)")
     names = ["m3500 (Vertigo)", "intel", "city10000"] if args.quick else [d[0] for d in DATASETS]
+    if args.quick:
+        args.skip = sorted({*args.skip, "mit", "robust"})
+    figures: dict[str, Any] = {"benchmark": "posegraph", "repeat": args.repeat, "clock": "process CPU time",
+                               "linear_solver": solver_name()}
     if "batch" not in args.skip:
-        batch_table(args.data, args.repeat, names)
+        figures["datasets"] = batch_table(args.data, args.repeat, names)
     if "mit" not in args.skip:
         mit_minima(args.data)
     if "incremental" not in args.skip:
-        incremental_m3500(args.data, args.every, args.inc_iterations)
+        figures["incremental_m3500"] = incremental_m3500(args.data, args.every, args.inc_iterations)
     if "robust" not in args.skip:
         robustness_m3500(args.data)
-
+    if args.json:
+        write_json(args.json, figures)
 
 if __name__ == "__main__":
     main()

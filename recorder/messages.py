@@ -9,6 +9,7 @@ Arrays are stored as read-only copies; compare messages with :func:`assert_msg_e
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 from typing import ClassVar, Final, Literal
 
@@ -50,7 +51,8 @@ def _check_stamp(stamp_ns: object) -> None:
 
 def _check_finite(**values: float) -> None:
     for name, value in values.items():
-        if not np.isfinite(value):
+        # math.isfinite: a tenth of np.isfinite's cost on a scalar (this runs for every decoded pose)
+        if not math.isfinite(value):
             raise ValueError(f"{name} is {value}: every value in a message must be finite")
 
 
@@ -64,11 +66,18 @@ class PlanarPose:
     yaw_rad: float
 
     def __post_init__(self) -> None:
-        _check_stamp(self.stamp_ns)
-        _check_finite(x_m=self.x_m, y_m=self.y_m, yaw_rad=self.yaw_rad)
-        object.__setattr__(self, "stamp_ns", int(self.stamp_ns))
-        for name in ("x_m", "y_m", "yaw_rad"):
-            object.__setattr__(self, name, float(getattr(self, name)))
+        # One pose per decoded message: the common case (an int stamp, finite Python floats) is checked
+        # without a call per field; anything else goes through the general checks and conversions.
+        stamp, x, y, yaw = self.stamp_ns, self.x_m, self.y_m, self.yaw_rad
+        if type(stamp) is not int or stamp < 0:
+            _check_stamp(stamp)
+            object.__setattr__(self, "stamp_ns", int(stamp))
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(yaw)):
+            _check_finite(x_m=x, y_m=y, yaw_rad=yaw)
+        if type(x) is not float or type(y) is not float or type(yaw) is not float:
+            object.__setattr__(self, "x_m", float(x))
+            object.__setattr__(self, "y_m", float(y))
+            object.__setattr__(self, "yaw_rad", float(yaw))
 
     @property
     def xy_yaw(self) -> NDArray[np.float64]:

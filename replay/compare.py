@@ -41,7 +41,7 @@ from scipy import stats
 
 from replay.diff import judge_metric
 from replay.errors import ReplayError
-from replay.suite_run import add_metrics, read_results
+from replay.suite_run import add_metrics, read_results, unfinished
 
 ALPHA = 0.05
 VERDICT_ORDER = ("regression", "failed", "improvement", "noise", "unchanged", "changed", "missing")
@@ -149,14 +149,26 @@ def load_side(path: str | Path, label: str | None = None, kind: str | None = Non
     if not p.is_dir():
         raise ReplayError(f"{p} does not exist: give a run directory, a suite results directory, "
                           f"or rev:GITREV with --suite")
+    if (why := unfinished(p)) is not None:
+        raise ReplayError(why)
     if (p / "results.jsonl").is_file():
         rows, k = read_results(p), "results"
     else:
         rows, k = [_run_row(p)], "run"
     if not rows:
         raise ReplayError(f"{p}/results.jsonl has no rows: the suite ran no cells")
+    return side_of_rows(label or str(p), rows, kind or k, sha)
+
+
+def side_of_rows(label: str, rows: list[dict[str, Any]], kind: str, sha: str | None = None) -> Side:
+    """One side from results rows (as ``results.jsonl`` holds them), e.g. a suite the service ran."""
     versions = sorted({str(r.get("code_version")) for r in rows})
-    return Side(label or str(p), rows, kind or k, versions, sha, _libraries(rows))
+    return Side(label, rows, kind, versions, sha, _libraries(rows))
+
+
+def run_row(run_dir: Path) -> dict[str, Any]:
+    """A results row for one run directory (recording named by its file, variant ``default``)."""
+    return _run_row(run_dir)
 
 
 # ---------------------------------------------------------------------------------------

@@ -7,8 +7,9 @@ index in replay order, ``sensor_time`` = its log_time) before the pipeline sees 
 
 from __future__ import annotations
 
+import itertools
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -19,7 +20,7 @@ from algorithms.observe import Text
 from recorder.messages import TOPIC_GROUND_TRUTH_POSE
 from replay.errors import ReplayError
 from replay.pipeline import Pipeline, ReplayContext, ReplayObserver
-from replay.reader import RecordingReader
+from replay.reader import Envelope, RecordingReader
 from replay.trajectory import trajectory_artifacts
 
 Progress = Callable[[int, int], None]
@@ -62,16 +63,56 @@ def start_pose(reader: RecordingReader, start_topic: str, start_ns: int | None,
     t0 = first.log_time_ns
     if TOPIC_GROUND_TRUTH_POSE not in reader.info.logical_topics():
         return t0, None
+    truth = ((env.log_time_ns, env.msg.xy_yaw) for env in  # type: ignore[union-attr]
+             reader.messages([TOPIC_GROUND_TRUTH_POSE], start_ns=start_ns))
+    return t0, _truth_at(t0, truth)
+
+
+START_BUFFER = 10_000  # messages held while the start pose is found in the replay stream itself
+
+
+def start_from_stream(reader: RecordingReader, stream: Iterator[Envelope], topics: list[str], start_topic: str,
+                      start_ns: int | None, end_ns: int | None) -> tuple[int, np.ndarray | None, list[Envelope]]:
+    """``start_pose``, found in the replay stream: (t0, pose, the messages read to find it).
+
+    The replay stream holds the first ``start_topic`` message and, when the pipeline reads ground
+    truth, the ground truth around it: reading them there, and replaying the messages held, saves
+    two more passes over the start of the file (a chunk each). When the answer is not in the
+    stream's first START_BUFFER messages (ground truth that starts late, or ends before t0 within
+    the window), ``start_pose`` reads the file again, with the same result.
+    """
+    has_truth = TOPIC_GROUND_TRUTH_POSE in reader.info.logical_topics()
+    held: list[Envelope] = []
+    t0: int | None = None
+    if not has_truth or TOPIC_GROUND_TRUTH_POSE in topics:
+        for env in stream:
+            held.append(env)
+            if t0 is None and env.topic == start_topic:
+                t0 = env.log_time_ns
+                if not has_truth:
+                    return t0, None, held
+            if t0 is not None and env.topic == TOPIC_GROUND_TRUTH_POSE and env.log_time_ns >= t0:
+                truth = [(e.log_time_ns, e.msg.xy_yaw) for e in held  # type: ignore[union-attr]
+                         if e.topic == TOPIC_GROUND_TRUTH_POSE]
+                return t0, _truth_at(t0, truth), held
+            if len(held) >= START_BUFFER:
+                break
+    t0, pose = start_pose(reader, start_topic, start_ns, end_ns)
+    return t0, pose, held
+
+
+def _truth_at(t0: int, truth: Iterable[tuple[int, np.ndarray]]) -> np.ndarray | None:
+    """The ground-truth pose at t0 from (log_time, pose) in replay order: interpolated between the messages
+    around t0, the first one when none is before it, the last one when none is at or after it."""
     before: tuple[int, np.ndarray] | None = None
-    for env in reader.messages([TOPIC_GROUND_TRUTH_POSE], start_ns=start_ns):
-        pose = env.msg.xy_yaw  # type: ignore[union-attr]
-        if env.log_time_ns >= t0:
-            if before is None or env.log_time_ns == t0:
-                return t0, pose
+    for t, pose in truth:
+        if t >= t0:
+            if before is None or t == t0:
+                return pose
             tb, pb = before
-            return t0, se2.interpolate([float(t0 - tb)], [0.0, float(env.log_time_ns - tb)], np.stack([pb, pose]))[0]
-        before = (env.log_time_ns, pose)
-    return t0, None if before is None else before[1]
+            return np.asarray(se2.interpolate([float(t0 - tb)], [0.0, float(t - tb)], np.stack([pb, pose]))[0])
+        before = (t, pose)
+    return None if before is None else before[1]
 
 
 def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, observer: ReplayObserver, *,
@@ -80,7 +121,8 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
            config_sources: Mapping[str, str] | None = None) -> ReplayStats:
     """Run one pipeline over a recording and return its metrics."""
     topics = check_topics(reader, pipeline_cls)
-    t0, T_world_start = start_pose(reader, pipeline_cls.start_topic, start_ns, end_ns)
+    stream = reader.messages(topics, start_ns=start_ns, end_ns=end_ns)
+    t0, T_world_start, held = start_from_stream(reader, stream, topics, pipeline_cls.start_topic, start_ns, end_ns)
     total = sum(t.message_count for t in reader.info.topics if t.logical_topic in topics)
     ctx = ReplayContext(reader.info, seed, np.random.default_rng(seed), observer, T_world_start, t0, log,
                         dict(config_sources or {}))
@@ -92,7 +134,7 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
     times: list[int] = []
     n = 0
     every = max(1, total // 200)
-    for env in reader.messages(topics, start_ns=start_ns, end_ns=end_ns):
+    for env in itertools.chain(held, stream):
         observer.set_time(env.index, env.log_time_ns)
         if log_timings:
             tic = time.perf_counter()

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 
@@ -57,16 +58,19 @@ class RerunObserver:
     replay order) and ``sensor_time`` (the message's log_time). Geometry and scalars are
     buffered per entity and sent as columns every ``flush_rows`` rows (a Python ``rr.log``
     call costs ~0.3 ms, a column row ~0.02 ms); text and images are logged at once. The
-    content is the same as logging row by row, and flushing depends on row counts only.
+    content is the same as logging row by row, and flushing depends on row counts only. 256 rows
+    measured 8-10 % less CPU than 1024 on the replay benchmark: fewer buffered rows survive into the
+    garbage collector's older generations, and a column of 256 rows still costs little per row.
     """
 
-    def __init__(self, path: Path, recording_id: str, recording_name: str | None = None, flush_rows: int = 1024,
+    def __init__(self, path: Path, recording_id: str, recording_name: str | None = None, flush_rows: int = 256,
                  *, kind: str = "run", time_origin_ns: int = 0) -> None:
         self.stream = rr.RecordingStream(views.app_id(kind), recording_id=recording_id, send_properties=False,
                                          batcher_config=deterministic_batcher())
         self.stream.set_log_time_enabled(False)
         self.stream.save(path)
         self.step, self.sensor_time_ns = 0, 0
+        self._stream_time: tuple[int, int] | None = None  # the (step, sensor time) last set on the stream
         self.time_origin_ns = time_origin_ns
         self.flush_rows = flush_rows
         self._buffers: dict[tuple[str, type], list[tuple[int, int, Observation]]] = {}
@@ -79,9 +83,17 @@ class RerunObserver:
             self.stream.log(root, views.MAP_FLIP, static=True)
 
     def set_time(self, step: int, sensor_time_ns: int) -> None:
+        # The stream's own time is only needed by the rows logged at once (text, images...): it is set there,
+        # when it changed, instead of with two SDK calls for every replayed message.
         self.step, self.sensor_time_ns = step, sensor_time_ns
-        self.stream.set_time(views.STEP, sequence=step)
-        self.stream.set_time(views.SENSOR_TIME, duration=np.timedelta64(sensor_time_ns - self.time_origin_ns, "ns"))
+
+    def _sync_time(self) -> None:
+        now = (self.step, self.sensor_time_ns)
+        if now != self._stream_time:
+            self._stream_time = now
+            self.stream.set_time(views.STEP, sequence=self.step)
+            self.stream.set_time(views.SENSOR_TIME,
+                                 duration=np.timedelta64(self.sensor_time_ns - self.time_origin_ns, "ns"))
 
     def log(self, path: str, item: Observation) -> None:
         if path.startswith("world/"):
@@ -89,11 +101,15 @@ class RerunObserver:
         if isinstance(item, State):
             self._states.setdefault(path, set()).add(item.state)
         if isinstance(item, (Text, Image, Bars, Markdown, State)):
+            self._sync_time()
             self.stream.log(path, *to_archetypes(path, item))
             return
-        if isinstance(item, Scalar):
-            self._style_series(path)
-        rows = self._buffers.setdefault((path, type(item)), [])
+        key = (path, type(item))
+        rows = self._buffers.get(key)
+        if rows is None:
+            if isinstance(item, Scalar):
+                self._style_series(path)
+            rows = self._buffers[key] = []
         rows.append((self.step, self.sensor_time_ns, item))
         if len(rows) >= self.flush_rows:
             self._flush(path, type(item))
@@ -188,9 +204,22 @@ def to_columns(path: str, items: list[Any]) -> list[Any]:
     lengths = np.array([len(s) for s in strips_per_row])
     strips = [s for row in strips_per_row for s in row]
     radius = 0.03 if isinstance(first, LineStrips) else 0.015
-    cols = rr.LineStrips2D.columns(strips=strips, colors=np.tile(color, (len(strips), 1)),
+    cols = rr.LineStrips2D.columns(strips=_strips_arrow(strips), colors=np.tile(color, (len(strips), 1)),
                                    radii=np.full(len(strips), radius))
     return [cols.partition(lengths)]
+
+
+def _strips_arrow(strips: list[np.ndarray]) -> pa.Array:
+    """Polylines as one Arrow list array of the LineStrip2D component: the array the SDK builds (float32
+    points, one list per strip), made with one concatenation instead of an Arrow array per strip."""
+    dtype = rr.components.LineStrip2DBatch._ARROW_DATATYPE
+    counts = np.array([len(s) for s in strips], np.int32)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+    # float64 -> float32 once over all points: the same values as the SDK's conversion strip by strip
+    flat = (np.concatenate([np.asarray(s).reshape(-1, 2) for s in strips]).astype(np.float32).reshape(-1)
+            if strips else np.empty(0, np.float32))
+    points = pa.FixedSizeListArray.from_arrays(pa.array(flat, pa.float32()), type=dtype.value_type)
+    return pa.ListArray.from_arrays(pa.array(offsets, pa.int32()), points, type=dtype)
 
 
 def _strips(item: Any) -> list[np.ndarray]:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import heapq
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
+from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,7 @@ from mcap.records import Channel, Chunk, ChunkIndex, Metadata, Schema
 from mcap.records import Message as McapMessage
 
 from recorder.codec import TopicDecoder
-from recorder.codec.mcap_io import McapFile, Summary, chunk_records, decompress, record_name
+from recorder.codec.mcap_io import McapFile, Summary, chunk_messages, chunk_records, decompress, record_name
 from recorder.codec.ros2 import canonical_ros_type
 from recorder.errors import CodecError, DamageError
 from recorder.messages import TOPIC_TYPES, Message
@@ -319,6 +320,14 @@ class RecordingReader:
 
     def _raw_indexed(self, f: McapFile, wanted: set[int], start_ns: int | None,
                      end_ns: int | None) -> Iterator[tuple[Channel, int, int, bytes]]:
+        """A k-way merge of the chunks, each read when the merge reaches its first log time.
+
+        The merge key of a message is (log_time, chunk offset, index in chunk); a chunk enters the
+        heap with key (message_start_time, offset, -1). When every message of a chunk just read
+        sorts before the heap's smallest key (chunks that do not overlap in time, the usual case),
+        the chunk is yielded in one stable sort by log_time, which is the same order, without a
+        heap push per message.
+        """
         assert self._chunk_indexes is not None
         heap: list[tuple[int, int, int, Any]] = []
         for ci in self._chunk_indexes:
@@ -327,17 +336,31 @@ class RecordingReader:
             if end_ns is not None and ci.message_start_time >= end_ns:
                 continue
             heapq.heappush(heap, (ci.message_start_time, ci.chunk_start_offset, -1, ci))
+        channels = self._channels
         while heap:
             _, offset, i, item = heapq.heappop(heap)
             if i >= 0:
-                yield self._channels[item.channel_id], item.log_time, item.publish_time, item.data
+                log_time, _, channel_id, publish_time, data = item
+                yield channels[channel_id], log_time, publish_time, data
                 continue
             chunk, _ = f.chunk(item)
-            data = decompress(chunk, offset)
-            for k, record in enumerate(chunk_records(data, offset)):
-                if isinstance(record, McapMessage) and self._keep(record, wanted, start_ns, end_ns,
-                                                              f"in the chunk at byte {offset}"):
-                    heapq.heappush(heap, (record.log_time, offset, k, record))
+            found = chunk_messages(decompress(chunk, offset), offset)
+            unknown = next((m[2] for m in found if m[2] not in channels), None)
+            if unknown is not None:
+                raise DamageError(f"a Message record in the chunk at byte {offset} refers to channel {unknown}, "
+                                  f"which the file does not define")
+            kept = [m for m in found if m[2] in wanted and (start_ns is None or m[0] >= start_ns)
+                    and (end_ns is None or m[0] < end_ns)]
+            if not kept:
+                continue
+            last = max(m[0] for m in kept)
+            if not heap or heap[0][:2] > (last, offset):
+                kept.sort(key=itemgetter(0))  # stable: ties keep their order in the chunk
+                for log_time, _, channel_id, publish_time, data in kept:
+                    yield channels[channel_id], log_time, publish_time, data
+                continue
+            for m in kept:
+                heapq.heappush(heap, (m[0], offset, m[1], m))
 
     def _raw_linear(self, f: McapFile, wanted: set[int], start_ns: int | None,
                     end_ns: int | None) -> Iterator[tuple[Channel, int, int, bytes]]:

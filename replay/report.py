@@ -4,15 +4,18 @@ The HTML needs no network: CSS is inline and every plot is an inline SVG drawn h
 values of A and B on one axis, the A-B pairs joined, so a shift shared by every seed stands
 out from scatter; and the estimated trajectories of A and B overlaid, per cell and seed, from
 each run's ``trajectory.tum``). Regressions are red, improvements green, the rest grey. Each cell links to
-its A and B run directories.
+its A and B run directories and, where a comparison ``.rrd`` of an A/B pair is known (``compare
+--rrd-dir``, or the service, which makes one on request), to it.
 """
 
 from __future__ import annotations
 
 import html
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -27,9 +30,14 @@ body{font-family:system-ui,sans-serif;margin:2em;color:#222}
 table{border-collapse:collapse;font-size:13px}td,th{padding:3px 8px;border-bottom:1px solid #ddd;text-align:right}
 td.l,th.l{text-align:left}tr.regression,tr.failed{background:#fde0e0;color:#8b0000;font-weight:bold}
 tr.improvement{background:#e3f4e3;color:#1b5e20}tr.unchanged,tr.noise,tr.changed,tr.missing{color:#777}
-code{background:#f3f3f3;padding:0 3px}.legend span{margin-right:1em}
+code{background:#f3f3f3;padding:0 3px}.legend span{margin-right:1em}td a{white-space:nowrap}
 """
 
+
+
+def _named(metric: str, unit: str) -> str:
+    """A metric's name with its unit, unless the name already ends with it (``landmark_rmse_m``, unit m)."""
+    return metric if not unit or metric.endswith(f"_{unit}") else f"{metric} ({unit})"
 
 def _strip_plot(r: MetricResult, width: int = 220, height: int = 34) -> str:
     """Per-seed values: A (grey) on the upper row, B (blue) on the lower, pairs joined."""
@@ -102,24 +110,115 @@ def _trajectories(c: Comparison) -> list[str]:
     return out
 
 
-def _link(path: str | None, base: Path, text: str) -> str:
-    if not path:
-        return ""
+Row = Mapping[str, Any]
+
+
+@dataclass(frozen=True)
+class Links:
+    """Where the report's links point: a run (by its results row) and an A/B pair's comparison .rrd.
+
+    The defaults suit a report file: run directories relative to the report's folder, and no
+    pair links. The service links its own pages instead; ``compare --rrd-dir`` adds pair files.
+    """
+
+    run: Callable[[Row], str | None] | None = None
+    pair: Callable[[Row, Row], str | None] | None = None
+
+
+def _href(path: str, base: Path) -> str:
     try:
-        href = os.path.relpath(path, base)
+        return os.path.relpath(path, base)
     except ValueError:
-        href = path
-    return f'<a href="{html.escape(href)}">{html.escape(text)}</a>'
+        return path
 
 
-def _runs(c: Comparison, r: MetricResult, side: str) -> list[str]:
+def _run_href(row: Row, base: Path, links: Links) -> str | None:
+    if links.run is not None:
+        return links.run(row)
+    path = row.get("run_dir")
+    return _href(str(path), base) if path else None
+
+
+def _link(href: str | None, text: str, title: str = "") -> str:
+    if not href:
+        return ""
+    tip = f' title="{html.escape(title)}"' if title else ""
+    return f'<a href="{html.escape(href)}"{tip}>{html.escape(text)}</a>'
+
+
+def _group_rows(c: Comparison, r: MetricResult, side: str) -> list[Row]:
     rows = (c.a if side == "A" else c.b).rows
-    return [str(x.get("run_dir")) for x in rows
-            if (x["recording"], x["pipeline"], x["variant"]) == (r.recording, r.pipeline, r.variant)]
+    return [x for x in rows if (x["recording"], x["pipeline"], x["variant"]) == (r.recording, r.pipeline, r.variant)]
 
 
-def render_html(c: Comparison, base: Path) -> str:
-    """The report; links are relative to ``base`` (the report's folder)."""
+def seed_pairs(c: Comparison, r: MetricResult) -> list[tuple[Row, Row]]:
+    """The A and B rows of ``r``'s cell with the same seeds (recording seed, run seed), in seed order."""
+    def seeds(x: Row) -> tuple[int, int]:
+        rs = x.get("recording_seed")
+        return (-1 if rs is None else int(rs), int(x.get("seed") or 0))
+
+    b = {seeds(x): x for x in _group_rows(c, r, "B")}
+    a = {seeds(x): x for x in _group_rows(c, r, "A")}
+    if len(a) == 1 and len(b) == 1 and c.a.kind == "run" and c.b.kind == "run":
+        return [(next(iter(a.values())), next(iter(b.values())))]  # two lone runs are one pair, whatever their seeds
+    return [(a[s], b[s]) for s in sorted(set(a) & set(b))]
+
+
+def _links_here(r: MetricResult, shown: set[tuple[str, str, str]]) -> bool:
+    """A cell's links go on its first row and on each of its regressions, not on every metric's row."""
+    key = (r.recording, r.pipeline, r.variant)
+    first = key not in shown
+    shown.add(key)
+    return first or r.verdict in ("regression", "failed")
+
+
+def _pair_label(ra: Row) -> str:
+    rs = ra.get("recording_seed")
+    return f"A/B {'' if rs is None else f'r{rs}'}s{ra.get('seed', 0)}"
+
+
+def _cell_links(c: Comparison, r: MetricResult, base: Path, links: Links) -> str:
+    out = [_link(_run_href(x, base, links), f"{side}{i + 1}") for side in ("A", "B")
+           for i, x in enumerate(_group_rows(c, r, side))]
+    if links.pair is not None:
+        for ra, rb in seed_pairs(c, r):
+            rs = "" if ra.get("recording_seed") is None else f"recording seed {ra.get('recording_seed')}, "
+            out.append(_link(links.pair(ra, rb), _pair_label(ra),
+                             f"{rs}seed {ra.get('seed', 0)}: both runs in one .rrd"))
+    return " ".join(x for x in out if x)
+
+
+def write_pair_rrds(c: Comparison, rrd_dir: Path, write: Callable[[Path, Path, Path], None]
+                    ) -> dict[tuple[str, str], Path]:
+    """One comparison .rrd per A/B pair of succeeded runs in ``rrd_dir`` (``write(a_dir, b_dir, out)``);
+    (A run dir, B run dir) -> file. A file already there is reused (its name holds both run directories')."""
+    made: dict[tuple[str, str], Path] = {}
+    for r in c.results:
+        for ra, rb in seed_pairs(c, r):
+            key = (str(ra.get("run_dir")), str(rb.get("run_dir")))
+            if key in made or ra.get("status") != "succeeded" or rb.get("status") != "succeeded":
+                continue
+            out = rrd_dir / f"{Path(key[0]).name}--{Path(key[1]).name}.rrd"
+            if not out.is_file():
+                rrd_dir.mkdir(parents=True, exist_ok=True)
+                write(Path(key[0]), Path(key[1]), out)
+            made[key] = out
+    return made
+
+
+def pair_file_links(files: Mapping[tuple[str, str], Path]) -> Callable[[Path], Links]:
+    """``write_reports``'s ``pair_links`` for files ``write_pair_rrds`` made: relative to each report."""
+    def links(base: Path) -> Links:
+        def pair(ra: Row, rb: Row) -> str | None:
+            f = files.get((str(ra.get("run_dir")), str(rb.get("run_dir"))))
+            return None if f is None else _href(str(f), base)
+        return Links(pair=pair)
+    return links
+
+
+def render_html(c: Comparison, base: Path, links: Links | None = None) -> str:
+    """The report; links are relative to ``base`` (the report's folder) unless ``links`` says otherwise."""
+    links = links or Links()
     e = html.escape
     reg = c.regressions
     out = ["<!doctype html><html><head><meta charset='utf-8'><title>slamreplay compare</title>",
@@ -144,16 +243,16 @@ def render_html(c: Comparison, base: Path) -> str:
             "<table><tr><th class='l'>cell</th><th class='l'>metric</th><th>better</th><th>A mean ± sd</th>"
             "<th>B mean ± sd</th><th>B - A</th><th>tolerance</th><th>p</th><th class='l'>test</th>"
             "<th class='l'>verdict</th><th class='l'>seeds</th><th class='l'>runs</th></tr>"]
+    shown: set[tuple[str, str, str]] = set()
     for r in c.results:
-        a_links = " ".join(_link(p, base, f"A{i + 1}") for i, p in enumerate(_runs(c, r, "A")))
-        b_links = " ".join(_link(p, base, f"B{i + 1}") for i, p in enumerate(_runs(c, r, "B")))
+        cell_links = _cell_links(c, r, base, links) if _links_here(r, shown) else ""
         out.append(f"<tr class='{r.verdict}'><td class='l'>{e(r.recording)}/{e(r.pipeline)}/{e(r.variant)}</td>"
-                   f"<td class='l'>{e(r.metric)} {e(r.unit)}</td><td>{e(r.better)}</td>"
+                   f"<td class='l'>{e(_named(r.metric, r.unit))}</td><td>{e(r.better)}</td>"
                    f"<td>{e(fmt_ms(r.a_mean, r.a_sd))}</td><td>{e(fmt_ms(r.b_mean, r.b_sd))}</td>"
                    f"<td>{e(fmt(r.delta, signed=True))}</td><td>{e(fmt(r.tolerance))}</td>"
                    f"<td>{e(fmt(r.p_value, 3))}</td><td class='l'>{e(r.test)}</td>"
                    f"<td class='l'>{e(r.verdict)}</td><td class='l'>{_strip_plot(r)}</td>"
-                   f"<td class='l'>{a_links} {b_links}</td></tr>")
+                   f"<td class='l'>{cell_links}</td></tr>")
     out.append("</table>")
     plots = _trajectories(c)
     if plots:
@@ -163,7 +262,7 @@ def render_html(c: Comparison, base: Path) -> str:
     if c.failures:
         out.append("<h2>Failed runs</h2><ul>" + "".join(
             f"<li>{e(f['side'])}: {e(f['cell'])} seeds {e(str(f['seeds']))}: {e(str(f['error']))} "
-            f"{_link(f.get('run_dir'), base, 'run')}</li>" for f in c.failures) + "</ul>")
+            f"{_link(_run_href(f, base, links), 'run')}</li>" for f in c.failures) + "</ul>")
     if c.only_a or c.only_b:
         out.append(f"<p>Not compared: only in A: {e(', '.join(c.only_a) or '-')}; "
                    f"only in B: {e(', '.join(c.only_b) or '-')}</p>")
@@ -171,8 +270,9 @@ def render_html(c: Comparison, base: Path) -> str:
     return "\n".join(out)
 
 
-def render_markdown(c: Comparison, base: Path) -> str:
+def render_markdown(c: Comparison, base: Path, links: Links | None = None) -> str:
     """The same table in GitHub-flavoured markdown (regressions marked with a red circle)."""
+    links = links or Links()
     mark = {"regression": "🔴 **regression**", "failed": "🔴 **failed**", "improvement": "🟢 improvement"}
     reg = c.regressions
     lines = [f"### slamreplay compare: {len(reg)} regression(s)", "",
@@ -185,9 +285,14 @@ def render_markdown(c: Comparison, base: Path) -> str:
         lines.append(f"- changed `{ch['field']}`: `{ch['a']!r}` → `{ch['b']!r}`")
     lines += ["", "| cell | metric | A mean ± sd | B mean ± sd | B - A | p | verdict | runs |",
               "| --- | --- | ---: | ---: | ---: | ---: | --- | --- |"]
+    shown: set[tuple[str, str, str]] = set()
     for r in c.results:
-        runs = " ".join(f"[{s}{i + 1}]({os.path.relpath(p, base)})" for s in ("A", "B")
-                        for i, p in enumerate(_runs(c, r, s)))
+        here = _links_here(r, shown)
+        runs = " ".join(f"[{s}{i + 1}]({href})" for s in ("A", "B")
+                        for i, x in enumerate(_group_rows(c, r, s)) if here and (href := _run_href(x, base, links)))
+        if links.pair is not None and here:
+            runs += "".join(f" [{_pair_label(ra)}]({href})" for ra, rb in seed_pairs(c, r)
+                            if (href := links.pair(ra, rb)))
         lines.append(f"| {r.recording}/{r.pipeline}/{r.variant} | {r.metric} | {fmt_ms(r.a_mean, r.a_sd)} | "
                      f"{fmt_ms(r.b_mean, r.b_sd)} | {fmt(r.delta, signed=True)} | {fmt(r.p_value, 3)} | "
                      f"{mark.get(r.verdict, r.verdict)} | {runs} |")
@@ -196,13 +301,15 @@ def render_markdown(c: Comparison, base: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_reports(c: Comparison, html_path: str | Path | None, md_path: str | Path | None) -> None:
-    """Write the requested files, each whole or not at all."""
+def write_reports(c: Comparison, html_path: str | Path | None, md_path: str | Path | None,
+                  pair_links: Callable[[Path], Links] | None = None) -> None:
+    """Write the requested files, each whole or not at all; ``pair_links(base)`` adds comparison .rrd links."""
     for path, render in ((html_path, render_html), (md_path, render_markdown)):
         if path is None:
             continue
         p = Path(path)
-        atomic_write(p, render(c, p.resolve().parent))
+        base = p.resolve().parent
+        atomic_write(p, render(c, base, pair_links(base) if pair_links else None))
 
 
 def verdict_counts(results: Sequence[MetricResult]) -> dict[str, int]:

@@ -27,7 +27,7 @@ import hashlib
 import json
 import re
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,6 +43,7 @@ from replay.pipeline import get_pipeline, resolve_config
 SIMULATORS = ("sim-landmarks", "sim-seabed", "sim-corridor")
 TOP_KEYS = {"seeds", "recordings", "pipelines", "name"}
 RECORDING_KEYS = {"path", "url", "sim", "args", "seeds", "topic_map"}
+ID_RECORDING_KEYS = {"id"}  # a suite sent to the service names uploaded recordings by id, nothing else
 PIPELINE_KEYS = {"variants", "config"}
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
@@ -58,6 +59,7 @@ class RecordingSpec:
     args: dict[str, Any] = field(default_factory=dict)
     seeds: tuple[int, ...] = (0,)
     topic_map: dict[str, str] = field(default_factory=dict)
+    id: str | None = None  # the service's recording id (sha256), for a suite sent to the service
 
 
 @dataclass(frozen=True, slots=True)
@@ -216,10 +218,30 @@ def sim_kwargs(sim: str, args: Mapping[str, Any]) -> dict[str, Any]:
     return {k.replace("-", "_"): v for k, v in args.items()}
 
 
-def _recording(chk: _Checker, name: str, doc: Any, base: Path) -> RecordingSpec:
+def _recording_by_id(chk: _Checker, name: str, doc: dict[str, Any], ids: Callable[[str], Path]) -> RecordingSpec:
+    keys = ["recordings", name]
+    for key in doc:
+        if key in RECORDING_KEYS:
+            raise chk.fail([*keys, key], 'the service runs uploaded recordings only: name one by id = "SHA256" '
+                                         "(upload it with POST /recordings first)")
+    chk.unknown(doc, ID_RECORDING_KEYS, keys)
+    rid = doc.get("id")
+    if not isinstance(rid, str) or not rid:
+        raise chk.fail(keys, 'needs id = "SHA256" (the id POST /recordings answered)')
+    try:
+        path = ids(rid)
+    except ReplayError as err:
+        raise chk.fail([*keys, "id"], str(err)) from None
+    return RecordingSpec(name, path=path, id=rid)
+
+
+def _recording(chk: _Checker, name: str, doc: Any, base: Path,
+               ids: Callable[[str], Path] | None = None) -> RecordingSpec:
     keys = ["recordings", name]
     chk.name(name, keys)
     doc = chk.table(doc, keys)
+    if ids is not None:
+        return _recording_by_id(chk, name, doc, ids)
     chk.unknown(doc, RECORDING_KEYS, keys)
     sources = [k for k in ("path", "url", "sim") if k in doc]
     if len(sources) != 1:
@@ -288,13 +310,28 @@ def _pipeline(chk: _Checker, name: str, doc: Any) -> dict[str, dict[str, Any]]:
     return variants
 
 
-def parse_suite(text: str, path: Path) -> Suite:
-    """Validate a suite's TOML ``text`` (from ``path``, the base of relative recording paths)."""
-    chk = _Checker(path, text)
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise ReplayError(f"{path}: not valid TOML: {err}") from None
+def parse_suite(text: str, path: Path, *, ids: Callable[[str], Path] | None = None, fmt: str = "toml") -> Suite:
+    """Validate a suite's TOML ``text`` (from ``path``, the base of relative recording paths).
+
+    With ``ids`` (the service), recordings are named only by ``id``, which ``ids`` turns into
+    a local file (or raises ReplayError saying why not); ``fmt="json"`` reads the same
+    structure as JSON (errors then name the key but no line).
+    """
+    chk = _Checker(path, text if fmt == "toml" else "")
+    if fmt == "json":
+        try:
+            doc = json.loads(text)
+        except json.JSONDecodeError as err:
+            raise ReplayError(f"{path}: not valid JSON: {err}") from None
+        if not isinstance(doc, dict):
+            raise ReplayError(f"{path}: a suite must be a JSON object, got {type(doc).__name__}")
+    elif fmt == "toml":
+        try:
+            doc = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as err:
+            raise ReplayError(f"{path}: not valid TOML: {err}") from None
+    else:
+        raise ReplayError(f"unknown suite format {fmt!r}: toml or json")
     chk.unknown(doc, TOP_KEYS, [])
     seeds = chk.seeds(doc.get("seeds", [0]), ["seeds"])
     recs = chk.table(doc.get("recordings"), ["recordings"]) if "recordings" in doc else {}
@@ -304,7 +341,7 @@ def parse_suite(text: str, path: Path) -> Suite:
     if not pipes:
         raise chk.fail([], "names no pipelines: add a [pipelines.NAME] table (see `slamreplay pipelines`)")
     base = path.resolve().parent
-    recordings = {name: _recording(chk, name, d, base) for name, d in recs.items()}
+    recordings = {name: _recording(chk, name, d, base, ids) for name, d in recs.items()}
     pipelines = {name: _pipeline(chk, name, d) for name, d in pipes.items()}
     name = doc.get("name", path.stem)
     if not isinstance(name, str):

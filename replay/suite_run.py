@@ -2,7 +2,9 @@
 
 ``RESULTS_DIR/`` holds ``results.jsonl`` (one row per cell: the cell, every metric with its
 direction, recording sha256, config hash, code version, status, wall time, peak memory, the
-run directory), ``suite.json`` (what ran: suite, code version, revision) and ``runs/<cell>/``.
+run directory), ``suite.json`` (what ran: suite, code version, revision, and ``finished``, true
+only once every row is written) and ``runs/<cell>/``. A suite run killed part-way is resumed by
+running it again into the same directory: its finished cells are reused.
 
 A cell's cache key is the sha256 of its inputs: recording sha256, pipeline, the variant's
 config values, run seed, topic map and code version. The resolved configuration is a function
@@ -303,9 +305,13 @@ def run_suite(suite: Suite, out: Path, code: str, run_cells: Callable[[list[Cell
     recordings = materialize(suite, cache or cache_dir())
     jobs, cached = plan(suite, recordings, out, code)
     todo = [j for j in jobs if j.key not in cached]
-    atomic_write(out / "suite.json", json.dumps({
-        "format": RESULTS_FORMAT, "suite": str(suite.path), "suite_name": suite.name, "suite_sha256": suite.sha256,
-        "code_version": code, "rev": rev, "cells": len(jobs)}, indent=2, sort_keys=True) + "\n")
+    about = {"format": RESULTS_FORMAT, "suite": str(suite.path), "suite_name": suite.name,
+             "suite_sha256": suite.sha256, "code_version": code, "rev": rev, "cells": len(jobs)}
+
+    def write_about(finished: bool) -> None:
+        atomic_write(out / "suite.json", json.dumps(about | {"finished": finished}, indent=2, sort_keys=True) + "\n")
+
+    write_about(False)
     by_key = {j.key: row(j, code, cached=True) for j in jobs if j.key in cached}
     order = [j.key for j in jobs]
     total, done = len(order), len(cached)
@@ -323,4 +329,29 @@ def run_suite(suite: Suite, out: Path, code: str, run_cells: Callable[[list[Cell
             progress(done, total)
     rows = [by_key[k] for k in order]
     write_results(out, rows)
+    write_about(True)  # last: until here, compare refuses this directory as unfinished
     return rows
+
+
+def unfinished(out: Path) -> str | None:
+    """Why the results directory ``out`` is not a finished suite run (None: it is, or it is no suite's).
+
+    ``suite.json`` says ``finished: false`` from the start of ``suite run`` until its last row is
+    written, so a run that is still going, or was killed, is never read as a whole suite.
+    """
+    try:
+        about = json.loads((out / "suite.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    if not isinstance(about, dict):
+        return None
+    try:
+        rows = len((out / "results.jsonl").read_text().splitlines())
+    except OSError:
+        rows = 0
+    cells = about.get("cells")
+    if about.get("finished") is False or (isinstance(cells, int) and rows < cells):
+        return (f"{out} is an unfinished suite run ({rows} of {cells} cells have results): it is running now or "
+                f"was stopped; finish it with `slamreplay suite run {about.get('suite', 'SUITE.toml')} --out {out}` "
+                f"(finished cells are reused)")
+    return None

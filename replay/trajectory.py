@@ -27,19 +27,20 @@ class TrajectoryLog:
         self._n = 0
         self._checkpoint = 0
         self._pending: tuple[float, float] | None = None
+        self._last = (0.0, 0.0)  # the last kept point, as Python floats (numpy indexing costs per call)
 
     def append(self, x: float, y: float) -> None:
         """Offer a point (at the observer's current time); draw when it is kept."""
-        n = self._n
-        if n and math.hypot(x - self._xy[n - 1, 0], y - self._xy[n - 1, 1]) < self.min_spacing_m:
+        if self._n and math.hypot(x - self._last[0], y - self._last[1]) < self.min_spacing_m:
             self._pending = (x, y)
             return
         self._pending = None
         self._push(x, y)
         if self._n - self._checkpoint > max(10.0, math.sqrt(self._n)):
-            self.observer.log(self.path, LineStrips((self._xy[: self._n].copy(),)))
+            self.observer.log(self.path, LineStrips((self._xy[: self._n],)))
             self._checkpoint = self._n - 1
-        self.observer.log(f"{self.path}/tail", LineStrips((self._xy[self._checkpoint: self._n].copy(),)))
+        # views, not copies: rows below _n are never written again (growing makes a new array)
+        self.observer.log(f"{self.path}/tail", LineStrips((self._xy[self._checkpoint: self._n],)))
 
     def finish(self) -> None:
         """Draw the whole polyline, ending at the last offered point, at the current time."""
@@ -58,6 +59,7 @@ class TrajectoryLog:
         if self._n == len(self._xy):
             self._xy = np.concatenate([self._xy, np.empty_like(self._xy)])
         self._xy[self._n] = (x, y)
+        self._last = (float(self._xy[self._n, 0]), float(self._xy[self._n, 1]))  # as stored (float64)
         self._n += 1
 
 

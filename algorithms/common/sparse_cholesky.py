@@ -4,10 +4,17 @@
 the vertex blocks and, for every (edge, block, row, column) contribution, its slot in the CSC
 data array. Each iteration then only fills numbers with ``np.bincount`` [1]_.
 
-:class:`SparseCholesky` uses CHOLMOD through scikit-sparse (``sksparse``) when it is importable,
-with its symbolic analysis done on the first factorization and reused after; otherwise SciPy's
-SuperLU on the already-permuted matrix with the natural ordering and no pivoting, which is the
-fastest SciPy path measured here (the ordering is the only symbolic step SciPy lets us reuse).
+:class:`SparseCholesky` uses CHOLMOD, with its symbolic analysis done on the first factorization and
+reused for every later one (same pattern, new numbers): through scikit-sparse (``sksparse``) when it
+is importable (the ``cholmod`` extra, built against the system's SuiteSparse), else through CVXOPT's
+``cvxopt.cholmod``, which installs from a wheel with SuiteSparse inside (the ``solver`` extra: not a
+core dependency, as CVXOPT is GPL-3.0 and slamreplay MIT). Measured on
+the first normal equations of M3500 / intel / city10000 (CPU ms, numeric factorization + solve, one
+run on a shared 2-core machine): CVXOPT 4.0 / 1.5 / 23.3, SciPy SuperLU 9.2 / 2.5 / 64.0, cholespy
+16.6 / 5.8 / 90.0 (cholespy has no reuse of the analysis: each factorization starts over).
+Without either, SciPy's SuperLU on the already-permuted matrix with the natural ordering and no
+pivoting, the fastest SciPy path measured here (the ordering is the only symbolic step SciPy lets
+us reuse).
 
 References
 ----------
@@ -29,11 +36,31 @@ Backend = Literal["auto", "cholmod", "superlu"]
 
 try:  # optional: CHOLMOD where SuiteSparse and scikit-sparse are installed
     from sksparse.cholmod import analyze as _cholmod_analyze  # type: ignore[import-not-found, unused-ignore]
-except ImportError:  # the install keeps working on SciPy alone
+except ImportError:
     _cholmod_analyze = None
+try:  # CHOLMOD and AMD from CVXOPT's wheel (the solver extra)
+    from cvxopt import amd as _cvx_amd  # type: ignore[import-untyped, unused-ignore]
+    from cvxopt import cholmod as _cvx_cholmod  # type: ignore[import-untyped, unused-ignore]
+    from cvxopt import matrix as _cvx_matrix  # type: ignore[import-untyped, unused-ignore]
+    from cvxopt import spmatrix as _cvx_spmatrix  # type: ignore[import-untyped, unused-ignore]
+except ImportError:  # the install keeps working on SciPy alone
+    _cvx_cholmod = None
 
-HAVE_CHOLMOD = _cholmod_analyze is not None
+HAVE_CVXOPT = _cvx_cholmod is not None
+HAVE_CHOLMOD = _cholmod_analyze is not None or HAVE_CVXOPT
 _cholmod_order = _cholmod_analyze  # the ordering's own handle (tests fake the factorization's)
+
+
+def _cvx_lower(h: sp.csc_matrix) -> tuple[Any, I64]:
+    """A CVXOPT sparse matrix holding the lower triangle of ``h`` (all CHOLMOD reads of a symmetric
+    matrix: half the entries to copy each time), and the positions of those entries in ``h.data``;
+    its values sit in CSC order, as in ``h`` (whose row indices are sorted within each column)."""
+    n = h.shape[0]
+    cols = np.repeat(np.arange(n, dtype=np.int64), np.diff(h.indptr))
+    low = np.flatnonzero(h.indices >= cols)
+    a = _cvx_spmatrix(_cvx_matrix(np.asarray(h.data, np.float64)[low]), _cvx_matrix(h.indices[low].astype(np.int64)),
+                      _cvx_matrix(cols[low]), (n, n))
+    return a, low
 
 
 def _block_ordering(n_free: int, rows: I64, cols: I64) -> I64:
@@ -43,18 +70,29 @@ def _block_ordering(n_free: int, rows: I64, cols: I64) -> I64:
     off = rows != cols
     r, c = rows[off], cols[off]
     deg = np.bincount(r, minlength=n_free).astype(np.float64)
-    # A diagonally dominant matrix with the block pattern: its fill-reducing order is what we want.
-    a = sp.csc_matrix(
-        (np.r_[-np.ones(r.size), deg + 1.0], (np.r_[r, np.arange(n_free)], np.r_[c, np.arange(n_free)])),
-        shape=(n_free, n_free),
-    )
-    if _cholmod_order is not None:
+
+    def pattern() -> sp.csc_matrix:
+        """A diagonally dominant matrix with the block pattern: its fill-reducing order is what we want."""
+        return sp.csc_matrix(
+            (np.r_[-np.ones(r.size), deg + 1.0], (np.r_[r, np.arange(n_free)], np.r_[c, np.arange(n_free)])),
+            shape=(n_free, n_free),
+        )
+
+    if _cholmod_order is not None or HAVE_CVXOPT:
         # AMD on the block graph: 3x faster than SuperLU's MMD and 2-20 % less fill (M3500, city10000)
-        perm = np.asarray(_cholmod_order(a, mode="simplicial", ordering_method="amd").P(), dtype=np.int64)
+        if _cholmod_order is not None:
+            perm = np.asarray(_cholmod_order(pattern(), mode="simplicial", ordering_method="amd").P(),
+                              dtype=np.int64)
+        else:
+            low = np.flatnonzero(r > c)  # the pattern's lower triangle and diagonal is all AMD reads
+            diag = np.arange(n_free, dtype=np.int64)
+            lower = _cvx_spmatrix(1.0, _cvx_matrix(np.r_[r[low], diag].astype(np.int64)),
+                                  _cvx_matrix(np.r_[c[low], diag].astype(np.int64)), (n_free, n_free))
+            perm = np.asarray(_cvx_amd.order(lower), dtype=np.int64).ravel()
         pos = np.empty(n_free, dtype=np.int64)
         pos[perm] = np.arange(n_free)
         return pos
-    lu = sla.splu(a, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    lu = sla.splu(pattern(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     return np.asarray(lu.perm_c, dtype=np.int64)  # perm_c[v] is the new position of block v
 
 
@@ -158,21 +196,28 @@ class SparseCholesky:
     Parameters
     ----------
     backend : {"auto", "cholmod", "superlu"}
-        ``auto`` picks CHOLMOD when ``sksparse`` imports, SuperLU otherwise.
+        ``auto`` picks CHOLMOD when a binding imports (scikit-sparse, else CVXOPT), SuperLU otherwise.
     """
 
     def __init__(self, backend: Backend = "auto") -> None:
         if backend not in ("auto", "cholmod", "superlu"):
             raise ValueError(f"backend must be auto, cholmod or superlu, got {backend!r}")
         if backend == "cholmod" and not HAVE_CHOLMOD:
-            raise ValueError("backend: 'cholmod' requested but scikit-sparse (sksparse) is not importable")
+            raise ValueError("backend: 'cholmod' requested but neither cvxopt nor scikit-sparse (sksparse) is "
+                             "importable: pip install cvxopt")
         self.backend = "cholmod" if backend == "cholmod" or (backend == "auto" and HAVE_CHOLMOD) else "superlu"
+        # which binding runs CHOLMOD: scikit-sparse when installed (the opt-in extra), else CVXOPT's wheel
+        self.provider = ("superlu" if self.backend == "superlu"
+                         else "scikit-sparse" if _cholmod_analyze is not None else "cvxopt")
         self._symbolic: Any = None
         self._lu: Any = None
+        self._a: Any = None  # CVXOPT: the matrix whose values are replaced before each numeric factorization
+        self._low: I64 = np.zeros(0, np.int64)  # CVXOPT: positions of the lower triangle in the CSC data
+        self._nnz = -1
 
     def factor(self, h: sp.csc_matrix) -> bool:
         """Factor ``h`` (symmetric, already fill-reduced); False when it is singular / not PD."""
-        if self.backend == "cholmod":
+        if self.provider == "scikit-sparse":
             assert _cholmod_analyze is not None
             try:
                 if self._symbolic is None:
@@ -181,6 +226,20 @@ class SparseCholesky:
                     self._symbolic = _cholmod_analyze(h, mode="simplicial", ordering_method="natural")
                 self._symbolic.cholesky_inplace(h)
             except Exception:  # noqa: BLE001 - CholmodNotPositiveDefiniteError and friends
+                return False
+            return True
+        if self.provider == "cvxopt":
+            if self._a is None or self._a.size != h.shape or self._nnz != h.nnz:
+                self._a, self._low = _cvx_lower(h)
+                self._nnz = h.nnz
+                # h is already fill-reduced: the identity permutation keeps that order; the analysis is
+                # done here once and reused (cholmod.numeric) for every matrix with this pattern
+                self._symbolic = _cvx_cholmod.symbolic(self._a, p=_cvx_matrix(np.arange(h.shape[0], dtype=np.int64)))
+            else:
+                self._a.V = _cvx_matrix(np.asarray(h.data, np.float64)[self._low])
+            try:
+                _cvx_cholmod.numeric(self._a, self._symbolic)
+            except ArithmeticError:  # not positive definite
                 return False
             return True
         try:
@@ -196,6 +255,11 @@ class SparseCholesky:
 
     def solve(self, rhs: F64) -> F64:
         """Solve with the last successful factorization; rhs (N,) or (N, k)."""
-        if self.backend == "cholmod":
+        if self.provider == "scikit-sparse":
             return np.asarray(self._symbolic(rhs), dtype=np.float64)
+        if self.provider == "cvxopt":
+            r = np.asarray(rhs, np.float64)
+            b = _cvx_matrix(np.asfortranarray(r.reshape(r.shape[0], -1)))
+            _cvx_cholmod.solve(self._symbolic, b)  # in place
+            return np.array(b, dtype=np.float64).reshape(r.shape)
         return np.asarray(self._lu.solve(np.ascontiguousarray(rhs)), dtype=np.float64)

@@ -292,8 +292,8 @@ class Vocabulary:
                 continue  # in every location: idf = 0
             idf = log_n - math.log(len(post))
             weight = c * idf * idf
-            locs.extend(post.keys())
-            vals.extend(weight * v for v in post.values())
+            locs.extend(post)
+            vals.extend(map(weight.__mul__, post.values()))  # = weight * v, without a generator frame per value
         if locs:
             out = np.bincount(np.asarray(locs, np.int64), weights=np.asarray(vals), minlength=n).astype(np.float64)
             out /= np.asarray(self._loc_norm)

@@ -22,7 +22,7 @@ from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
 from mcap_ros2._vendor.rosidl_adapter.parser import InvalidSpecification, InvalidValue
 from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 
-from recorder.codec.protobuf import READABLE_SCHEMAS, encode, from_proto, schema_data, schema_name
+from recorder.codec.protobuf import READABLE_SCHEMAS, encode, proto_converter, schema_data, schema_name
 from recorder.codec.ros2 import canonical_ros_type, from_ros2
 from recorder.errors import CodecError
 from recorder.messages import LandmarkMap, Message, PlanarPose, RangeBearingScan
@@ -64,6 +64,7 @@ class TopicDecoder:
             if message_encoding == "protobuf" and schema.encoding == "protobuf":
                 self._raw = ProtobufDecoderFactory().decoder_for(message_encoding, schema)
                 self._ros = False
+                self._convert = proto_converter(kind, name)
             elif message_encoding == "cdr" and schema.encoding == "ros2msg":
                 # rosidl's parser prints each bad line to stderr before it raises: the error below says it once
                 with contextlib.redirect_stderr(io.StringIO()):
@@ -87,7 +88,7 @@ class TopicDecoder:
             if self._ros:
                 decoded = from_ros2(self.kind, self.schema_name, obj, log_time_ns)
             else:
-                decoded = from_proto(self.kind, obj, log_time_ns)
+                decoded = self._convert(obj, log_time_ns)
             _check_plausible(decoded)
             return decoded
         except _BAD_MESSAGE as err:
@@ -103,9 +104,13 @@ PLAUSIBLE_M = 1e9
 
 def _check_plausible(msg: Message) -> None:
     """CodecError when a decoded position or range is beyond PLAUSIBLE_M metres."""
-    if isinstance(msg, PlanarPose):
-        values = {"x_m": np.array([msg.x_m]), "y_m": np.array([msg.y_m])}
-    elif isinstance(msg, RangeBearingScan):
+    if isinstance(msg, PlanarPose):  # scalars: plain floats, not numpy (this runs for every decoded pose)
+        for name, x in (("x_m", msg.x_m), ("y_m", msg.y_m)):
+            if abs(x) > PLAUSIBLE_M:
+                raise CodecError(f"{name} holds {abs(x):.3g} m, beyond any plausible {PLAUSIBLE_M:g} m: "
+                                 f"the bytes are damaged")
+        return
+    if isinstance(msg, RangeBearingScan):
         values = {"ranges_m": msg.ranges_m}
     elif isinstance(msg, LandmarkMap):
         values = {"positions_m": msg.positions_m}

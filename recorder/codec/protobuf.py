@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import struct
 import zlib
+from collections.abc import Callable
 from functools import cache
 from typing import Any, Literal, cast
 
@@ -258,6 +259,27 @@ def from_proto(kind: type, proto: Any, log_time_ns: int) -> Message:
     if kind is ImuYawRate and name == "slamreplay.ImuYawRate":
         return ImuYawRate(stamp, proto.yaw_rate, proto.yaw_rate_sigma)
     raise CodecError(f"schema {name} cannot be read as {kind.__name__}")
+
+
+def proto_converter(kind: type, schema_name: str) -> Callable[[Any, int], Message]:
+    """``from_proto`` for one (message type, schema) pair, with the hot case (poses) specialised.
+
+    A pose is decoded for most messages of a recording: its converter reads the fields
+    directly instead of dispatching on the schema name for every message.
+    """
+    if issubclass(kind, PlanarPose) and schema_name == "foxglove.PoseInFrame":
+        atan2 = math.atan2
+
+        def pose(proto: Any, log_time_ns: int) -> Message:
+            ts = proto.timestamp
+            ns = ts.seconds * 1_000_000_000 + ts.nanos
+            p, o = proto.pose.position, proto.pose.orientation
+            w, x, y, z = o.w, o.x, o.y, o.z
+            yaw = atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))  # = yaw_from_quaternion
+            return cast(Message, kind(ns if ns > 0 else log_time_ns, p.x, p.y, yaw))
+
+        return pose
+    return lambda proto, log_time_ns: from_proto(kind, proto, log_time_ns)
 
 
 # Which schemas each message type can be read from (protobuf and ROS 2).

@@ -40,9 +40,11 @@ from algorithms.common.posegraph import OptimizerConfig, PoseGraph, chi2, optimi
 from algorithms.common.posegraph_analysis import marginal_covariances
 from algorithms.ifmi import IfmiConfig, Prepared, Registration, Status, prepare, register_prepared
 from algorithms.ifmi.mapping import edge_from_registration, flatten_illumination, render_mosaic, solve_log_scales
+from algorithms.ifmi.plan import MIN_SIZE
 from algorithms.observe import CovarianceEllipses, Image, LineStrips, Points, Scalar, Segments, State, Text
 from recorder.messages import TOPIC_CAMERA_IMAGE, TOPIC_GROUND_TRUTH_POSE, CameraImage, GroundTruthPose
 from replay import views
+from replay.errors import ReplayError
 from replay.pipeline import MetricSpec, Pipeline, ReplayContext
 from replay.reader import Envelope
 
@@ -170,6 +172,9 @@ class IfmiPipeline(Pipeline):
         obs = self.ctx.observer
         k = len(self.images)
         gray = msg.pixels if msg.pixels.ndim == 2 else msg.pixels.mean(axis=2).astype(np.uint8)
+        if min(gray.shape) < MIN_SIZE:
+            raise ReplayError(f"image {k} at {env.log_time_ns} ns is {gray.shape[1]}x{gray.shape[0]} pixels; iFMI "
+                              f"needs at least {MIN_SIZE}x{MIN_SIZE} (its log-polar spectra): record larger images")
         if k and gray.shape != self.images[0].shape:
             self.ctx.log(f"image {k} is {gray.shape} but the first was {self.images[0].shape}: skipped")
             return

@@ -40,6 +40,7 @@ from recorder.messages import (
 )
 from recorder.sensor_model import SensorModel
 from replay import views
+from replay.errors import ReplayError
 from replay.metrics import position_errors, rmse
 from replay.pipeline import MetricSpec, Pipeline, ReplayContext
 from replay.reader import Envelope
@@ -219,6 +220,9 @@ class LandmarkSlamPipeline(Pipeline):
             self.filter = self.make_filter(self.mode)
             for u in self.pending:
                 self.filter.predict(u)
+        if self.mode == "known" and len(ids) and not np.any(ids >= 0) and self.ctx.user_set("association"):
+            raise ReplayError(f"association=known was set, but the scan at {t} ns carries no landmark ids (-1): "
+                              f"its observations cannot be used; set association=unknown (or auto)")
         keep = ids >= 0 if self.mode == "known" else np.ones(len(ids), dtype=bool)
         self.dropped_unknown += int(np.sum(~keep))
         r, b, ids = msg.ranges_m[keep], msg.bearings_rad[keep], ids[keep]

@@ -63,9 +63,10 @@ class OdometryPipeline(Pipeline):
             self.ctx.observer.log("world/robot", Pose(pose))
             self.estimate.append(float(pose[0]), float(pose[1]))
         elif isinstance(msg, GroundTruthPose):
+            truth = msg.xy_yaw
             self.t_gt.append(env.log_time_ns)
-            self.gt.append(msg.xy_yaw)
-            self.ctx.observer.log("world/robot_truth", Pose(msg.xy_yaw))
+            self.gt.append(truth)
+            self.ctx.observer.log("world/robot_truth", Pose(truth))
             self.truth.append(msg.x_m, msg.y_m)
 
     def finish(self) -> dict[str, float]:

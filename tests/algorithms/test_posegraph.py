@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -424,3 +425,28 @@ def test_clean_graph_rejects_nothing_and_matches_plain_least_squares() -> None:
     assert r.edges_rejected == 0 and r.inliers.all()
     assert r.chi2_final == pytest.approx(plain.chi2_final, rel=1e-6)
     assert r.chi2_history.size == r.cost_history.size == r.iterations + 1
+
+
+@pytest.mark.skipif(not sc.HAVE_CVXOPT, reason="cvxopt is not installed")
+def test_cvxopt_cholmod_reuses_the_analysis(monkeypatch: pytest.MonkeyPatch) -> None:
+    """CVXOPT's CHOLMOD: one symbolic analysis per optimization, a numeric one per factorization, SuperLU's answer."""
+    calls = {"symbolic": 0, "numeric": 0}
+    symbolic, numeric = sc._cvx_cholmod.symbolic, sc._cvx_cholmod.numeric
+
+    def count(name: str, fn: object) -> object:
+        def wrapped(*args: object, **kwargs: object) -> object:
+            calls[name] += 1
+            return fn(*args, **kwargs)  # type: ignore[operator]
+        return wrapped
+
+    monkeypatch.setattr(sc, "_cholmod_analyze", None)  # CVXOPT even where scikit-sparse is installed
+    monkeypatch.setattr(sc._cvx_cholmod, "symbolic", count("symbolic", symbolic))
+    monkeypatch.setattr(sc._cvx_cholmod, "numeric", count("numeric", numeric))
+    g, _ = random_graph(np.random.default_rng(11), n=40, loops=12)
+    ref = optimize(g, OptimizerConfig(kernel=Kernel.NONE, linear_solver="superlu"))
+    r = optimize(g, OptimizerConfig(kernel=Kernel.NONE, linear_solver="cholmod"))
+    assert r.linear_solver == "cholmod" and r.n_factorizations >= 2
+    assert calls == {"symbolic": 1, "numeric": r.n_factorizations}
+    np.testing.assert_allclose(r.poses, ref.poses, atol=1e-9)
+    h = sp.csc_matrix(-np.eye(6))
+    assert not sc.SparseCholesky("cholmod").factor(h)  # not positive definite: False, not an exception

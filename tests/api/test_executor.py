@@ -94,3 +94,21 @@ def test_describe_exit() -> None:
     """Exit codes and signals are told in words."""
     assert describe_exit(2) == "the worker process exited with code 2"
     assert describe_exit(-signal.SIGSEGV) == "the worker process was killed by SIGSEGV"
+
+
+def test_worker_is_replaced_after_max_jobs(store: Store, tmp_path: Path) -> None:
+    """With max_jobs_per_worker=2, jobs 1-2 run in one process and job 3 in a fresh one; all succeed."""
+    rec = write_tiny_recording(tmp_path / "tiny.mcap", n=30)
+    ex = LocalExecutor(1, max_jobs_per_worker=2)
+    ex.start()
+    try:
+        pids = []
+        for k in range(3):
+            task = claimed(store, rec, f"{k + 3}" * 32, "odometry", tmp_path)
+            thread, out = run_in_thread(ex, task)
+            pids.append(pid_of(ex, task.job_id))
+            thread.join(60)
+            assert out == [Outcome("succeeded")]
+        assert pids[0] == pids[1] != pids[2]
+    finally:
+        ex.close()

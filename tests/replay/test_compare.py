@@ -110,3 +110,28 @@ def test_reports(tmp_path: Path) -> None:
     assert "| landmarks/dslam/default | landmark_rmse_m |" in summary
     assert "🔴 **regression**" in summary and "1 regression(s)" in summary
     assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_pair_rrds_are_written_once_and_linked(tmp_path: Path) -> None:
+    """--rrd-dir: one file per succeeded A/B pair (same seeds), linked relative to each report."""
+    from replay.report import pair_file_links, write_pair_rrds
+
+    a = rows(A)
+    b = rows([0.075, 0.121, 0.089], code="b")
+    b[2]["status"] = "failed"
+    c = compare(side("A", a), side("B", b))
+    calls: list[tuple[str, str]] = []
+
+    def write(ra: Path, rb: Path, out: Path) -> None:
+        calls.append((ra.name, rb.name))
+        out.write_bytes(b"rrd")
+
+    files = write_pair_rrds(c, tmp_path / "rrd", write)
+    assert calls == [("a0", "b0"), ("a1", "b1")]  # the failed pair has no comparison file
+    assert sorted(p.name for p in (tmp_path / "rrd").iterdir()) == ["a0--b0.rrd", "a1--b1.rrd"]
+    assert write_pair_rrds(c, tmp_path / "rrd", write) == files and len(calls) == 2  # kept, not rewritten
+    (tmp_path / "out").mkdir()
+    write_reports(c, tmp_path / "out" / "r.html", tmp_path / "out" / "s.md", pair_file_links(files))
+    html = (tmp_path / "out" / "r.html").read_text()
+    assert 'href="../rrd/a0--b0.rrd"' in html and ">A/B r1s0</a>" in html and "a2--b2" not in html
+    assert "[A/B r2s0](../rrd/a1--b1.rrd)" in (tmp_path / "out" / "s.md").read_text()

@@ -138,3 +138,17 @@ def test_cli_shows_the_model_and_presets(sim: Path, tmp_path: Path) -> None:
     bad = cli("run", str(sim), "--pipeline", "dslam", "--preset", "fast", "--out", str(tmp_path / "r"))
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "no preset 'fast'" in bad.stderr
     assert not (tmp_path / "r").exists()
+
+
+def test_a_setting_that_cannot_apply_is_an_error(tmp_path: Path) -> None:
+    """association=known on scans without ids would map nothing: an error naming the fix, not an empty map."""
+    from recorder import OdometryPose, RangeBearingScan
+
+    path = tmp_path / "noids.mcap"
+    with Recorder(path, source={"test": "no ids"}) as rec:
+        for k in range(5):
+            rec.write("/odom", OdometryPose(k * 100_000_000, 0.1 * k, 0.0, 0.0))
+            rec.write("/landmarks/range_bearing", RangeBearingScan(k * 100_000_000, [2.0, 3.0], [0.1, -0.2], [-1, -1]))
+    with pytest.raises(ReplayError, match="association=known was set, but the scan at 0 ns carries no landmark ids"):
+        run_recording(path, "dslam", tmp_path / "known", config={"association": "known"})
+    assert run_recording(path, "dslam", tmp_path / "auto").metrics["steps"] == 5  # auto: unknown ids, no error

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from recorder.sim.seabed import SeabedSimConfig, simulate_seabed
@@ -41,3 +42,21 @@ def test_bad_config_is_rejected(survey: Path, tmp_path: Path) -> None:
 
     with pytest.raises(ReplayError, match="min_pnr"):
         run_recording(survey, "ifmi", tmp_path / "c", config={"min_pnr": "-1"})
+
+
+def test_images_too_small_for_ifmi_are_a_clear_error(tmp_path: Path) -> None:
+    """20x20 images: one line naming the size iFMI needs (it was an internal error)."""
+    from recorder import Recorder
+    from recorder.messages import CameraImage
+    from replay.errors import ReplayError
+    from replay.run import run_recording
+
+    rng = np.random.default_rng(0)
+    with Recorder(tmp_path / "tiny.mcap", source={"test": "tiny images"}) as rec:
+        for k in range(3):
+            rec.write("/camera/image", CameraImage(1_000_000_000 + k * 100_000_000,
+                                                   rng.integers(0, 255, (20, 20), dtype=np.uint8)))
+    with pytest.raises(ReplayError, match=r"image 0 at 1000000000 ns is 20x20 pixels; iFMI needs at least 32x32"):
+        run_recording(tmp_path / "tiny.mcap", "ifmi", tmp_path / "run")
+    manifest = json.loads((tmp_path / "run" / "manifest.json").read_text())
+    assert manifest["status"] == "failed" and not (tmp_path / "run" / "run.rrd").exists()

@@ -1,0 +1,219 @@
+"""Suites in the service: a suite file's cells as jobs of the job store, and comparisons of them.
+
+A suite sent to the service (TOML or JSON, the form of ``replay.suite``) names uploaded
+recordings by id. Each cell becomes a job in the existing store, run by the existing
+scheduler and executor; a cell whose inputs (recording, pipeline, config values, seed) already
+have a queued, running or succeeded job of the same code is served by that job instead. Which
+jobs make up which suite is kept in two tables of the same SQLite database (``suites``,
+``suite_cells``), so a suite, like its jobs, survives a restart.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from api.errors import ConflictError, NotFoundError
+from api.jobs import JobService
+from api.store import JobRow
+from recorder.version import git_commit
+from replay.compare import Side, run_row, side_of_rows
+from replay.errors import ReplayError
+from replay.suite import Suite, canonical, parse_suite
+from replay.suite_run import add_metrics
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS suites (
+    id TEXT PRIMARY KEY,
+    name TEXT NOT NULL,
+    format TEXT NOT NULL,           -- toml | json: how it was sent
+    text TEXT NOT NULL,             -- as sent
+    created REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS suite_cells (
+    suite_id TEXT NOT NULL,
+    idx INTEGER NOT NULL,           -- the cell's place in the suite's order
+    cell TEXT NOT NULL,             -- JSON: recording, recording_seed, pipeline, variant, seed, config
+    job_id TEXT NOT NULL,
+    reused INTEGER NOT NULL,        -- 1: an existing job with the same inputs serves this cell
+    PRIMARY KEY (suite_id, idx)
+);
+CREATE INDEX IF NOT EXISTS suite_cells_job ON suite_cells (job_id);
+"""
+ENDED = ("succeeded", "failed", "cancelled", "interrupted")
+
+
+@dataclass(frozen=True, slots=True)
+class SuiteRow:
+    id: str
+    name: str
+    format: str
+    created: float
+
+
+@dataclass(frozen=True, slots=True)
+class SuiteCell:
+    cell: dict[str, Any]
+    job: JobRow
+    reused: bool
+
+
+class SuiteService:
+    """Submit suites as jobs; report their progress and results; compare suites and jobs."""
+
+    def __init__(self, jobs: JobService) -> None:
+        self.jobs = jobs
+        self.db = jobs.settings.db_path
+        self._code = git_commit()
+        with self._conn() as conn:
+            conn.executescript(SCHEMA)
+
+    @contextmanager
+    def _conn(self) -> Iterator[sqlite3.Connection]:
+        conn = sqlite3.connect(self.db, timeout=30.0, isolation_level=None)
+        conn.row_factory = sqlite3.Row
+        conn.execute("PRAGMA busy_timeout = 30000")
+        try:
+            yield conn
+        finally:
+            conn.close()
+
+    # -- submitting ----------------------------------------------------------------------------
+
+    def _recording(self, rid: str) -> Path:
+        """The stored file of recording ``rid``; ReplayError saying how to get one otherwise."""
+        if not (len(rid) == 64 and all(ch in "0123456789abcdef" for ch in rid)):
+            raise ReplayError(f"{rid!r} is not a recording id (64 hex digits, as POST /recordings answers)")
+        if self.jobs.store.get_recording(rid) is None:
+            raise ReplayError(f"recording {rid} not found; upload it with POST /recordings first")
+        return self.jobs.recording_path(rid)
+
+    def parse(self, text: str, fmt: str) -> Suite:
+        """Validate a suite; ReplayError (422) naming the key (and, for TOML, the line) at fault."""
+        return parse_suite(text, Path(f"suite.{fmt}"), ids=self._recording, fmt=fmt)
+
+    def _reusable(self, rid: str, pipeline: str, config: dict[str, Any], seed: int) -> JobRow | None:
+        """A job with these inputs that is queued, running, or succeeded with the code running now."""
+        want = canonical(config)
+        for job in self.jobs.store.list_jobs(recording_id=rid, pipeline=pipeline, limit=1000):
+            if job.seed != seed or canonical(job.config) != want:
+                continue
+            if job.status in ("queued", "running"):
+                return job
+            if job.status == "succeeded" and not self._code.endswith("-dirty") and self._code != "unknown":
+                try:
+                    manifest = json.loads((self.jobs.run_dir(job.id) / "manifest.json").read_text())
+                except (OSError, json.JSONDecodeError):
+                    continue
+                if manifest.get("slamreplay", {}).get("git_commit") == self._code:
+                    return job
+        return None
+
+    def submit(self, text: str, fmt: str) -> SuiteRow:
+        """Validate the suite, queue a job per cell (or reuse one), and record the suite."""
+        suite = self.parse(text, fmt)
+        cells = suite.cells()
+        suite_id = uuid.uuid4().hex
+        rows = []
+        for i, cell in enumerate(cells):
+            rid = suite.recordings[cell.recording].id or ""
+            job = self._reusable(rid, cell.pipeline, cell.config, cell.seed)
+            reused = job is not None
+            if job is None:
+                job = self.jobs.submit(rid, cell.pipeline, dict(cell.config), cell.seed)
+            rows.append((suite_id, i, json.dumps(cell.to_json(), sort_keys=True), job.id, int(reused)))
+        created = time.time()
+        with self._conn() as conn:
+            conn.execute("BEGIN IMMEDIATE")
+            conn.execute("INSERT INTO suites (id, name, format, text, created) VALUES (?, ?, ?, ?, ?)",
+                         (suite_id, suite.name, fmt, text, created))
+            conn.executemany("INSERT INTO suite_cells (suite_id, idx, cell, job_id, reused) VALUES (?, ?, ?, ?, ?)",
+                             rows)
+            conn.execute("COMMIT")
+        return SuiteRow(suite_id, suite.name, fmt, created)
+
+    # -- reading --------------------------------------------------------------------------------
+
+    def recent(self, limit: int = 100) -> list[SuiteRow]:
+        with self._conn() as conn:
+            rows = conn.execute("SELECT id, name, format, created FROM suites ORDER BY created DESC LIMIT ?",
+                                (limit,)).fetchall()
+        return [SuiteRow(r["id"], r["name"], r["format"], r["created"]) for r in rows]
+
+    def get(self, suite_id: str) -> tuple[SuiteRow, str, list[SuiteCell]]:
+        """The suite, its text and its cells with their jobs' current state; NotFoundError for an unknown id."""
+        with self._conn() as conn:
+            r = conn.execute("SELECT * FROM suites WHERE id = ?", (suite_id,)).fetchone()
+            if r is None:
+                raise NotFoundError(f"suite {suite_id} not found")
+            cells = conn.execute("SELECT cell, job_id, reused FROM suite_cells WHERE suite_id = ? ORDER BY idx",
+                                 (suite_id,)).fetchall()
+        out = []
+        for c in cells:
+            job = self.jobs.store.get_job(c["job_id"])
+            if job is not None:
+                out.append(SuiteCell(json.loads(c["cell"]), job, bool(c["reused"])))
+        return SuiteRow(r["id"], r["name"], r["format"], r["created"]), r["text"], out
+
+    def exists(self, suite_id: str) -> bool:
+        with self._conn() as conn:
+            return conn.execute("SELECT 1 FROM suites WHERE id = ?", (suite_id,)).fetchone() is not None
+
+    def result_row(self, c: SuiteCell) -> dict[str, Any]:
+        """A cell as a ``results.jsonl`` row (what ``replay.compare`` reads), with its job id."""
+        run_dir = self.jobs.run_dir(c.job.id)
+        row: dict[str, Any] = {**c.cell, "job_id": c.job.id, "reused": c.reused, "run_dir": str(run_dir),
+                               "recording_sha256": c.job.recording_id, "status": c.job.status,
+                               "error": c.job.error, "progress": c.job.progress, "code_version": None,
+                               "metrics": {}, "better": {}, "tolerance": {}, "rel_tolerance": {}, "units": {}}
+        try:
+            manifest = json.loads((run_dir / "manifest.json").read_text())
+            row["code_version"] = manifest.get("slamreplay", {}).get("git_commit")
+            row["config_hash"] = manifest.get("config_hash")
+        except (OSError, json.JSONDecodeError):
+            pass
+        if c.job.status == "succeeded":
+            try:
+                add_metrics(row, json.loads((run_dir / "metrics.json").read_text())["metrics"])
+            except (OSError, json.JSONDecodeError, KeyError) as err:
+                row.update(status="failed", error=f"unreadable metrics.json: {err}")
+        return row
+
+    def progress(self, cells: list[SuiteCell]) -> dict[str, Any]:
+        """Counts by status, cells ended, and the fraction done (running jobs count by their own progress)."""
+        counts: dict[str, int] = {}
+        done = 0.0
+        for c in cells:
+            counts[c.job.status] = counts.get(c.job.status, 0) + 1
+            done += 1.0 if c.job.status in ENDED else c.job.progress
+        ended = sum(n for s, n in counts.items() if s in ENDED)
+        status = "running" if ended < len(cells) else ("succeeded" if counts.get("succeeded", 0) == len(cells)
+                                                        else "finished with failures")
+        return {"status": status, "cells": len(cells), "ended": ended, "counts": counts,
+                "fraction": done / len(cells) if cells else 1.0}
+
+    # -- comparing ------------------------------------------------------------------------------
+
+    def side(self, ref: str) -> Side:
+        """A suite id or a job id as one side of a comparison; 404 unknown, 409 not finished."""
+        if self.exists(ref):
+            row, _, cells = self.get(ref)
+            p = self.progress(cells)
+            if p["ended"] < p["cells"]:
+                raise ConflictError(f"suite {ref} is still running ({p['ended']} of {p['cells']} cells ended); "
+                                    f"compare it when GET /suites/{ref} says it has ended")
+            return side_of_rows(f"suite {row.name} ({ref[:8]})", [self.result_row(c) for c in cells], "results")
+        if self.jobs.store.get_job(ref) is None:
+            raise NotFoundError(f"{ref} is neither a suite nor a job id")
+        run = run_row(self.jobs.finished_run(ref))
+        job = self.jobs.get(ref)
+        rec = self.jobs.store.get_recording(job.recording_id)
+        run.update(job_id=ref, recording=rec.filename if rec is not None else run["recording"])
+        return side_of_rows(f"job {ref[:8]}", [run], "run")

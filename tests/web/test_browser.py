@@ -1,0 +1,167 @@
+"""The web page in a real browser: Debian's headless chromium driven by Playwright (``make test-browser``).
+
+One server (``slamreplay serve`` with a token, over a fresh data directory) and one browser for
+the module; the tests run in order, as a person would: log in, upload through the form, run a
+job and watch it finish, compare it with a worse one (a regression, in red), and open the job
+in the Rerun web viewer the service serves.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import write_tiny_recording
+
+pytestmark = pytest.mark.browser
+CHROMIUM = os.environ.get("SLAMREPLAY_CHROMIUM", "/usr/bin/chromium")
+TOKEN = "browser-test-token"
+SHOTS = Path(os.environ.get("SLAMREPLAY_BROWSER_SHOTS", "")) if os.environ.get("SLAMREPLAY_BROWSER_SHOTS") else None
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """``slamreplay serve`` on a free loopback port with a token; its base URL."""
+    data = tmp_path_factory.mktemp("web") / "data"  # not there yet: serve creates it
+    port = _free_port()
+    env = {**os.environ, "SLAMREPLAY_TOKEN": TOKEN}
+    log = open(data.parent / "serve.log", "w")  # noqa: SIM115 (closed below)
+    proc = subprocess.Popen([sys.executable, "-m", "api.cli", "serve", "--port", str(port), "--data-dir", str(data),
+                             "--workers", "1"], env=env, stdout=log, stderr=subprocess.STDOUT)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                urllib.request.urlopen(base + "/healthz", timeout=2)
+                break
+            except OSError:
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    log_text = (data.parent / "serve.log").read_text()
+                    raise AssertionError(f"the server did not start: {log_text}") from None
+                time.sleep(0.2)
+        yield base
+    finally:
+        proc.terminate()
+        proc.wait(20)
+        log.close()
+
+
+@pytest.fixture(scope="module")
+def page(server: str) -> Iterator[Any]:
+    """One headless chromium page (Debian's browser; Playwright downloads none)."""
+    sync_api = pytest.importorskip("playwright.sync_api", reason="pip install -e '.[browser]' (make test-browser)")
+    if not shutil.which(CHROMIUM):
+        pytest.fail(f"{CHROMIUM} not found: apt-get install chromium (make test-browser does)")
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+        context = browser.new_context(viewport={"width": 1400, "height": 900})
+        pg = context.new_page()
+        pg.set_default_timeout(30_000)
+        yield pg
+        context.close()
+        browser.close()
+
+
+def shot(page: Any, name: str) -> None:
+    if SHOTS is not None:
+        SHOTS.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(SHOTS / f"{name}.png"), full_page=True)
+
+
+def upload_and_run(page: Any, server: str, recording: Path) -> str:
+    """Upload ``recording`` through the form, run odometry on it, wait (live status) for it to succeed; the job id."""
+    page.goto(server + "/")
+    page.set_input_files("#upload-form input[name=file]", str(recording))
+    page.click("#upload-form button")
+    page.wait_for_url(re.compile(r"/\?uploaded=[0-9a-f]{64}"))
+    rid = page.url.split("uploaded=")[1][:64]
+    assert rid in page.inner_text("#flash")
+    assert recording.name in page.inner_text("#recordings-table")
+    page.select_option("#job-form select[name=recording_id]", rid)
+    page.select_option("#job-form select[name=pipeline]", "odometry")
+    page.click("#job-form button")
+    page.wait_for_url(re.compile(r"/ui/jobs/[0-9a-f]{32}$"))
+    job_id = page.url.rsplit("/", 1)[1]
+    # No reload: web.js swaps the live block until the job has ended.
+    page.wait_for_function("document.querySelector('#job-status').textContent.trim() === 'succeeded'",
+                           timeout=90_000)
+    assert "robot_ate_rmse_m" in page.inner_text("#metrics-table")
+    return job_id
+
+
+def test_login_asks_for_the_token(page: Any, server: str) -> None:
+    page.goto(server + "/")
+    assert "/login" in page.url and "needs its token" in page.content()
+    page.fill("input[name=token]", "wrong")
+    page.click("form button")
+    assert page.is_visible("#login-error")
+    page.fill("input[name=token]", TOKEN)
+    page.click("form button")
+    page.wait_for_url(server + "/")
+    assert page.is_visible("#upload-form")
+
+
+def test_upload_run_compare_and_view(page: Any, server: str, tmp_path: Path) -> None:
+    """Two recordings, the second with 8x the odometry drift: job B's ATE is a regression, shown red."""
+    good = upload_and_run(page, server, write_tiny_recording(tmp_path / "good.mcap", drift=0.05))
+    shot(page, "job")
+    worse = upload_and_run(page, server, write_tiny_recording(tmp_path / "drifting.mcap", drift=0.4))
+
+    page.goto(server + "/")
+    shot(page, "index")
+    page.select_option("#compare-form select[name=a]", good)
+    page.select_option("#compare-form select[name=b]", worse)
+    page.click("#compare-form button")
+    page.wait_for_url(re.compile(r"/ui/compare\?"))
+    row = page.locator("tr.regression", has_text="robot_ate_rmse_m").first
+    assert row.is_visible()
+    colour = row.evaluate("el => getComputedStyle(el).color")
+    background = row.evaluate("el => getComputedStyle(el).backgroundColor")
+    r, g, b = map(int, re.findall(r"\d+", colour)[:3])
+    assert r > 120 and g < 40 and b < 40, colour  # dark red text
+    br, bg, bb = map(int, re.findall(r"\d+", background)[:3])
+    assert br > bg + 15 and br > bb + 15, background  # on a red tint
+    assert "1 regression" in page.inner_text("body") or "regression(s)" in page.inner_text("body")
+    shot(page, "compare")
+
+    # Open in Rerun: the viewer (served here) loads the job's .rrd by URL and draws into its canvas.
+    page.goto(f"{server}/ui/jobs/{good}")
+    href = page.get_attribute("#open-rerun", "href")
+    assert href is not None and href.startswith("/viewer/?url=")
+    errors: list[str] = []
+    page.on("console", lambda m: errors.append(m.text) if "Data source failed" in m.text else None)
+    with page.expect_response(lambda resp: resp.url.endswith(f"/jobs/{good}/run.rrd"), timeout=90_000) as got:
+        page.goto(server + href)
+    assert got.value.status == 200
+    page.wait_for_selector("#the_canvas_id.visible", timeout=90_000)
+    page.wait_for_timeout(5000)  # let it draw the recording
+    assert errors == []
+    png = page.locator("#the_canvas_id").screenshot()
+    shot(page, "viewer")
+    assert _distinct_colours(png) > 50  # the run drawn: map, labels, plots; a blank canvas has a handful
+
+
+def _distinct_colours(png: bytes) -> int:
+    import cv2
+    import numpy as np
+
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    return len(np.unique(img.reshape(-1, 3) // 8, axis=0))
