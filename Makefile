@@ -93,7 +93,7 @@ test-pythons:
 	else echo "test-pythons: the cross-interpreter diff needs both 3.10 and 3.13: skipped"; fi
 
 lint: $(STAMP)
-	$(BIN)/ruff check recorder replay algorithms api tests benchmarks
+	$(BIN)/ruff check recorder replay algorithms api tests benchmarks examples
 
 # Benchmarks against the peers (bench extra), each writing --json into BENCH_DIR, then one table of
 # ratios against issue 17's targets (benchmarks/summary.py; the README's performance table).

@@ -73,178 +73,43 @@ def _parse_pairs(items: Sequence[str], what: str) -> dict[str, str]:
 # record
 
 
-def _sim_options(parser: argparse.ArgumentParser, config_cls: type) -> None:
-    """One ``--field-name`` option per field of a simulator config dataclass."""
-    import dataclasses
-    import typing
+def cmd_record(args: argparse.Namespace) -> int:
+    """``record NAME``: the importer (or simulator) NAME writes one recording (recorder/sources.py)."""
+    from recorder.sources import get_importer
 
-    hints = typing.get_type_hints(config_cls)
-    for f in dataclasses.fields(config_cls):
-        tp = hints[f.name]
-        args = typing.get_args(tp)
-        base = next((a for a in args if a is not type(None)), tp) if args else tp
-        default = f.default if f.default is not dataclasses.MISSING else None
-        kind = base if base in (int, float, str) else str
-        parser.add_argument(f"--{f.name.replace('_', '-')}", dest=f"cfg_{f.name}", type=kind, default=None,
-                            metavar=kind.__name__.upper(), help=f"{f.metadata.get('help', '')} (default: {default})")
-
-
-def _collect_sim_config(args: argparse.Namespace, config_cls: type) -> Any:
-    values = {k[4:]: v for k, v in vars(args).items() if k.startswith("cfg_") and v is not None}
-    try:
-        return config_cls(**values)
-    except (TypeError, ValueError) as err:
-        raise CliError(f"invalid simulator option: {err}") from err
-
-
-def cmd_record_sim_landmarks(args: argparse.Namespace) -> int:
-    from recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
-
-    config = _collect_sim_config(args, LandmarkSimConfig)
-    with progress_bar("simulating", args.quiet) as update:
-        summary = simulate_landmarks(Path(args.out), config, seed=args.seed, progress=update)
+    importer = get_importer(args.source)
+    options = {k: v for k, v in vars(args).items() if k not in ("func", "source", "command", "debug", "quiet")}
+    log = (lambda text: None) if args.quiet else _eprint
+    with progress_bar(importer.progress_label, args.quiet) as update:
+        summary = importer.record(options, update, log)
     if not args.quiet:
-        _eprint(f"wrote {args.out}: {summary.messages:,} messages, {summary.poses:,} poses, {summary.scans:,} scans "
-                f"({summary.observations:,} observations), {summary.landmarks_observed}/{summary.landmarks} landmarks "
-                f"seen, {summary.path_length_m:.1f} m driven in a {summary.area_m:g} m square")
+        _eprint(f"wrote {args.out}: {summary}")
     return EXIT_OK
 
 
-def cmd_record_sim_seabed(args: argparse.Namespace) -> int:
-    from recorder.sim.seabed import SeabedSimConfig, simulate_seabed
+def cmd_record_broken(args: argparse.Namespace) -> int:
+    """A broken importer plugin: its one-line error, exit 2."""
+    from recorder.sources import importer_plugins
 
-    config = _collect_sim_config(args, SeabedSimConfig)
-    with progress_bar("simulating", args.quiet) as update:
-        summary = simulate_seabed(Path(args.out), config, seed=args.seed, progress=update)
-    if not args.quiet:
-        _eprint(f"wrote {args.out}: {summary.messages:,} messages, {summary.images} images over a "
-                f"{summary.texture_px[0]}x{summary.texture_px[1]} px seabed, {summary.path_length_m:.1f} m surveyed")
-    return EXIT_OK
+    importer_plugins()[args.source].load()  # raises PluginError, a RecorderError
+    return EXIT_BAD_INPUT
 
 
-def cmd_record_sim_corridor(args: argparse.Namespace) -> int:
-    from recorder.sim.corridor import CorridorConfig, simulate_corridor
+def _add_record_parsers(rsub: Any, quiet: argparse.ArgumentParser) -> None:
+    """One ``record`` sub-command per importer of the entry-point group ``slamreplay.importers``."""
+    from recorder.sources import importer_plugins
 
-    config = _collect_sim_config(args, CorridorConfig)
-    with progress_bar("simulating", args.quiet) as update:
-        summary = simulate_corridor(Path(args.out), config, seed=args.seed, progress=update)
-    if not args.quiet:
-        _eprint(f"wrote {args.out}: {summary.messages:,} messages, {summary.images:,} images, {summary.poses:,} poses, "
-                f"{summary.path_length_m:.1f} m driven in {summary.duration_s:.0f} s, odometry off by "
-                f"{summary.odom_final_error_m:.2f} m at the end")
-    return EXIT_OK
-
-
-def cmd_record_images(args: argparse.Namespace) -> int:
-    from recorder.importers.images import import_images
-
-    with progress_bar("importing images", args.quiet) as update:
-        summary = import_images(Path(args.dir), Path(args.out), rate_hz=args.rate_hz, progress=update)
-    if not args.quiet:
-        _eprint(f"wrote {args.out}: {summary.images} images of {summary.width_px}x{summary.height_px} "
-                f"({summary.first} .. {summary.last})")
-    return EXIT_OK
-
-
-def _mrclam_robot(text: str) -> int | str:
-    if text == "all":
-        return text
-    try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected 1-5 or all, got {text!r}") from None
-
-
-def cmd_record_mrclam(args: argparse.Namespace) -> int:
-    from recorder.importers.mrclam import import_mrclam
-
-    what = "robots 1-5" if args.robot == "all" else f"robot {args.robot}"
-    with progress_bar(f"importing MRCLAM {what}", args.quiet) as update:
-        summary = import_mrclam(Path(args.dir), args.robot, Path(args.out), progress=update)
-    if not args.quiet:
-        _eprint(f"wrote {args.out}: {summary.messages:,} messages ({summary.odometry_poses:,} odometry, "
-                f"{summary.ground_truth_poses:,} ground truth, {summary.scans:,} scans with "
-                f"{summary.measurements_kept:,} landmark sightings; {summary.robot_sightings_dropped} robot sightings "
-                f"and {summary.unknown_barcodes_dropped} unknown barcodes dropped)")
-    return EXIT_OK
-
-
-def cmd_record_ros2(args: argparse.Namespace) -> int:
-    import dataclasses
-
-    from recorder.importers.poles import PoleConfig
-    from recorder.importers.ros2bag import import_ros2_bag
-
-    values = {f.name: getattr(args, f"pole_{f.name}") for f in dataclasses.fields(PoleConfig)
-              if getattr(args, f"pole_{f.name}") is not None}
-    try:
-        poles = PoleConfig(**values)
-    except ValueError as err:
-        raise CliError(str(err)) from err
-    with progress_bar("importing ROS 2 bag", args.quiet) as update:
-        summary = import_ros2_bag(Path(args.bag), Path(args.out), topic_map=_parse_pairs(args.topic_map, "--topic-map"),
-                                  base_frame=args.base_frame, odom_frame=args.odom_frame,
-                                  ground_truth_frame=args.ground_truth_frame, typestore=args.typestore, poles=poles,
-                                  progress=update)
-    if not args.quiet:
-        counts = ", ".join(f"{n:,} {t}" for t, n in sorted(summary.counts.items()))
-        skipped = [t.topic for t in summary.plan.topics if t.maps_to is None]
-        _eprint(f"wrote {args.out}: {summary.messages:,} messages ({counts}); {summary.poles:,} poles extracted"
-                + (f"; skipped {', '.join(skipped)} (see `slamreplay inspect {args.bag}`)" if skipped else ""))
-    return EXIT_OK
-
-
-def cmd_record_victoria_park(args: argparse.Namespace) -> int:
-    from recorder.importers.victoria_park import read_victoria_park, write_victoria_park
-
-    data = read_victoria_park(Path(args.dir))
-    reference, note, measured = None, "", None
-    if not args.no_reference:
-        from replay.landmark_reference import measured_noise, victoria_park_reference
-
-        if not args.quiet:
-            _eprint("computing the reference: the batch least-squares optimum of the measurements (2-3 minutes)")
-        poses, landmarks, res = victoria_park_reference(data)
-        reference = (poses, landmarks)
-        measured = measured_noise(data, poses, landmarks)
-        note = (f"batch least-squares optimum of the same measurements (chi2 {res.chi2:.1f}, "
-                f"{'converged' if res.converged else 'not converged'}); the file has no ground truth")
-    with progress_bar("importing Victoria Park", args.quiet) as update:
-        summary = write_victoria_park(data, Path(args.out), reference=reference, reference_note=note,
-                                      measured_model=measured, merge_window_m=args.merge_window_m, progress=update)
-    if not args.quiet:
-        _eprint(f"wrote {args.out}: {summary.poses:,} poses, {summary.scans:,} scans with {summary.observations:,} "
-                f"observations of {summary.landmarks} landmarks, {summary.path_length_m / 1000:.2f} km driven"
-                + (f"; ground truth = {note}" if reference is not None else "; no reference (--no-reference)"))
-    return EXIT_OK
-
-
-def _add_record_ros2(rsub: Any, quiet: argparse.ArgumentParser) -> None:
-    import dataclasses
-
-    from recorder.importers.poles import PoleConfig
-
-    r2 = rsub.add_parser("ros2", parents=[quiet], help="import a ROS 2 bag (sqlite3 or MCAP storage)",
-                         description="Import a ROS 2 bag read with rosbags: odometry, poses, /tf and /tf_static, IMU, "
-                                     "LaserScan (poles and trunks become landmarks), images and camera info. "
-                                     "`slamreplay inspect BAG` shows what each topic becomes.")
-    r2.add_argument("bag", help="the bag folder, or its .db3 or .mcap file")
-    r2.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
-    r2.add_argument("--topic-map", action="append", default=[], metavar="BAG_TOPIC=TOPIC",
-                    help="read a bag topic as a logical topic, e.g. /gps/pose=/ground_truth/pose (repeatable)")
-    r2.add_argument("--base-frame", default="base_link", help="the robot's tf frame (default: base_link)")
-    r2.add_argument("--odom-frame", default="odom",
-                    help="tf frame of odometry, used when the bag has no Odometry topic (default: odom)")
-    r2.add_argument("--ground-truth-frame", default=None, metavar="FRAME",
-                    help="record the base frame's pose in FRAME, composed through /tf, as ground truth (e.g. map)")
-    r2.add_argument("--typestore", choices=("humble", "jazzy"), default="humble",
-                    help="message definitions for bags that store none (default: humble)")
-    for f in dataclasses.fields(PoleConfig):
-        kind = int if f.type in ("int", int) else (str if f.type in ("bool", bool) else float)
-        r2.add_argument(f"--pole-{f.name.replace('_', '-')}", dest=f"pole_{f.name}", default=None,
-                        type=(lambda v: v.lower() in ("1", "true", "yes")) if kind is str else kind,
-                        help=f"pole extractor (recorder/importers/poles.py): {f.name} (default: {f.default})")
-    r2.set_defaults(func=cmd_record_ros2)
+    for name, plugin in importer_plugins().items():
+        if plugin.error is not None:
+            broken = rsub.add_parser(name, help=f"BROKEN ({plugin.origin}): {plugin.error}", add_help=False)
+            broken.add_argument("rest", nargs=argparse.REMAINDER)
+            broken.set_defaults(func=cmd_record_broken, quiet=False)
+            continue
+        importer = plugin.load()()
+        origin = "" if plugin.builtin else f" [{plugin.origin}]"
+        parser = rsub.add_parser(name, parents=[quiet], help=importer.help + origin, description=importer.description)
+        importer.add_arguments(parser)
+        parser.set_defaults(func=cmd_record)
 
 
 # ---------------------------------------------------------------------------------------
@@ -317,32 +182,52 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
 
 def cmd_pipelines(args: argparse.Namespace) -> int:
-    from replay.pipeline import all_pipelines, config_schema
+    from replay.pipeline import config_schema, pipeline_plugins
 
-    rows: list[dict[str, Any]] = [{"name": name, "summary": cls.summary, "required_topics": list(cls.required_topics),
-             "optional_topics": list(cls.optional_topics), "config": config_schema(cls.Config),
-             "presets": {k: dict(v) for k, v in cls.presets.items()},
-             "metrics": {k: {"better": m.better, "unit": m.unit, "description": m.description}
-                         for k, m in cls.metrics.items()}}
-            for name, cls in all_pipelines().items()]
+    rows: list[dict[str, Any]] = []
+    broken: list[str] = []
+    for name, plugin in pipeline_plugins().items():
+        where = {"name": name, "origin": plugin.origin, "distribution": plugin.distribution,
+                 "version": plugin.version, "entry_point": plugin.value}
+        if plugin.error is not None:
+            rows.append({**where, "error": plugin.error})
+            broken.append(plugin.describe() + " " + plugin.error)
+            continue
+        cls = plugin.load()
+        rows.append({**where, "error": None, "summary": cls.summary, "required_topics": list(cls.required_topics),
+                     "optional_topics": list(cls.optional_topics), "config": config_schema(cls.Config),
+                     "presets": {k: dict(v) for k, v in cls.presets.items()},
+                     "metrics": {k: {"better": m.better, "unit": m.unit, "description": m.description}
+                                 for k, m in cls.metrics.items()}})
+    if not rows:
+        from recorder.plugins import missing_builtins_hint
+        from replay.pipeline import PIPELINE_GROUP
+
+        raise CliError(missing_builtins_hint(PIPELINE_GROUP))
     if args.json:
         print(json.dumps(rows, indent=2, default=str))
-        return EXIT_OK
-    for r in rows:
-        print(f"{r['name']}: {r['summary']}")
-        print(f"  needs:    {', '.join(r['required_topics'])}")
-        if r["optional_topics"]:
-            print(f"  uses:     {', '.join(r['optional_topics'])}")
-        for c in r["config"]:
-            print(f"  --set {c['key']}=<{c['type']}>  (default {c['default']}) {c['help']}")
-        if not r["config"]:
-            print("  config:   (no keys)")
-        for preset, values in r["presets"].items():
-            print(f"  --preset {preset}: " + (", ".join(f"{k}={v}" for k, v in values.items())
-                                            or "the defaults (they are already the paper's)"))
-        print("  metrics:  " + ", ".join(f"{k} ({m['better']} is better)" if m["better"] != "none" else k
-                                         for k, m in r["metrics"].items()))
-    return EXIT_OK
+    else:
+        for r in rows:
+            if r["error"] is not None:
+                print(f"{r['name']}: BROKEN ({r['origin']}, {r['entry_point']}): {r['error']}")
+                continue
+            print(f"{r['name']}: {r['summary']}")
+            print(f"  from:     {r['origin']}" + ("" if r["origin"] == "built-in" else f" ({r['entry_point']})"))
+            print(f"  needs:    {', '.join(r['required_topics'])}")
+            if r["optional_topics"]:
+                print(f"  uses:     {', '.join(r['optional_topics'])}")
+            for c in r["config"]:
+                print(f"  --set {c['key']}=<{c['type']}>  (default {c['default']}) {c['help']}")
+            if not r["config"]:
+                print("  config:   (no keys)")
+            for preset, values in r["presets"].items():
+                print(f"  --preset {preset}: " + (", ".join(f"{k}={v}" for k, v in values.items())
+                                                or "the defaults (they are already the paper's)"))
+            print("  metrics:  " + ", ".join(f"{k} ({m['better']} is better)" if m["better"] != "none" else k
+                                             for k, m in r["metrics"].items()))
+    for line in broken:  # listed above; and one line each on stderr, exit 2: an installed plugin does not work
+        _eprint(f"slamreplay: error: {line}")
+    return EXIT_BAD_INPUT if broken else EXIT_OK
 
 
 # ---------------------------------------------------------------------------------------
@@ -477,68 +362,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     rec = sub.add_parser("record", help="make a recording from a simulator or a public dataset")
     rsub = rec.add_subparsers(dest="source", required=True, metavar="SOURCE")
-    sim = rsub.add_parser("sim-landmarks", parents=[quiet],
-                          help="D-SLAM paper scenario: point landmarks, range-bearing sensor, odometry",
-                          description="Simulate a robot among point landmarks (default: the D-SLAM paper's "
-                                      "section 4.2 scenario) and record odometry, scans and ground truth.")
-    sim.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
-    sim.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    from recorder.sim.landmarks import LandmarkSimConfig
-
-    _sim_options(sim, LandmarkSimConfig)
-    sim.set_defaults(func=cmd_record_sim_landmarks)
-    sea = rsub.add_parser("sim-seabed", parents=[quiet],
-                          help="downward camera over a seabed texture: lawn-mower survey with revisits",
-                          description="Simulate a downward camera flying a lawn-mower survey over a seabed texture "
-                                      "(procedural, an image file, or a folder of frames given with --texture) and "
-                                      "record images, odometry and ground truth.")
-    sea.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
-    sea.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    from recorder.sim.seabed import SeabedSimConfig
-
-    _sim_options(sea, SeabedSimConfig)
-    sea.set_defaults(func=cmd_record_sim_seabed)
-    cor = rsub.add_parser("sim-corridor", parents=[quiet],
-                          help="forward camera driven round an indoor floor plan with loops: images, odometry",
-                          description="Simulate a wheeled robot teleoperated round corridors and rooms whose walls "
-                                      "carry photo textures, and record forward-camera images, drifting wheel "
-                                      "odometry and ground truth.")
-    cor.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
-    cor.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    from recorder.sim.corridor import CorridorConfig
-
-    _sim_options(cor, CorridorConfig)
-    cor.set_defaults(func=cmd_record_sim_corridor)
-    ims = rsub.add_parser("images", parents=[quiet], help="import a folder of frames (no navigation)",
-                          description="Record the images of DIR, ordered by the frame counter in their names, as "
-                                      "/camera/image (mono8, PNG).")
-    ims.add_argument("dir", help="the folder holding the frames")
-    ims.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
-    ims.add_argument("--rate-hz", type=float, default=1.0, help="frame rate that sets the stamps (default: 1)")
-    ims.set_defaults(func=cmd_record_images)
-    mr = rsub.add_parser("mrclam", parents=[quiet], help="import one robot, or all five, of the UTIAS MRCLAM dataset",
-                         description="Import one robot (or all five) of an MRCLAM dataset folder: odometry integrated "
-                                     "into poses, landmark sightings as scans, Vicon ground truth, the landmark map, "
-                                     "and each robot's sensor noise measured against the ground truth.")
-    mr.add_argument("dir", help="the dataset folder (with Robot1_Odometry.dat ...)")
-    mr.add_argument("--robot", type=_mrclam_robot, required=True,
-                    help="robot number, 1-5, or `all`: the five robots in one recording, each under /robotN/")
-    mr.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
-    mr.set_defaults(func=cmd_record_mrclam)
-    _add_record_ros2(rsub, quiet)
-    vp = rsub.add_parser("victoria-park", parents=[quiet], help="import Victoria Park (iSAM graph form, trees)",
-                         description="Import Victoria Park's iSAM/GTSAM file: odometry composed into poses, tree "
-                                     "sightings as range-bearing scans with their landmark ids. The file has no "
-                                     "ground truth: the batch least-squares optimum of the same measurements is "
-                                     "recorded as the reference runs are scored against.")
-    vp.add_argument("dir", help="the folder holding victoria_park.txt (or the file)")
-    vp.add_argument("--out", required=True, help="the .mcap file to write (must not exist)")
-    vp.add_argument("--no-reference", action="store_true",
-                    help="skip the batch optimum (no /ground_truth topics; runs are not scored)")
-    vp.add_argument("--merge-window-m", type=float, default=0.0, metavar="M",
-                    help="gather the sightings of consecutive poses over M metres of odometry into one scan "
-                         "(default 0: one scan per pose, as in the file; D-SLAM needs scans seeing two trees)")
-    vp.set_defaults(func=cmd_record_victoria_park)
+    _add_record_parsers(rsub, quiet)
 
     ins = sub.add_parser("inspect", help="topics, schemas, counts, time span and health of a recording")
     ins.add_argument("file", help="an .mcap recording or a ROS 2 bag directory")

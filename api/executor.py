@@ -157,8 +157,10 @@ def _worker_main(conn: Connection, parent_pid: int, job: Job, limits: JobLimits)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.nice(WORKER_NICENESS)
     threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
-    import replay.pipelines  # pay the import cost before the first job, not during it
     import replay.run  # noqa: F401
+    from replay.pipeline import all_pipelines
+
+    all_pipelines()  # pay the import cost before the first job, not during it
 
     while True:
         try:

@@ -89,8 +89,10 @@ def _ray_job(job: Job, task: Task, limits: JobLimits, sink: Any) -> Outcome:
 
 def _warm_up() -> int:
     """Import the pipelines in a Ray worker before the first job needs them."""
-    import replay.pipelines
     import replay.run  # noqa: F401
+    from replay.pipeline import all_pipelines
+
+    all_pipelines()
 
     return os.getpid()
 

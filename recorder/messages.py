@@ -16,7 +16,7 @@ from typing import ClassVar, Final, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-# Logical topics of a slamreplay recording (DESIGN.md, "Recording format").
+# Logical topics of a slamreplay recording (docs/design.md, "Recording format").
 TOPIC_ODOM: Final = "/odom"
 TOPIC_GROUND_TRUTH_POSE: Final = "/ground_truth/pose"
 TOPIC_RANGE_BEARING: Final = "/landmarks/range_bearing"

@@ -170,6 +170,11 @@ def diff_runs(a_dir: str | Path, b_dir: str | Path, tolerances: Mapping[str, str
         va, vb = _get(ma, key), _get(mb, key)
         if va != vb:
             out.changes.append({"field": key, "a": va, "b": vb})
+    oa, ob = ma.get("pipeline_origin"), mb.get("pipeline_origin")
+    if oa and ob:  # where the pipeline came from (a plugin's distribution and version); older runs lack it
+        for key in ("distribution", "version"):
+            if oa.get(key) != ob.get(key):
+                out.changes.append({"field": f"pipeline_origin.{key}", "a": oa.get(key), "b": ob.get(key)})
     for section in ("config", "libraries"):
         ca, cb = ma.get(section, {}), mb.get(section, {})
         for key in sorted(set(ca) | set(cb)):

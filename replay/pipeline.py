@@ -22,6 +22,7 @@ import rerun.blueprint as rrb
 
 from algorithms.observe import Observation
 from recorder.errors import RecorderError
+from recorder.plugins import Plugin, discover, missing_builtins_hint
 from recorder.sensor_model import SensorModel
 from recorder.writer import METADATA_NAME
 from replay import views
@@ -100,7 +101,7 @@ class ReplayContext:
 
 
 class Pipeline(ABC):
-    """Base class of every pipeline; subclasses register themselves by ``name``."""
+    """Base class of every pipeline; found through an entry point in group ``slamreplay.pipelines`` named ``name``."""
 
     name: ClassVar[str]
     summary: ClassVar[str]
@@ -169,30 +170,56 @@ class Pipeline(ABC):
         )
 
 
-PIPELINES: dict[str, type[Pipeline]] = {}
+PIPELINE_GROUP = "slamreplay.pipelines"
 
 
-def register(cls: type[Pipeline]) -> type[Pipeline]:
-    """Class decorator adding a pipeline to the registry."""
-    PIPELINES[cls.name] = cls
-    return cls
+def _check_pipeline(name: str, obj: Any) -> str | None:
+    """What is wrong with an entry point's object as a pipeline (None: nothing)."""
+    if not (isinstance(obj, type) and issubclass(obj, Pipeline)):
+        return f"is not a Pipeline subclass (it is {type(obj).__name__} {getattr(obj, '__name__', obj)!r})"
+    missing = sorted(getattr(obj, "__abstractmethods__", ()))
+    if missing:
+        return f"does not implement {', '.join(missing)}"
+    declared = getattr(obj, "name", None)
+    if declared != name:
+        return f"is registered as {name!r} but its class says name = {declared!r}: make the two agree"
+    for attr in ("summary", "required_topics", "start_topic", "Config", "metrics"):
+        if not hasattr(obj, attr):
+            return f"has no {attr} (docs/pipelines.md lists what a pipeline declares)"
+    if not dataclasses.is_dataclass(obj.Config):
+        return "has a Config that is not a dataclass"
+    return None
+
+
+def pipeline_plugins() -> dict[str, Plugin]:
+    """Every pipeline entry point (group ``slamreplay.pipelines``), built-in or a user's, working or broken."""
+    return discover(PIPELINE_GROUP, _check_pipeline)
 
 
 def get_pipeline(name: str) -> type[Pipeline]:
-    """The pipeline class called ``name``; ReplayError naming the known ones otherwise."""
-    import replay.pipelines  # noqa: F401 -- registers the built-in pipelines
-
-    try:
-        return PIPELINES[name]
-    except KeyError:
-        raise ReplayError(f"unknown pipeline {name!r}; known pipelines: {', '.join(sorted(PIPELINES))} "
+    """The pipeline class called ``name``; ReplayError naming the known ones, or why a plugin is broken."""
+    plugins = pipeline_plugins()
+    if name not in plugins:
+        if not plugins:
+            raise ReplayError(missing_builtins_hint(PIPELINE_GROUP))
+        raise ReplayError(f"unknown pipeline {name!r}; known pipelines: {', '.join(plugins)} "
                           f"(see `slamreplay pipelines`)") from None
+    try:
+        cls: type[Pipeline] = plugins[name].load()
+    except RecorderError as err:
+        raise ReplayError(str(err)) from None
+    return cls
+
+
+def pipeline_origin(name: str) -> dict[str, str]:
+    """Where pipeline ``name`` comes from: its distribution, version and entry point (for run manifests)."""
+    p = pipeline_plugins()[name]
+    return {"distribution": p.distribution, "version": p.version, "entry_point": p.value}
 
 
 def all_pipelines() -> dict[str, type[Pipeline]]:
-    import replay.pipelines  # noqa: F401
-
-    return dict(sorted(PIPELINES.items()))
+    """The pipelines that load, by name (a broken plugin is left out: `slamreplay pipelines` reports it)."""
+    return {name: p.load() for name, p in pipeline_plugins().items() if p.error is None}
 
 
 # ---------------------------------------------------------------------------------------

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import textwrap
 from pathlib import Path
 
 import pytest
@@ -77,3 +78,17 @@ def pipeline_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     from tests.replay.view_runs import make_runs
 
     return make_runs(tmp_path_factory.mktemp("pipeline-runs"))
+
+
+def make_distribution(root: Path, name: str, version: str, entry_points: dict[str, str],
+                      modules: dict[str, str], group: str = "slamreplay.pipelines") -> None:
+    """An installed distribution as importlib.metadata sees one: a .dist-info folder and modules on sys.path."""
+    info = root / f"{name.replace('-', '_')}-{version}.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: {version}\n")
+    lines = [f"[{group}]", *(f"{k} = {v}" for k, v in entry_points.items())]
+    (info / "entry_points.txt").write_text("\n".join(lines) + "\n")
+    for module, source in modules.items():
+        path = root / (module.replace(".", "/") + ".py")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(textwrap.dedent(source))

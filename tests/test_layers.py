@@ -1,4 +1,4 @@
-"""The layer rules of DESIGN.md, checked on the source: api -> replay -> {recorder, algorithms}."""
+"""The layer rules of docs/design.md, checked on the source: api -> replay -> {recorder, algorithms}."""
 
 from __future__ import annotations
 

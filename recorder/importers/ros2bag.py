@@ -3,7 +3,7 @@
 A bag is a folder (``metadata.yaml`` plus storage files), or one ``.db3`` or ``.mcap`` file.
 Message definitions stored in the bag are used; where the bag holds none (sqlite3 bags before
 Iron), the ROS 2 Humble or Jazzy type store (``typestore``) supplies them. Each topic maps to a
-logical topic of the recording (DESIGN.md, "Recording format"):
+logical topic of the recording (docs/design.md, "Recording format"):
 
 - ``nav_msgs/Odometry`` -> ``/odom``: the pose, planar;
 - ``geometry_msgs/PoseStamped``, ``PoseWithCovarianceStamped`` -> ``/ground_truth/pose``;

@@ -1,5 +1,2 @@
-"""Built-in pipelines; importing this package registers them."""
-
-from replay.pipelines import dslam, ekfslam, ifmi, odometry, topometric, topometric_nav
-
-__all__ = ["dslam", "ekfslam", "ifmi", "odometry", "topometric", "topometric_nav"]
+"""Built-in pipelines. Each is found through its entry point in group ``slamreplay.pipelines``
+(pyproject.toml), the same way as a user's plugin: importing this package registers nothing."""

@@ -22,7 +22,7 @@ from algorithms.dslam import DSlam, DSlamConfig, ScanStatus
 from algorithms.dslam.localization import PoseStatus
 from algorithms.observe import CovarianceEllipses, Image, Points, Pose, Scalar, Segments, State
 from replay import views
-from replay.pipeline import MetricSpec, ReplayContext, register
+from replay.pipeline import MetricSpec, ReplayContext
 from replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, LandmarkSlamPipeline
 
 
@@ -64,7 +64,6 @@ class DSlamPipelineConfig(LandmarkSlamConfig):
                            composite_max_heading_sigma_rad=self.composite_max_heading_sigma_rad)
 
 
-@register
 class DSlamPipeline(LandmarkSlamPipeline):
     name = "dslam"
     summary = "D-SLAM: decoupled EIF mapping (recast measurements) and Covariance Intersection localization"

@@ -17,7 +17,6 @@ import rerun.blueprint as rrb
 from algorithms.ekfslam import EkfSlam, EkfSlamConfig
 from algorithms.observe import Image
 from replay import views
-from replay.pipeline import register
 from replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, LandmarkSlamPipeline
 
 
@@ -43,7 +42,6 @@ class EkfSlamPipelineConfig(LandmarkSlamConfig):
                              association_params=self.association_params(), jacobians=self.jacobians)
 
 
-@register
 class EkfSlamPipeline(LandmarkSlamPipeline):
     name = "ekfslam"
     summary = "EKF-SLAM (full covariance): the traditional-SLAM baseline of the D-SLAM paper"

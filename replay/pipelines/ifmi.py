@@ -45,7 +45,7 @@ from algorithms.observe import CovarianceEllipses, Image, LineStrips, Points, Sc
 from recorder.messages import TOPIC_CAMERA_IMAGE, TOPIC_GROUND_TRUTH_POSE, CameraImage, GroundTruthPose
 from replay import views
 from replay.errors import ReplayError
-from replay.pipeline import MetricSpec, Pipeline, ReplayContext, register
+from replay.pipeline import MetricSpec, Pipeline, ReplayContext
 from replay.reader import Envelope
 
 WEAK_SIGMA = 1e3  # a rejected consecutive registration keeps the graph connected with a nearly free edge
@@ -91,7 +91,6 @@ class IfmiPipelineConfig:
             raise ValueError("loop_gate_deg and loop_gate_footprints must be > 0")
 
 
-@register
 class IfmiPipeline(Pipeline):
     name = "ifmi"
     summary = "iFMI photo-mapping: spectral registration with POMF covariance and PNR, pose graph, mosaics"

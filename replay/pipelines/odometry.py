@@ -15,7 +15,7 @@ from algorithms.deadreckoning import DeadReckoning
 from algorithms.observe import Pose
 from recorder.messages import TOPIC_GROUND_TRUTH_POSE, TOPIC_ODOM, GroundTruthPose, OdometryPose
 from replay.metrics import position_errors, rmse
-from replay.pipeline import MetricSpec, Pipeline, ReplayContext, register
+from replay.pipeline import MetricSpec, Pipeline, ReplayContext
 from replay.reader import Envelope
 from replay.trajectory import TrajectoryLog
 
@@ -25,7 +25,6 @@ class OdometryConfig:
     """Dead reckoning has no parameters."""
 
 
-@register
 class OdometryPipeline(Pipeline):
     name = "odometry"
     summary = "dead reckoning from /odom, scored against /ground_truth/pose"

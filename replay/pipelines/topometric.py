@@ -47,7 +47,7 @@ from recorder.messages import (
     OdometryPose,
 )
 from replay import views
-from replay.pipeline import MetricSpec, Pipeline, ReplayContext, register
+from replay.pipeline import MetricSpec, Pipeline, ReplayContext
 from replay.reader import Envelope
 from replay.topomap_io import save_map
 
@@ -87,7 +87,6 @@ class TopometricConfig:
                                           max_rotation_deg=self.max_rotation_deg, max_scale=self.max_scale))
 
 
-@register
 class TopometricPipeline(Pipeline):
     name = "topometric"
     summary = "topo-metric visual mapping: STAR+BRIEF bag of words, Bayes filter, 2-point RANSAC, relaxation"

@@ -66,7 +66,7 @@ from replay.navigate import (
     nav_code_fingerprint,
     reference_path,
 )
-from replay.pipeline import MetricSpec, Pipeline, ReplayContext, register
+from replay.pipeline import MetricSpec, Pipeline, ReplayContext
 from replay.reader import Envelope
 from replay.trajectory import TrajectoryLog
 
@@ -85,7 +85,6 @@ class TopometricNavConfig:
             raise ValueError(f"goal_radius_m must be > 0, got {self.goal_radius_m}")
 
 
-@register
 class TopometricNavPipeline(Pipeline):
     name = "topometric-nav"
     summary = "topo-metric navigation replay: Dijkstra route, qualitative visual localization, path following"

@@ -1,0 +1,301 @@
+"""Sources of recordings, simulators and importers alike: the ``Importer`` protocol and the built-in ones.
+
+``slamreplay record NAME`` has one sub-command per importer found in the entry-point group
+``slamreplay.importers`` (:mod:`recorder.plugins`); the built-ins below are declared there in
+slamreplay's pyproject.toml, the same way as a user's. An importer declares its command-line
+arguments (``add_arguments``) and writes one recording from their values (``record``); the
+heavy modules it needs are imported only when it records.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import typing
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+from recorder.errors import RecorderError
+from recorder.plugins import Plugin, discover
+
+IMPORTER_GROUP = "slamreplay.importers"
+Progress = Callable[[int, int], None]
+OUT_HELP = "the .mcap file to write (must not exist)"
+
+
+@runtime_checkable
+class Importer(Protocol):
+    """A source of recordings, found through the entry-point group ``slamreplay.importers``.
+
+    The entry point names a class whose instances (made with no arguments) have:
+
+    - ``name``: the sub-command, equal to the entry point's name (``record NAME``);
+    - ``help`` (one line for ``record --help``) and ``description`` (for ``record NAME --help``);
+    - ``progress_label``: what the progress bar says while it runs;
+    - ``add_arguments(parser)``: its arguments, ``--out`` among them;
+    - ``record(options, progress, log) -> str``: write the recording from the parsed ``options``
+      (argument dest -> value), calling ``progress(done, total)`` now and then and ``log(text)`` for
+      a note to the user; it returns the one-line summary printed after ``wrote FILE:``. Bad input
+      raises ``RecorderError`` (one line for the user, exit 2); nothing that looks whole is left behind.
+    """
+
+    name: str
+    help: str
+    description: str
+    progress_label: str
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None: ...
+
+    def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str: ...
+
+
+def _check_importer(name: str, obj: Any) -> str | None:
+    """What is wrong with an entry point's object as an importer (None: nothing)."""
+    if not isinstance(obj, type):
+        return f"is not an importer class (it is {type(obj).__name__} {getattr(obj, '__name__', obj)!r})"
+    try:
+        instance = obj()
+    except Exception as err:  # noqa: BLE001 -- a plugin's constructor is reported, never fatal
+        return f"cannot be constructed with no arguments: {type(err).__name__}: {err}"
+    if not isinstance(instance, Importer):
+        missing = [a for a in ("name", "help", "description", "progress_label", "add_arguments", "record")
+                   if not hasattr(instance, a)]
+        return f"does not implement the Importer protocol (missing {', '.join(missing)})"
+    if instance.name != name:
+        return f"is registered as {name!r} but its class says name = {instance.name!r}: make the two agree"
+    return None
+
+
+def importer_plugins() -> dict[str, Plugin]:
+    """Every importer entry point, built-in or a user's, working or broken (loaded on first use)."""
+    return discover(IMPORTER_GROUP, _check_importer)
+
+
+def get_importer(name: str) -> Importer:
+    """An instance of importer ``name``; RecorderError naming the known ones, or why a plugin is broken."""
+    plugins = importer_plugins()
+    if name not in plugins:
+        raise RecorderError(f"unknown importer {name!r}; known: {', '.join(plugins) or '(none)'}")
+    instance: Importer = plugins[name].load()()
+    return instance
+
+
+# ---------------------------------------------------------------------------------------
+# Helpers for importers whose options are a config dataclass
+
+
+def add_dataclass_options(parser: argparse.ArgumentParser, config_cls: type, prefix: str = "cfg_") -> None:
+    """One ``--field-name`` option per field of a config dataclass, its help from the field's metadata."""
+    hints = typing.get_type_hints(config_cls)
+    for f in dataclasses.fields(config_cls):
+        tp = hints[f.name]
+        args = typing.get_args(tp)
+        base = next((a for a in args if a is not type(None)), tp) if args else tp
+        default = f.default if f.default is not dataclasses.MISSING else None
+        kind = base if base in (int, float, str) else str
+        parser.add_argument(f"--{f.name.replace('_', '-')}", dest=f"{prefix}{f.name}", type=kind, default=None,
+                            metavar=kind.__name__.upper(), help=f"{f.metadata.get('help', '')} (default: {default})")
+
+
+def dataclass_from_options(options: Mapping[str, Any], config_cls: type, prefix: str = "cfg_") -> Any:
+    """The config dataclass from the options given (others keep their defaults); RecorderError when invalid."""
+    values = {k[len(prefix):]: v for k, v in options.items() if k.startswith(prefix) and v is not None}
+    try:
+        return config_cls(**values)
+    except (TypeError, ValueError) as err:
+        raise RecorderError(f"invalid simulator option: {err}") from err
+
+
+def _out_and_seed(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", required=True, help=OUT_HELP)
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+
+
+# ---------------------------------------------------------------------------------------
+# Simulators
+
+
+class SimLandmarks:
+    name = "sim-landmarks"
+    help = "D-SLAM paper scenario: point landmarks, range-bearing sensor, odometry"
+    description = ("Simulate a robot among point landmarks (default: the D-SLAM paper's section 4.2 scenario) and "
+                   "record odometry, scans and ground truth.")
+    progress_label = "simulating"
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
+        from recorder.sim.landmarks import LandmarkSimConfig
+
+        _out_and_seed(parser)
+        add_dataclass_options(parser, LandmarkSimConfig)
+
+    def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str:
+        from recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
+
+        config = dataclass_from_options(options, LandmarkSimConfig)
+        s = simulate_landmarks(Path(options["out"]), config, seed=options["seed"], progress=progress)
+        return (f"{s.messages:,} messages, {s.poses:,} poses, {s.scans:,} scans ({s.observations:,} observations), "
+                f"{s.landmarks_observed}/{s.landmarks} landmarks seen, {s.path_length_m:.1f} m driven in a "
+                f"{s.area_m:g} m square")
+
+
+class SimSeabed:
+    name = "sim-seabed"
+    help = "downward camera over a seabed texture: lawn-mower survey with revisits"
+    description = ("Simulate a downward camera flying a lawn-mower survey over a seabed texture (procedural, an image "
+                   "file, or a folder of frames given with --texture) and record images, odometry and ground truth.")
+    progress_label = "simulating"
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
+        from recorder.sim.seabed import SeabedSimConfig
+
+        _out_and_seed(parser)
+        add_dataclass_options(parser, SeabedSimConfig)
+
+    def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str:
+        from recorder.sim.seabed import SeabedSimConfig, simulate_seabed
+
+        config = dataclass_from_options(options, SeabedSimConfig)
+        s = simulate_seabed(Path(options["out"]), config, seed=options["seed"], progress=progress)
+        return (f"{s.messages:,} messages, {s.images} images over a {s.texture_px[0]}x{s.texture_px[1]} px seabed, "
+                f"{s.path_length_m:.1f} m surveyed")
+
+
+class SimCorridor:
+    name = "sim-corridor"
+    help = "forward camera driven round an indoor floor plan with loops: images, odometry"
+    description = ("Simulate a wheeled robot teleoperated round corridors and rooms whose walls carry photo textures, "
+                   "and record forward-camera images, drifting wheel odometry and ground truth.")
+    progress_label = "simulating"
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
+        from recorder.sim.corridor import CorridorConfig
+
+        _out_and_seed(parser)
+        add_dataclass_options(parser, CorridorConfig)
+
+    def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str:
+        from recorder.sim.corridor import CorridorConfig, simulate_corridor
+
+        config = dataclass_from_options(options, CorridorConfig)
+        s = simulate_corridor(Path(options["out"]), config, seed=options["seed"], progress=progress)
+        return (f"{s.messages:,} messages, {s.images:,} images, {s.poses:,} poses, {s.path_length_m:.1f} m driven in "
+                f"{s.duration_s:.0f} s, odometry off by {s.odom_final_error_m:.2f} m at the end")
+
+
+# ---------------------------------------------------------------------------------------
+# Importers
+
+
+class Images:
+    name = "images"
+    help = "import a folder of frames (no navigation)"
+    description = (
+        "Record the images of DIR, ordered by the frame counter in their names, as /camera/image (mono8, PNG).")
+    progress_label = "importing images"
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
+        parser.add_argument("dir", help="the folder holding the frames")
+        parser.add_argument("--out", required=True, help=OUT_HELP)
+        parser.add_argument("--rate-hz", type=float, default=1.0, help="frame rate that sets the stamps (default: 1)")
+
+    def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str:
+        from recorder.importers.images import import_images
+
+        s = import_images(Path(options["dir"]), Path(options["out"]), rate_hz=options["rate_hz"], progress=progress)
+        return f"{s.images} images of {s.width_px}x{s.height_px} ({s.first} .. {s.last})"
+
+
+def _mrclam_robot(text: str) -> int | str:
+    if text == "all":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 1-5 or all, got {text!r}") from None
+
+
+class Mrclam:
+    name = "mrclam"
+    help = "import one robot, or all five, of the UTIAS MRCLAM dataset"
+    description = ("Import one robot (or all five) of an MRCLAM dataset folder: odometry integrated into poses, "
+                   "landmark sightings as scans, Vicon ground truth, the landmark map, and each robot's sensor noise "
+                   "measured against the ground truth.")
+    progress_label = "importing MRCLAM"
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
+        parser.add_argument("dir", help="the dataset folder (with Robot1_Odometry.dat ...)")
+        parser.add_argument("--robot", type=_mrclam_robot, required=True,
+                            help="robot number, 1-5, or `all`: the five robots in one recording, each under /robotN/")
+        parser.add_argument("--out", required=True, help=OUT_HELP)
+
+    def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str:
+        from recorder.importers.mrclam import import_mrclam
+
+        s = import_mrclam(Path(options["dir"]), options["robot"], Path(options["out"]), progress=progress)
+        return (f"{s.messages:,} messages ({s.odometry_poses:,} odometry, {s.ground_truth_poses:,} ground truth, "
+                f"{s.scans:,} scans with {s.measurements_kept:,} landmark sightings; {s.robot_sightings_dropped} robot "
+                f"sightings and {s.unknown_barcodes_dropped} unknown barcodes dropped)")
+
+
+def _flag(text: str) -> bool:
+    return text.lower() in ("1", "true", "yes")
+
+
+class Ros2Bag:
+    name = "ros2"
+    help = "import a ROS 2 bag (sqlite3 or MCAP storage)"
+    description = ("Import a ROS 2 bag read with rosbags: odometry, poses, /tf and /tf_static, IMU, LaserScan (poles "
+                   "and trunks become landmarks), images and camera info. `slamreplay inspect BAG` shows what each "
+                   "topic becomes.")
+    progress_label = "importing ROS 2 bag"
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
+        from recorder.importers.poles import PoleConfig
+
+        parser.add_argument("bag", help="the bag folder, or its .db3 or .mcap file")
+        parser.add_argument("--out", required=True, help=OUT_HELP)
+        parser.add_argument("--topic-map", action="append", default=[], metavar="BAG_TOPIC=TOPIC",
+                            help="read a bag topic as a logical topic, e.g. /gps/pose=/ground_truth/pose (repeatable)")
+        parser.add_argument("--base-frame", default="base_link", help="the robot's tf frame (default: base_link)")
+        parser.add_argument("--odom-frame", default="odom",
+                            help="tf frame of odometry, used when the bag has no Odometry topic (default: odom)")
+        parser.add_argument("--ground-truth-frame", default=None, metavar="FRAME",
+                            help="record the base frame's pose in FRAME, composed through /tf, as ground truth "
+                                 "(e.g. map)")
+        parser.add_argument("--typestore", choices=("humble", "jazzy"), default="humble",
+                            help="message definitions for bags that store none (default: humble)")
+        for f in dataclasses.fields(PoleConfig):
+            kind = int if f.type in ("int", int) else (_flag if f.type in ("bool", bool) else float)
+            parser.add_argument(f"--pole-{f.name.replace('_', '-')}", dest=f"pole_{f.name}", default=None, type=kind,
+                                help=f"pole extractor (recorder/importers/poles.py): {f.name} (default: {f.default})")
+
+    def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str:
+        from recorder.importers.poles import PoleConfig
+        from recorder.importers.ros2bag import import_ros2_bag
+
+        values = {f.name: options[f"pole_{f.name}"] for f in dataclasses.fields(PoleConfig)
+                  if options.get(f"pole_{f.name}") is not None}
+        try:
+            poles = PoleConfig(**values)
+        except ValueError as err:
+            raise RecorderError(str(err)) from err
+        s = import_ros2_bag(Path(options["bag"]), Path(options["out"]), topic_map=_pairs(options["topic_map"]),
+                            base_frame=options["base_frame"], odom_frame=options["odom_frame"],
+                            ground_truth_frame=options["ground_truth_frame"], typestore=options["typestore"],
+                            poles=poles, progress=progress)
+        counts = ", ".join(f"{n:,} {t}" for t, n in sorted(s.counts.items()))
+        skipped = [t.topic for t in s.plan.topics if t.maps_to is None]
+        return (f"{s.messages:,} messages ({counts}); {s.poles:,} poles extracted"
+                + (f"; skipped {', '.join(skipped)} (see `slamreplay inspect {options['bag']}`)" if skipped else ""))
+
+
+def _pairs(items: list[str]) -> dict[str, str]:
+    """``["A=B", ...]`` as a dict; RecorderError for an item that is not A=B."""
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key or not value:
+            raise RecorderError(f"--topic-map expects A=B, got {item!r}")
+        out[key] = value
+    return out
