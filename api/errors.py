@@ -62,6 +62,7 @@ class InsufficientStorageError(ApiError):
 
 
 DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+SQLITE_FULL = 13  # SQLite's result code (sqlite3.SQLITE_FULL from Python 3.11; 3.10 names no codes)
 
 
 def is_disk_full(exc: BaseException) -> bool:
@@ -72,7 +73,7 @@ def is_disk_full(exc: BaseException) -> bool:
             return False
         if isinstance(seen, OSError) and seen.errno in DISK_FULL_ERRNOS:
             return True
-        if isinstance(seen, sqlite3.Error) and (getattr(seen, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL
+        if isinstance(seen, sqlite3.Error) and (getattr(seen, "sqlite_errorcode", None) == SQLITE_FULL
                                                 or "database or disk is full" in str(seen)):
             return True
         seen = seen.__cause__ or seen.__context__
