@@ -89,11 +89,11 @@ def resolve_mcap_path(path: Path) -> Path:
         if len(mcaps) == 1:
             return mcaps[0]
         if not mcaps and list(path.glob("*.db3")):
-            raise ReplayError(f"{path} is a ROS 2 bag in sqlite3 storage; slamreplay reads MCAP storage: "
-                              f"convert it with `ros2 bag convert` (storage_id: mcap)")
+            raise ReplayError(f"{path} is a ROS 2 bag in sqlite3 storage; import it first: "
+                              f"`slamreplay record ros2 {path} --out FILE.mcap`, then run FILE.mcap")
         what = "no .mcap file" if not mcaps else f"{len(mcaps)} .mcap files (split bag)"
-        raise ReplayError(f"{path} is a directory with {what}; give one .mcap file "
-                          f"(merge split bags with `ros2 bag convert` first)")
+        raise ReplayError(f"{path} is a directory with {what}; give one .mcap file, or import the bag with "
+                          f"`slamreplay record ros2 {path} --out FILE.mcap`")
     return path
 
 
