@@ -130,12 +130,13 @@ def prepare_revision(repo: Path, rev: str, cache: Path) -> Revision:
             _remove_build(repo, root)
             root.mkdir(parents=True, exist_ok=True)
             log = root / "build.log"
-            steps = [["git", "worktree", "add", "--detach", str(src), sha]]
+            steps = [("git worktree add", ["git", "worktree", "add", "--detach", str(src), sha])]
             if not override:
-                steps += [[sys.executable, "-m", "venv", str(venv)],
-                          [str(venv / "bin" / "python"), "-m", "pip", "install", "--quiet", "-e", str(src)]]
+                steps += [("python -m venv", [sys.executable, "-m", "venv", str(venv)]),
+                          ("pip install -e", [str(venv / "bin" / "python"), "-m", "pip", "install", "--quiet", "-e",
+                                              str(src)])]
             with open(log, "w") as out:
-                for step in steps:
+                for name, step in steps:
                     out.write(f"$ {' '.join(step)}\n")
                     out.flush()
                     try:
@@ -149,8 +150,8 @@ def prepare_revision(repo: Path, rev: str, cache: Path) -> Revision:
                         shutil.copy(log, keep)
                         out.close()
                         _remove_build(repo, root)
-                        raise ReplayError(f"revision {rev} ({sha[:10]}) does not build: `{' '.join(step[:4])}` "
-                                          f"failed; see {keep}")
+                        raise ReplayError(f"revision {rev} ({sha[:10]}) does not build: `{name}` failed; "
+                                          f"see {keep}")
             (root / "ready").write_text(sha + "\n")
     if override:
         env = {"PYTHONPATH": str(src) + os.pathsep + os.environ.get("PYTHONPATH", "")}
