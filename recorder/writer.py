@@ -35,6 +35,17 @@ def partial_path(path: Path) -> Path:
     return path.with_name(path.name + ".partial")
 
 
+def refuse_existing(path: Path) -> None:
+    """RecorderError when ``path`` or its ``.partial`` exists: a recording is never overwritten.
+
+    Importers that read for minutes call it first; `Recorder` checks again when it is made.
+    """
+    for p in (path, partial_path(path)):
+        if p.exists():
+            raise RecorderError(f"{p} already exists; slamreplay never overwrites a recording: choose another --out "
+                                f"or delete it")
+
+
 class Recorder:
     """Write slamreplay messages to an MCAP file.
 
@@ -61,10 +72,7 @@ class Recorder:
                  sensor_model: SensorModel | Mapping[str, SensorModel] | None = None) -> None:
         self.path = Path(path)
         self.partial = partial_path(self.path)
-        for p in (self.path, self.partial):
-            if p.exists():
-                msg = f"{p} already exists; slamreplay never overwrites a recording: choose another --out or delete it"
-                raise RecorderError(msg)
+        refuse_existing(self.path)
         if not self.path.parent.is_dir():
             raise RecorderError(f"directory {self.path.parent} does not exist: create it first")
         try:

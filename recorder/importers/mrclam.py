@@ -49,7 +49,7 @@ from recorder.messages import (
     RangeBearingScan,
 )
 from recorder.sensor_model import SensorModel
-from recorder.writer import Recorder
+from recorder.writer import Recorder, refuse_existing
 
 IMPORTER: Final = "mrclam"
 DATASET: Final = "MRCLAM Dataset6"
@@ -360,10 +360,7 @@ def import_mrclam(data_dir: Path, robot: int | str, out: Path, progress: Progres
         msg = (f"MRCLAM folder {data_dir} does not exist or is not a folder: pass the folder holding "
                f"Barcodes.dat, Landmark_Groundtruth.dat and Robot{robots[0]}_*.dat")
         raise RecorderError(msg)
-    for p in (Path(out), Path(f"{out}.partial")):  # before minutes of reading (Recorder checks again)
-        if p.exists():
-            raise RecorderError(f"{p} already exists; slamreplay never overwrites a recording: choose another --out "
-                                f"or delete it")
+    refuse_existing(Path(out))  # before minutes of reading
 
     subject, barcode = _read_dat(data_dir / "Barcodes.dat", ("subject", "barcode"), "ii")
     lm_id, lm_x, lm_y, _, _ = _read_dat(data_dir / "Landmark_Groundtruth.dat",
