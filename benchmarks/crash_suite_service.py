@@ -121,9 +121,17 @@ def _rows(out: Path) -> list[dict[str, Any]]:
         return []
 
 
-def suite_trial(work: Path, recording: Path, baseline: Path, k: int, delay_s: float, light: bool = False
-                ) -> dict[str, Any]:
-    """Kill `suite run` after ``delay_s``, check what it left, run it again into the same --out."""
+def _wait_for_rows(proc: subprocess.Popen[bytes], out: Path, rows: int, timeout_s: float = 120.0) -> None:
+    """Return once ``out/results.jsonl`` holds ``rows`` rows (or the process ended, or ``timeout_s`` passed)."""
+    deadline = time.monotonic() + timeout_s
+    while proc.poll() is None and len(_rows(out)) < rows and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+
+def suite_trial(work: Path, recording: Path, baseline: Path, k: int, delay_s: float, light: bool = False,
+                after_rows: int = 0) -> dict[str, Any]:
+    """Kill `suite run` ``delay_s`` after it has written ``after_rows`` result rows, check what it left, run it
+    again into the same --out."""
     suite = work / f"suite-{k}.toml"
     suite.write_text(suite_text(recording, light))  # the same cells as the baseline
     out, cache = work / f"suite-{k}", work / f"cache-{k}"
@@ -134,6 +142,9 @@ def suite_trial(work: Path, recording: Path, baseline: Path, k: int, delay_s: fl
     proc = subprocess.Popen([*SLAMREPLAY, *map(str, args)], cwd=REPO, env=_env(cache), stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     t: dict[str, Any] = {"command": "suite run", "trial": k, "kill_after_s": round(delay_s, 2), "problems": []}
+    if after_rows:
+        t["kill_after_rows"] = after_rows
+        _wait_for_rows(proc, out, after_rows)
     try:
         t["finished"] = proc.wait(delay_s) == 0
         workers: list[int] = []
@@ -163,12 +174,26 @@ def suite_trial(work: Path, recording: Path, baseline: Path, k: int, delay_s: fl
             status = json.loads((run_dir / "manifest.json").read_text()).get("status")
         except (OSError, ValueError):
             status = None
-        if status != "succeeded" and ((run_dir / "metrics.json").exists() or (run_dir / "run.rrd").exists()):
-            t["problems"].append(f"unlisted cell {run_dir.name} holds metrics.json or run.rrd without a finished run")
+        if status is not None and status != "succeeded" and (run_dir / "metrics.json").exists():
+            t["problems"].append(f"unlisted cell {run_dir.name}: a {status} run beside a metrics.json")
+        elif status is None and ((run_dir / "metrics.json").exists() or (run_dir / "run.rrd").exists()):
+            # killed between its last file and its manifest (the commit point): every reader must say unfinished
+            d = cli("diff", run_dir, run_dir)
+            if d.returncode != 2 or "not a finished run" not in d.stderr:
+                t["problems"].append(f"unlisted cell {run_dir.name} has no manifest, yet diff reads it: "
+                                     f"exit {d.returncode}, {d.stderr.strip()[:200]!r}")
     for f in (cache / "recordings").glob("*.mcap") if (cache / "recordings").is_dir() else []:
         if (ins := cli("inspect", f)).returncode != 0:
             t["problems"].append(f"the cache holds {f.name} under its final name, unhealthy: {ins.stdout[-200:]!r}")
-    if not t["finished"]:
+    try:
+        t["said_finished"] = json.loads((out / "suite.json").read_text()).get("finished") is True
+    except (OSError, ValueError):
+        t["said_finished"] = False
+    if not t["finished"] and t["said_finished"]:  # killed on its way out, after its last write: complete
+        if (c := cli("compare", baseline, out)).returncode != 0:
+            t["problems"].append(f"compare of results killed after they said finished: exit {c.returncode}, "
+                                 f"{c.stdout[-300:]!r}")
+    elif not t["finished"]:
         c = cli("compare", baseline, out)
         want = "unfinished suite run" if (out / "suite.json").is_file() else str(out)
         if c.returncode != 2 or want not in c.stderr:

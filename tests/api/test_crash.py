@@ -74,10 +74,13 @@ def test_old_results_without_the_flag_count_rows(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_suite_run_killed_at_random(tmp_path: Path) -> None:
-    """`suite run` killed by SIGKILL part-way (a real process, 2 workers): the trial's rules all hold."""
+    """`suite run` killed by SIGKILL part-way (a real process, 2 workers), the moment its first of 4 rows is written, so
+    the kill lands mid-run on a fast machine as on a slow one: the trial's rules all hold."""
     recording, baseline = cs.suite_setup(tmp_path, duration_s=30.0, light=True)
-    t = cs.suite_trial(tmp_path, recording, baseline, 0, 2.0, light=True)
+    t = cs.suite_trial(tmp_path, recording, baseline, 0, 0.0, light=True, after_rows=1)
     assert t["problems"] == [], t
+    assert not t["finished"] and not t["said_finished"] and 1 <= t["rows_before_rerun"] < 4, t
+    assert t["reused"] >= 1 and t["reused"] + t["rerun"] == 4, t
 
 
 @pytest.mark.slow
@@ -92,3 +95,35 @@ def test_server_killed_mid_job_then_restarted(tmp_path: Path) -> None:
     t = cs.serve_trial(tmp_path, data, rid, base, upload.read_bytes(), 0, 1.5, jobs=3)
     assert t["problems"] == [], t
     assert sum(t["ended"].values()) == 3 and set(t["ended"]) <= {"succeeded", "failed", "interrupted"}
+
+
+def test_killed_after_its_files_before_its_manifest_reads_unfinished(tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """The manifest is a run's commit point: a suite killed after a cell's run.rrd and metrics.json landed but
+    before its manifest did (the window a random kill once hit) leaves a run diff refuses as unfinished, and the
+    re-run runs that cell again instead of reusing it."""
+    import replay.run as run_mod
+    from replay.diff import load_run
+
+    write_tiny_recording(tmp_path / "tiny.mcap", n=40)
+    (tmp_path / "s.toml").write_text('seeds = [0]\n[recordings.tiny]\npath = "tiny.mcap"\n[pipelines.odometry]\n')
+    suite, out = load_suite(tmp_path / "s.toml"), tmp_path / "res"
+    real = run_mod.atomic_write
+
+    def killed_at_manifest(path: Path, data: str | bytes) -> None:
+        if path.name == "manifest.json":
+            raise Killed
+        real(path, data)
+
+    with monkeypatch.context() as m:
+        m.setattr(run_mod, "atomic_write", killed_at_manifest)
+        with pytest.raises(Killed):
+            run_suite(suite, out, "code", serial(), cache=tmp_path / "cache")
+    (run_dir,) = (out / "runs").iterdir()
+    assert (run_dir / "run.rrd").is_file() and (run_dir / "metrics.json").is_file()
+    assert not (run_dir / "manifest.json").exists()
+    with pytest.raises(ReplayError, match="not a finished run"):
+        load_run(run_dir)
+    rows = run_suite(suite, out, "code", serial(), cache=tmp_path / "cache")
+    assert [(r["cached"], r["status"]) for r in rows] == [(False, "succeeded")]
+    assert unfinished(out) is None
