@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from algorithms.common import se2
+from slamreplay.algorithms.common import se2
 
 
 @dataclass(frozen=True, slots=True)

@@ -20,19 +20,19 @@ from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.concurrency import run_in_threadpool
 
-from api.errors import ApiError, UnauthorizedError, disk_full_error, is_disk_full
-from api.executor import Executor, LocalExecutor
-from api.jobs import JobService
-from api.models import JOB_ID, SHA256, DiffOut, ErrorOut, HealthOut, JobOut, JobSpec, JobStatusName, RecordingOut
-from api.monitoring import CONTENT_TYPE, prometheus_text
-from api.multipart import FILE_FIELD, form_file, is_form
-from api.recordings import RecordingService
-from api.settings import Settings, get_settings
-from api.store import Store
-from recorder.errors import RecorderError
-from recorder.version import version
-from replay.diff import diff_runs, parse_tolerances
-from replay.errors import ReplayError
+from slamreplay.api.errors import ApiError, UnauthorizedError, disk_full_error, is_disk_full
+from slamreplay.api.executor import Executor, LocalExecutor
+from slamreplay.api.jobs import JobService
+from slamreplay.api.models import JOB_ID, SHA256, DiffOut, ErrorOut, HealthOut, JobOut, JobSpec, JobStatusName, RecordingOut
+from slamreplay.api.monitoring import CONTENT_TYPE, prometheus_text
+from slamreplay.api.multipart import FILE_FIELD, form_file, is_form
+from slamreplay.api.recordings import RecordingService
+from slamreplay.api.settings import Settings, get_settings
+from slamreplay.api.store import Store
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.version import version
+from slamreplay.replay.diff import diff_runs, parse_tolerances
+from slamreplay.replay.errors import ReplayError
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 RecordingId = Annotated[str, Path(pattern=SHA256, description="sha256 of the recording")]
@@ -239,7 +239,7 @@ def diff_rrd(a: JobQuery, b: JobQuery, jobs: JobsDep) -> FileResponse:
 def make_executor(settings: Settings) -> Executor:
     """The executor named by the settings (``ray``: ImportError with the install command when Ray is missing)."""
     if settings.executor == "ray":
-        from api.ray_executor import RayExecutor
+        from slamreplay.api.ray_executor import RayExecutor
 
         return RayExecutor(settings.workers, settings.job_limits, address=settings.ray_address)
     return LocalExecutor(settings.workers, settings.job_limits)
@@ -274,7 +274,7 @@ def create_app(settings: Settings | None = None, executor: Executor | None = Non
         app.add_exception_handler(exc, handle_error)
     app.include_router(public)
     app.include_router(router)
-    from api.web import install_web  # suites, compare, the web page at / (api/suites_routes.py, api/web.py)
+    from slamreplay.api.web import install_web  # suites, compare, the web page at / (api/suites_routes.py, api/web.py)
     install_web(app)
     if not docs:
         @app.get("/openapi.json", include_in_schema=False, dependencies=[Depends(require_token)])

@@ -15,11 +15,11 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from api.graph_cli import add_graph_parser
-from api.hints import spell_commands, tool, view_hint
-from api.suite_cli import add_suite_parsers
-from recorder.errors import RecorderError
-from replay.errors import ReplayError
+from slamreplay.api.graph_cli import add_graph_parser
+from slamreplay.api.hints import spell_commands, tool, view_hint
+from slamreplay.api.suite_cli import add_suite_parsers
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.replay.errors import ReplayError
 
 EXIT_OK, EXIT_CHECK_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 
@@ -75,7 +75,7 @@ def _parse_pairs(items: Sequence[str], what: str) -> dict[str, str]:
 
 def cmd_record(args: argparse.Namespace) -> int:
     """``record NAME``: the importer (or simulator) NAME writes one recording (recorder/sources.py)."""
-    from recorder.sources import get_importer
+    from slamreplay.recorder.sources import get_importer
 
     importer = get_importer(args.source)
     options = {k: v for k, v in vars(args).items() if k not in ("func", "source", "command", "debug", "quiet")}
@@ -89,7 +89,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 def cmd_record_broken(args: argparse.Namespace) -> int:
     """A broken importer plugin: its one-line error, exit 2."""
-    from recorder.sources import importer_plugins
+    from slamreplay.recorder.sources import importer_plugins
 
     importer_plugins()[args.source].load()  # raises PluginError, a RecorderError
     return EXIT_BAD_INPUT
@@ -97,7 +97,7 @@ def cmd_record_broken(args: argparse.Namespace) -> int:
 
 def _add_record_parsers(rsub: Any, quiet: argparse.ArgumentParser) -> None:
     """One ``record`` sub-command per importer of the entry-point group ``slamreplay.importers``."""
-    from recorder.sources import importer_plugins
+    from slamreplay.recorder.sources import importer_plugins
 
     for name, plugin in importer_plugins().items():
         if plugin.error is not None:
@@ -117,8 +117,8 @@ def _add_record_parsers(rsub: Any, quiet: argparse.ArgumentParser) -> None:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    from recorder.importers.ros2bag import is_ros2_bag, iter_plan_lines, plan_bag
-    from replay.inspect import inspect_recording
+    from slamreplay.recorder.importers.ros2bag import is_ros2_bag, iter_plan_lines, plan_bag
+    from slamreplay.replay.inspect import inspect_recording
 
     path = Path(args.file)
     if path.suffix == ".db3" or (path.is_dir() and any(path.glob("*.db3"))):
@@ -164,7 +164,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 def _inspect_bag(args: argparse.Namespace) -> int:
     """A ROS 2 bag (folder or .db3): each topic, its type and what `record ros2` makes of it."""
-    from recorder.importers.ros2bag import iter_plan_lines, plan_bag
+    from slamreplay.recorder.importers.ros2bag import iter_plan_lines, plan_bag
 
     plan = plan_bag(Path(args.file), _parse_pairs(args.topic_map, "--topic-map"))
     if args.json:
@@ -175,14 +175,14 @@ def _inspect_bag(args: argparse.Namespace) -> int:
 
 
 def cmd_recover(args: argparse.Namespace) -> int:
-    from recorder.recover import describe, recover
+    from slamreplay.recorder.recover import describe, recover
 
     print(describe(recover(args.file, args.out), args.out))
     return EXIT_OK
 
 
 def cmd_pipelines(args: argparse.Namespace) -> int:
-    from replay.pipeline import config_schema, pipeline_plugins
+    from slamreplay.replay.pipeline import config_schema, pipeline_plugins
 
     rows: list[dict[str, Any]] = []
     broken: list[str] = []
@@ -200,8 +200,8 @@ def cmd_pipelines(args: argparse.Namespace) -> int:
                      "metrics": {k: {"better": m.better, "unit": m.unit, "description": m.description}
                                  for k, m in cls.metrics.items()}})
     if not rows:
-        from recorder.plugins import missing_builtins_hint
-        from replay.pipeline import PIPELINE_GROUP
+        from slamreplay.recorder.plugins import missing_builtins_hint
+        from slamreplay.replay.pipeline import PIPELINE_GROUP
 
         raise CliError(missing_builtins_hint(PIPELINE_GROUP))
     if args.json:
@@ -249,8 +249,8 @@ def _load_config_file(path: str | None) -> dict[str, Any]:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from replay.pipeline import parse_assignments
-    from replay.run import run_recording
+    from slamreplay.replay.pipeline import parse_assignments
+    from slamreplay.replay.run import run_recording
 
     config = {**_load_config_file(args.config), **parse_assignments(args.set)}
     with progress_bar(f"replaying {args.pipeline}", args.quiet) as update:
@@ -268,7 +268,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_navigate(args: argparse.Namespace) -> int:
-    from replay.navigate import navigate
+    from slamreplay.replay.navigate import navigate
 
     with progress_bar("navigating", args.quiet) as update:
         s = navigate(args.map, args.world, args.goal, Path(args.out), start=args.start, seed=args.seed,
@@ -287,7 +287,7 @@ def cmd_navigate(args: argparse.Namespace) -> int:
 
 
 def cmd_diff(args: argparse.Namespace) -> int:
-    from replay.diff import diff_runs, format_table, parse_tolerances, write_comparison_rrd
+    from slamreplay.replay.diff import diff_runs, format_table, parse_tolerances, write_comparison_rrd
 
     diff = diff_runs(args.run_a, args.run_b, parse_tolerances(args.tolerance))
     if args.rrd:
@@ -302,7 +302,7 @@ def cmd_diff(args: argparse.Namespace) -> int:
 
 
 def cmd_snapshot(args: argparse.Namespace) -> int:
-    from replay.snapshot import parse_at, parse_size, snapshot
+    from slamreplay.replay.snapshot import parse_at, parse_size, snapshot
 
     shots = snapshot(Path(args.source), Path(args.out), size=parse_size(args.size), at=parse_at(args.at))
     for shot in shots:
@@ -311,7 +311,7 @@ def cmd_snapshot(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from api.demo import run_demo
+    from slamreplay.api.demo import run_demo
 
     return run_demo(Path(args.out), Path(args.data) if args.data else None, quiet=args.quiet)
 
@@ -320,8 +320,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
     from pydantic import ValidationError
 
-    from api.app import create_app
-    from api.settings import Settings
+    from slamreplay.api.app import create_app
+    from slamreplay.api.settings import Settings
 
     try:
         settings = Settings.from_env(data_dir=args.data_dir, workers=args.workers, executor=args.executor,

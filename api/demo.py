@@ -11,8 +11,8 @@ import shutil
 import sys
 from pathlib import Path
 
-from api.hints import has_display, tool, view_hint
-from replay.run import RunResult, run_recording
+from slamreplay.api.hints import has_display, tool, view_hint
+from slamreplay.replay.run import RunResult, run_recording
 
 MARKER = ".slamreplay-demo"
 DEMO_DURATION_S = 600.0
@@ -35,10 +35,10 @@ NAV_GOAL_ALONG_M = 20.0  # the demo navigates to the first map node this far alo
 
 
 def _recordings(out: Path, data: Path | None, quiet: bool) -> list[Path]:
-    from api.cli import progress_bar
-    from recorder.sim.corridor import CorridorConfig, simulate_corridor
-    from recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
-    from recorder.sim.seabed import SeabedSimConfig, simulate_seabed
+    from slamreplay.api.cli import progress_bar
+    from slamreplay.recorder.sim.corridor import CorridorConfig, simulate_corridor
+    from slamreplay.recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
+    from slamreplay.recorder.sim.seabed import SeabedSimConfig, simulate_seabed
 
     rec_dir = out / "recordings"
     rec_dir.mkdir(parents=True)
@@ -62,7 +62,7 @@ def _recordings(out: Path, data: Path | None, quiet: bool) -> list[Path]:
     made.append(path)
     mrclam = data / "mrclam-dataset6" if data is not None else None
     if mrclam is not None and mrclam.is_dir():
-        from recorder.importers.mrclam import import_mrclam
+        from slamreplay.recorder.importers.mrclam import import_mrclam
 
         path = rec_dir / "mrclam6-robot1.mcap"
         _say(f"importing MRCLAM dataset 6, robot 1 -> {path}", quiet)
@@ -78,8 +78,8 @@ def _navigation(out: Path, map_run: Path, world: Path, quiet: bool) -> Path:
     """Drive the sim-corridor world on the demo's map, NAV_GOAL_ALONG_M along the mapped route (paper section IV)."""
     import numpy as np
 
-    from api.cli import progress_bar
-    from replay.navigate import load_nav_map, navigate
+    from slamreplay.api.cli import progress_bar
+    from slamreplay.replay.navigate import load_nav_map, navigate
 
     poses = load_nav_map(map_run).graph.poses
     along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])
@@ -93,7 +93,7 @@ def _navigation(out: Path, map_run: Path, world: Path, quiet: bool) -> Path:
 
 def run_demo(out: Path, data: Path | None, quiet: bool = False) -> int:
     """Record, replay, print a metrics table; returns the exit code."""
-    from api.cli import progress_bar
+    from slamreplay.api.cli import progress_bar
 
     if out.exists():
         if not (out / MARKER).exists():

@@ -10,11 +10,11 @@ themselves, run at a lower CPU priority than the server, ignore Ctrl-C (the serv
 when they stop) and exit when the server process is gone.
 
 Both executors run the same job function, ``run_task``, under the same ``Watchdog``
-(``api.limits``): a job past its memory or wall-time limit fails alone with that limit in
+(``slamreplay.api.limits``): a job past its memory or wall-time limit fails alone with that limit in
 its error. ``LocalExecutor`` also watches each worker from outside and kills one that stays
 past a limit (a job stuck in native code), and replaces a worker after a limit failure so
 that the next job starts with a fresh process, and after ``MAX_JOBS_PER_WORKER`` jobs (memory a
-library keeps is given back). ``RayExecutor`` (``api.ray_executor``) runs
+library keeps is given back). ``RayExecutor`` (``slamreplay.api.ray_executor``) runs
 the job as a Ray task.
 """
 
@@ -32,7 +32,7 @@ from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
 from typing import Any, Literal, Protocol
 
-from api.limits import GRACE_S, JobLimitExceeded, JobLimits, Watchdog, rss_mib
+from slamreplay.api.limits import GRACE_S, JobLimitExceeded, JobLimits, Watchdog, rss_mib
 
 OutcomeStatus = Literal["succeeded", "failed", "cancelled", "interrupted"]
 PROGRESS_INTERVAL_S = 0.25
@@ -47,7 +47,7 @@ MAX_JOBS_PER_WORKER = 100
 class Task:
     """One job, by location: replay ``recording`` through ``pipeline`` into ``run_dir``.
 
-    ``recording`` and ``run_dir`` are local paths or URLs (``api.storage``).
+    ``recording`` and ``run_dir`` are local paths or URLs (``slamreplay.api.storage``).
     """
 
     job_id: str
@@ -106,13 +106,13 @@ def run_task(task: Task, report: Report | None = None) -> Outcome:
     """Run one task in this process (the body of a worker; also usable directly).
 
     The recording is staged to a local file when it is remote and the run directory is
-    uploaded when it is (``api.storage``). ``report`` receives progress; by default it is
+    uploaded when it is (``slamreplay.api.storage``). ``report`` receives progress; by default it is
     written to the job store at ``task.db_path``.
     """
-    from api.storage import StorageError, staged_recording, staged_run_dir
-    from api.store import set_progress
-    from replay.errors import ReplayError
-    from replay.run import run_recording
+    from slamreplay.api.storage import StorageError, staged_recording, staged_run_dir
+    from slamreplay.api.store import set_progress
+    from slamreplay.replay.errors import ReplayError
+    from slamreplay.replay.run import run_recording
 
     if report is None:
         def report(fraction: float) -> None:
@@ -157,8 +157,8 @@ def _worker_main(conn: Connection, parent_pid: int, job: Job, limits: JobLimits)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.nice(WORKER_NICENESS)
     threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
-    import replay.run  # noqa: F401
-    from replay.pipeline import all_pipelines
+    import slamreplay.replay.run  # noqa: F401
+    from slamreplay.replay.pipeline import all_pipelines
 
     all_pipelines()  # pay the import cost before the first job, not during it
 

@@ -20,14 +20,14 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from api import storage
-from api.errors import ConflictError, NotFoundError
-from api.executor import Executor, Outcome, Task
-from api.settings import Settings
-from api.store import JobRow, Store
-from replay.diff import write_comparison_rrd
-from replay.errors import ReplayError
-from replay.pipeline import all_pipelines, get_pipeline, resolve_config
+from slamreplay.api import storage
+from slamreplay.api.errors import ConflictError, NotFoundError
+from slamreplay.api.executor import Executor, Outcome, Task
+from slamreplay.api.settings import Settings
+from slamreplay.api.store import JobRow, Store
+from slamreplay.replay.diff import write_comparison_rrd
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.pipeline import all_pipelines, get_pipeline, resolve_config
 
 log = logging.getLogger("slamreplay.jobs")
 

@@ -9,8 +9,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from api.store import JobRow, RecordingRow
-from recorder.recover import RecoveryReport
+from slamreplay.api.store import JobRow, RecordingRow
+from slamreplay.recorder.recover import RecoveryReport
 
 SHA256 = r"^[0-9a-f]{64}$"
 JOB_ID = r"^[0-9a-f]{32}$"

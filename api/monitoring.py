@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from api.store import JOB_STATUSES, Store
+from slamreplay.api.store import JOB_STATUSES, Store
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 DURATION_BUCKETS_S = (0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 300.0, 900.0, 3600.0)

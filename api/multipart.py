@@ -13,7 +13,7 @@ from collections.abc import AsyncIterator
 from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
 
-from api.errors import ApiError, TooLargeError
+from slamreplay.api.errors import ApiError, TooLargeError
 
 FILE_FIELD = "file"
 USAGE = f"curl -F {FILE_FIELD}=@run.mcap URL/recordings (or the raw file: curl --data-binary @run.mcap URL/recordings)"

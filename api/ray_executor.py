@@ -27,8 +27,8 @@ import threading
 import time
 from typing import Any
 
-from api.executor import PROGRESS_INTERVAL_S, WORKER_NICENESS, Job, Outcome, Task, run_limited, run_task
-from api.limits import GRACE_S, JobLimits
+from slamreplay.api.executor import PROGRESS_INTERVAL_S, WORKER_NICENESS, Job, Outcome, Task, run_limited, run_task
+from slamreplay.api.limits import GRACE_S, JobLimits
 
 log = logging.getLogger("slamreplay.ray")
 INSTALL_HINT = "the ray executor needs the ray extra: `pip install -e '.[ray]'` in the slamreplay checkout"
@@ -89,8 +89,8 @@ def _ray_job(job: Job, task: Task, limits: JobLimits, sink: Any) -> Outcome:
 
 def _warm_up() -> int:
     """Import the pipelines in a Ray worker before the first job needs them."""
-    import replay.run  # noqa: F401
-    from replay.pipeline import all_pipelines
+    import slamreplay.replay.run  # noqa: F401
+    from slamreplay.replay.pipeline import all_pipelines
 
     all_pipelines()
 
@@ -169,7 +169,7 @@ class RayExecutor:
 
     def _forward(self, task: Task) -> tuple[float | None, str | None]:
         """Copy the job's latest progress from the sink into the job store; (progress, limit error)."""
-        from api.store import set_progress
+        from slamreplay.api.store import set_progress
 
         try:
             fraction, error = self.ray.get(self._sink.take.remote(task.job_id), timeout=10)

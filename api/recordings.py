@@ -24,7 +24,7 @@ from typing import Any
 
 from starlette.concurrency import run_in_threadpool
 
-from api.errors import (
+from slamreplay.api.errors import (
     ConflictError,
     NotFoundError,
     NotMcapError,
@@ -33,13 +33,13 @@ from api.errors import (
     disk_full_error,
     is_disk_full,
 )
-from api.settings import Settings
-from api.store import RecordingRow, Store
-from recorder.errors import DamageError, RecorderError
-from recorder.recover import RecoveryReport, recover
-from replay.errors import ReplayError
-from replay.reader import MCAP_MAGIC, RecordingReader
-from replay.run import sha256_file
+from slamreplay.api.settings import Settings
+from slamreplay.api.store import RecordingRow, Store
+from slamreplay.recorder.errors import DamageError, RecorderError
+from slamreplay.recorder.recover import RecoveryReport, recover
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.reader import MCAP_MAGIC, RecordingReader
+from slamreplay.replay.run import sha256_file
 
 _CLI_HINT = re.compile(r"[.;,]? *[Ss]alvage (it|its messages|the readable messages) with `slamreplay recover[^`]*`\.?")
 _UNSAFE = re.compile(r"[^A-Za-z0-9._ -]+")

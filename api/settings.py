@@ -29,7 +29,7 @@ from typing import Any, Literal
 from fastapi import Request
 from pydantic import BaseModel, ConfigDict, Field
 
-from api.limits import JobLimits
+from slamreplay.api.limits import JobLimits
 
 ENV_PREFIX = "SLAMREPLAY_"
 ENV_FIELDS = ("data_dir", "token", "workers", "max_upload_bytes", "executor", "ray_address", "storage_url",

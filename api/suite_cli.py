@@ -3,7 +3,7 @@
 Cells of the running code go through the service's executors (``LocalExecutor``: spawned
 worker processes; ``RayExecutor``: Ray tasks), running the same ``run_task`` as service jobs.
 Cells of another revision (``--rev``) run through that revision's own ``slamreplay run``
-(``replay.revisions``).
+(``slamreplay.replay.revisions``).
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from api.executor import Outcome, Report, Task, run_task
-from replay.errors import ReplayError
-from replay.suite_run import CellJob
+from slamreplay.api.executor import Outcome, Report, Task, run_task
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.suite_run import CellJob
 
 
 def suite_job(task: Task, report: Report | None = None) -> Outcome:
@@ -31,12 +31,12 @@ def suite_job(task: Task, report: Report | None = None) -> Outcome:
 
 def _executor(kind: str, jobs: int) -> Any:
     if kind == "ray":
-        from api.ray_executor import RayExecutor
+        from slamreplay.api.ray_executor import RayExecutor
         try:
             return RayExecutor(jobs, job=suite_job)
         except ImportError as err:
             raise ReplayError(str(err)) from None
-    from api.executor import LocalExecutor
+    from slamreplay.api.executor import LocalExecutor
     return LocalExecutor(jobs, job=suite_job)
 
 
@@ -60,7 +60,7 @@ def _one_blas_thread() -> Iterator[None]:
 
 
 def executor_runner(kind: str, jobs: int) -> Any:
-    """``run_cells`` for ``replay.suite_run.run_suite`` on a local process pool or Ray."""
+    """``run_cells`` for ``slamreplay.replay.suite_run.run_suite`` on a local process pool or Ray."""
 
     def run_cells(todo: list[CellJob]) -> Iterator[tuple[CellJob, str | None]]:
         if not todo:
@@ -87,10 +87,10 @@ def executor_runner(kind: str, jobs: int) -> Any:
 def run_suite_at(suite_path: str, out: Path, rev: str | None, executor: str, jobs: int, quiet: bool,
                  repo: Path | None = None) -> list[dict[str, Any]]:
     """Run a suite with the running code (``rev`` None) or at revision ``rev``; the results rows."""
-    from api.cli import progress_bar
-    from replay.revisions import find_repo, prepare_revision, run_cells
-    from replay.suite import load_suite
-    from replay.suite_run import cache_dir, code_version, run_suite
+    from slamreplay.api.cli import progress_bar
+    from slamreplay.replay.revisions import find_repo, prepare_revision, run_cells
+    from slamreplay.replay.suite import load_suite
+    from slamreplay.replay.suite_run import cache_dir, code_version, run_suite
 
     if jobs < 1:
         raise ReplayError(f"--jobs must be >= 1, got {jobs}")
@@ -127,9 +127,9 @@ def cmd_suite_run(args: argparse.Namespace) -> int:
 
 
 def _side(spec: str, suite: str | None, args: argparse.Namespace) -> Any:
-    from replay.compare import load_side
-    from replay.revisions import find_repo, resolve
-    from replay.suite_run import cache_dir
+    from slamreplay.replay.compare import load_side
+    from slamreplay.replay.revisions import find_repo, resolve
+    from slamreplay.replay.suite_run import cache_dir
 
     if not spec.startswith("rev:"):
         return load_side(spec)
@@ -143,14 +143,14 @@ def _side(spec: str, suite: str | None, args: argparse.Namespace) -> Any:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    from replay.compare import compare, format_table
-    from replay.diff import parse_tolerances
-    from replay.report import write_reports
-    from replay.revisions import commit_range, find_repo
+    from slamreplay.replay.compare import compare, format_table
+    from slamreplay.replay.diff import parse_tolerances
+    from slamreplay.replay.report import write_reports
+    from slamreplay.replay.revisions import commit_range, find_repo
 
     tolerances = parse_tolerances(args.tolerance)
     if args.suite is not None:
-        from replay.suite import load_suite
+        from slamreplay.replay.suite import load_suite
         load_suite(args.suite)  # a broken suite fails before anything runs
     a, b = _side(args.a, args.suite, args), _side(args.b, args.suite, args)
     result = compare(a, b, tolerances)
@@ -158,8 +158,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
         result.commits = commit_range(find_repo(), a.sha, b.sha)
     pair_links = None
     if args.rrd_dir is not None:
-        from replay.diff import write_comparison_rrd
-        from replay.report import pair_file_links, write_pair_rrds
+        from slamreplay.replay.diff import write_comparison_rrd
+        from slamreplay.replay.report import pair_file_links, write_pair_rrds
         pair_links = pair_file_links(write_pair_rrds(result, Path(args.rrd_dir), write_comparison_rrd))
     write_reports(result, args.report, args.markdown, pair_links)
     if args.json:
@@ -170,10 +170,10 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_bisect(args: argparse.Namespace) -> int:
-    from replay.compare import compare
-    from replay.diff import parse_tolerances
-    from replay.revisions import ancestry, find_repo, one_line, resolve
-    from replay.suite import load_suite
+    from slamreplay.replay.compare import compare
+    from slamreplay.replay.diff import parse_tolerances
+    from slamreplay.replay.revisions import ancestry, find_repo, one_line, resolve
+    from slamreplay.replay.suite import load_suite
 
     tolerances = parse_tolerances(args.tolerance)
     load_suite(args.suite)

@@ -1,6 +1,6 @@
 """Suites in the service: a suite file's cells as jobs of the job store, and comparisons of them.
 
-A suite sent to the service (TOML or JSON, the form of ``replay.suite``) names uploaded
+A suite sent to the service (TOML or JSON, the form of ``slamreplay.replay.suite``) names uploaded
 recordings by id. Each cell becomes a job in the existing store, run by the existing
 scheduler and executor; a cell whose inputs (recording, pipeline, config values, seed) already
 have a queued, running or succeeded job of the same code is served by that job instead. Which
@@ -20,14 +20,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from api.errors import ConflictError, NotFoundError
-from api.jobs import JobService
-from api.store import JobRow
-from recorder.version import git_commit
-from replay.compare import Side, run_row, side_of_rows
-from replay.errors import ReplayError
-from replay.suite import Suite, canonical, parse_suite
-from replay.suite_run import add_metrics
+from slamreplay.api.errors import ConflictError, NotFoundError
+from slamreplay.api.jobs import JobService
+from slamreplay.api.store import JobRow
+from slamreplay.recorder.version import git_commit
+from slamreplay.replay.compare import Side, run_row, side_of_rows
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.suite import Suite, canonical, parse_suite
+from slamreplay.replay.suite_run import add_metrics
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS suites (
@@ -167,7 +167,7 @@ class SuiteService:
             return conn.execute("SELECT 1 FROM suites WHERE id = ?", (suite_id,)).fetchone() is not None
 
     def result_row(self, c: SuiteCell) -> dict[str, Any]:
-        """A cell as a ``results.jsonl`` row (what ``replay.compare`` reads), with its job id."""
+        """A cell as a ``results.jsonl`` row (what ``slamreplay.replay.compare`` reads), with its job id."""
         run_dir = self.jobs.run_dir(c.job.id)
         row: dict[str, Any] = {**c.cell, "job_id": c.job.id, "reused": c.reused, "run_dir": str(run_dir),
                                "recording_sha256": c.job.recording_id, "status": c.job.status,

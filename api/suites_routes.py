@@ -26,13 +26,13 @@ from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.responses import HTMLResponse, JSONResponse
 from pydantic import BaseModel, Field
 
-from api.app import ERRORS, require_token
-from api.errors import ApiError
-from api.models import JOB_ID
-from api.suites import SuiteCell, SuiteRow, SuiteService
-from replay.compare import Comparison, compare
-from replay.diff import parse_tolerances
-from replay.report import Links, render_html
+from slamreplay.api.app import ERRORS, require_token
+from slamreplay.api.errors import ApiError
+from slamreplay.api.models import JOB_ID
+from slamreplay.api.suites import SuiteCell, SuiteRow, SuiteService
+from slamreplay.replay.compare import Comparison, compare
+from slamreplay.replay.diff import parse_tolerances
+from slamreplay.replay.report import Links, render_html
 
 MAX_SUITE_BYTES = 1 << 20
 SuiteId = Annotated[str, Path(pattern=JOB_ID, description="suite id (32 hex digits)")]
@@ -139,7 +139,7 @@ def get_suite(suite_id: SuiteId, suites: SuitesDep) -> SuiteOut:
 
 def service_links(base_url: str, token: str | None) -> Links:
     """Report links into the web page: each run's job page, each A/B pair in the Rerun web viewer."""
-    from api.web import viewer_href
+    from slamreplay.api.web import viewer_href
 
     def run(row: Any) -> str | None:
         job = row.get("job_id")

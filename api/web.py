@@ -3,7 +3,7 @@
 Server-rendered Jinja2 templates (``api/templates/``) over the same services as the API; the
 only JavaScript (``api/static/web.js``, a dozen lines) refreshes the parts of a page that hold
 a queued or running job. "Open in Rerun" opens a job's ``.rrd`` in the Rerun web viewer, which
-this service serves itself from the files of the installed rerun-sdk (``api.viewer_assets``).
+this service serves itself from the files of the installed rerun-sdk (``slamreplay.api.viewer_assets``).
 
 With ``SLAMREPLAY_TOKEN`` set the page asks for the token once (``/login``) and keeps a session
 cookie derived from it (HttpOnly, SameSite=Strict, so another site cannot post forms with it);
@@ -27,17 +27,17 @@ from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Redirect
 from fastapi.templating import Jinja2Templates
 from starlette.concurrency import run_in_threadpool
 
-from api.app import JobsDep, RecordingsDep, SettingsDep, get_jobs
-from api.errors import ApiError, UnauthorizedError
-from api.models import JOB_ID
-from api.multipart import form_file, is_form
-from api.settings import Settings
-from api.suites import ENDED, SuiteService
-from api.suites_routes import SuitesDep, comparison
-from api.suites_routes import router as suites_router
-from recorder.errors import RecorderError
-from replay.errors import ReplayError
-from replay.pipeline import all_pipelines
+from slamreplay.api.app import JobsDep, RecordingsDep, SettingsDep, get_jobs
+from slamreplay.api.errors import ApiError, UnauthorizedError
+from slamreplay.api.models import JOB_ID
+from slamreplay.api.multipart import form_file, is_form
+from slamreplay.api.settings import Settings
+from slamreplay.api.suites import ENDED, SuiteService
+from slamreplay.api.suites_routes import SuitesDep, comparison
+from slamreplay.api.suites_routes import router as suites_router
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.pipeline import all_pipelines
 
 HERE = Path(__file__).parent
 COOKIE = "slamreplay_session"
@@ -278,8 +278,8 @@ def compare_page(request: Request, suites: SuitesDep, a: Annotated[str, Query(pa
                  b: Annotated[str, Query(pattern=JOB_ID)],
                  tolerance: Annotated[list[str] | None, Query()] = None) -> HTMLResponse:
     """The comparison report of ``GET /compare?format=html``, under the page's header."""
-    from api.suites_routes import service_links
-    from replay.report import render_html
+    from slamreplay.api.suites_routes import service_links
+    from slamreplay.replay.report import render_html
 
     try:
         c = comparison(suites, a, b, [t for t in tolerance or [] if t.strip()])  # the form sends an empty field
@@ -336,7 +336,7 @@ def viewer_root(request: Request) -> Response:
 @page.get("/viewer/{name:path}")
 async def viewer_file(name: str, settings: SettingsDep) -> Response:
     """The Rerun web viewer's files (``/viewer/?url=...rrd`` opens a recording)."""
-    from api.viewer_assets import FILES, ViewerAssetsError, viewer_dir
+    from slamreplay.api.viewer_assets import FILES, ViewerAssetsError, viewer_dir
 
     name = name or "index.html"
     if name not in FILES:

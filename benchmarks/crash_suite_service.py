@@ -44,7 +44,7 @@ from typing import Any
 import httpx
 
 REPO = Path(__file__).resolve().parents[1]
-SLAMREPLAY = [sys.executable, "-c", "import sys; from api.cli import main; sys.exit(main(sys.argv[1:]))"]
+SLAMREPLAY = [sys.executable, "-c", "import sys; from slamreplay.api.cli import main; sys.exit(main(sys.argv[1:]))"]
 SUITE = """seeds = [0, 1]
 [recordings.long]
 path = "{recording}"

@@ -23,11 +23,11 @@ import re
 from pathlib import Path
 from typing import Any
 
-from recorder.importers.mrclam import import_mrclam
-from recorder.messages import TOPIC_RANGE_BEARING
-from recorder.sim import LandmarkSimConfig, simulate_landmarks
-from replay.reader import RecordingReader
-from replay.run import run_recording
+from slamreplay.recorder.importers.mrclam import import_mrclam
+from slamreplay.recorder.messages import TOPIC_RANGE_BEARING
+from slamreplay.recorder.sim import LandmarkSimConfig, simulate_landmarks
+from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.run import run_recording
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "mrclam-dataset6"
 KEYS = ("landmark_rmse_m", "landmark_nees_mean", "robot_ate_rmse_m", "robot_nees_mean", "landmarks_mapped",

@@ -58,13 +58,13 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from algorithms.common import se2
-from algorithms.common.association import AssociationConfig
-from algorithms.common.motion import OdometryNoise
-from algorithms.dslam import DSlam, DSlamConfig
-from algorithms.dslam.recovery import direct
-from algorithms.ekfslam import EkfSlam, EkfSlamConfig
-from recorder.sim.landmarks import LandmarkSimConfig, landmark_positions
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.common.association import AssociationConfig
+from slamreplay.algorithms.common.motion import OdometryNoise
+from slamreplay.algorithms.dslam import DSlam, DSlamConfig
+from slamreplay.algorithms.dslam.recovery import direct
+from slamreplay.algorithms.ekfslam import EkfSlam, EkfSlamConfig
+from slamreplay.recorder.sim.landmarks import LandmarkSimConfig, landmark_positions
 
 STEP_M, LANE_M, RANGE_M = 0.5, 6.0, 5.0
 SIGMA_R, SIGMA_B = 0.05, math.radians(1.0)
@@ -251,7 +251,7 @@ def one_size(n: int, args: argparse.Namespace) -> dict[str, object]:
 def recording(duration: float, seed: int, out: Path) -> Path:
     """The paper-scenario recording of ``duration`` s (simulated by the parent process, so that its memory
     does not count in the child's peak)."""
-    from recorder.sim import simulate_landmarks
+    from slamreplay.recorder.sim import simulate_landmarks
 
     rec = out / f"sim-{int(duration)}s-seed{seed}.mcap"
     if not rec.exists():
@@ -263,9 +263,9 @@ def recording(duration: float, seed: int, out: Path) -> Path:
 
 def duration_run(duration: float, seed: int, out: Path) -> dict[str, object]:
     """D-SLAM over one paper-scenario recording of ``duration`` s (module docstring; run in its own process)."""
-    from algorithms.common.motion import between1
-    from recorder.messages import TOPIC_ODOM, TOPIC_RANGE_BEARING
-    from replay.reader import RecordingReader
+    from slamreplay.algorithms.common.motion import between1
+    from slamreplay.recorder.messages import TOPIC_ODOM, TOPIC_RANGE_BEARING
+    from slamreplay.replay.reader import RecordingReader
 
     rec = recording(duration, seed, out)
     rss0, peak0 = rss_mb(), peak_rss_mb()

@@ -1,6 +1,6 @@
 """Loop-closure detection time per 320x240 image, split into features, BoW, filter, validation.
 
-Runs :class:`algorithms.topometric.TopoMetricMapper` single-threaded (``cv2.setNumThreads(1)``,
+Runs :class:`slamreplay.algorithms.topometric.TopoMetricMapper` single-threaded (``cv2.setNumThreads(1)``,
 BLAS threads 1) over a seeded sim-corridor route (``--route``, default the simulator's default
 tours) or over the RTAB-Map loop samples (``--rtabmap DIR``: 84 images resized to 320x240, no
 odometry), and prints per-stage mean / median / p95 process-CPU time (wall time on a shared machine
@@ -28,16 +28,16 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from bench_io import write_json  # noqa: E402
 
-from algorithms.topometric import MapperConfig, StepStatus, TopoMetricMapper  # noqa: E402
+from slamreplay.algorithms.topometric import MapperConfig, StepStatus, TopoMetricMapper  # noqa: E402
 
 STAGES = ("features", "bow", "filter", "validation", "relaxation")
 PAPER_S = 0.016
 
 
 def corridor_frames(seed: int, route: str) -> list[tuple[np.ndarray, np.ndarray]]:
-    from recorder.messages import CameraImage, OdometryPose
-    from recorder.sim.corridor import CorridorConfig, simulate_corridor
-    from replay.reader import RecordingReader
+    from slamreplay.recorder.messages import CameraImage, OdometryPose
+    from slamreplay.recorder.sim.corridor import CorridorConfig, simulate_corridor
+    from slamreplay.replay.reader import RecordingReader
 
     kwargs = {"route": route} if route else {}
     with tempfile.TemporaryDirectory() as tmp:

@@ -28,13 +28,13 @@ from typing import Any
 import numpy as np
 from bench_io import write_json
 
-from algorithms.common.posegraph import OptimizerConfig, PoseGraph, chi2, optimize
-from algorithms.common.posegraph_analysis import aligned_position_rmse
-from algorithms.common.posegraph_incremental import IncrementalConfig, IncrementalOptimizer
-from algorithms.common.posegraph_init import init_chordal, init_odometry
-from algorithms.common.robust import Kernel
-from algorithms.common.sparse_cholesky import SparseCholesky
-from replay.graph_io import read_graph
+from slamreplay.algorithms.common.posegraph import OptimizerConfig, PoseGraph, chi2, optimize
+from slamreplay.algorithms.common.posegraph_analysis import aligned_position_rmse
+from slamreplay.algorithms.common.posegraph_incremental import IncrementalConfig, IncrementalOptimizer
+from slamreplay.algorithms.common.posegraph_init import init_chordal, init_odometry
+from slamreplay.algorithms.common.robust import Kernel
+from slamreplay.algorithms.common.sparse_cholesky import SparseCholesky
+from slamreplay.replay.graph_io import read_graph
 
 DATASETS = [
     ("m3500 (Vertigo)", "posegraph-m3500/manhattanOlson3500.g2o", 146.077),

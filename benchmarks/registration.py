@@ -3,7 +3,7 @@
 All three register the same pairs in one run, single-threaded (OMP/OpenBLAS/MKL threads set to 1
 before NumPy loads, ``cv2.setNumThreads(1)``; ours and the OpenCV recipe call no threaded code,
 imreg_dft runs NumPy's FFT and SciPy's ``ndimage``). Pairs follow the convention of
-:func:`algorithms.ifmi.register` exactly::
+:func:`slamreplay.algorithms.ifmi.register` exactly::
 
     A = cv2.getRotationMatrix2D(((N - 1) / 2, (N - 1) / 2), angle, scale); A[:, 2] += (dx, dy)
     moving = cv2.warpAffine(reference_extended, A, (N, N))
@@ -52,8 +52,8 @@ from typing import Any  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from algorithms.ifmi import IfmiConfig, Status, prepare, register, register_prepared  # noqa: E402
-from recorder.sim.seabed import procedural_texture  # noqa: E402
+from slamreplay.algorithms.ifmi import IfmiConfig, Status, prepare, register, register_prepared  # noqa: E402
+from slamreplay.recorder.sim.seabed import procedural_texture  # noqa: E402
 
 cv2.setNumThreads(1)
 

@@ -24,12 +24,12 @@ from bench_io import write_json
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from algorithms.observe import Observation
-from recorder import GroundTruthPose, OdometryPose, RangeBearingScan, Recorder
-from replay.engine import replay
-from replay.observer import RerunObserver
-from replay.pipeline import MetricSpec, Pipeline, get_pipeline, resolve_config
-from replay.reader import Envelope, RecordingReader
+from slamreplay.algorithms.observe import Observation
+from slamreplay.recorder import GroundTruthPose, OdometryPose, RangeBearingScan, Recorder
+from slamreplay.replay.engine import replay
+from slamreplay.replay.observer import RerunObserver
+from slamreplay.replay.pipeline import MetricSpec, Pipeline, get_pipeline, resolve_config
+from slamreplay.replay.reader import Envelope, RecordingReader
 
 
 def make_recording(path: Path, n_poses: int) -> int:

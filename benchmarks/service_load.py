@@ -43,7 +43,7 @@ import httpx
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from crash_suite_service import alive, children, server
 
-from recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
+from slamreplay.recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
 
 
 def percentile(values: list[float], q: float) -> float:

@@ -36,7 +36,7 @@ seeds = [1, 2, 3, 4, 5]
 
 
 def suite_run(suite: Path, out: Path, *extra: str) -> float:
-    cmd = [sys.executable, "-m", "api.cli", "suite", "run", str(suite), "--out", str(out), "--quiet", *extra]
+    cmd = [sys.executable, "-m", "slamreplay.api.cli", "suite", "run", str(suite), "--out", str(out), "--quiet", *extra]
     tic = time.perf_counter()
     subprocess.run(cmd, check=True, cwd=Path(__file__).resolve().parents[1])
     return time.perf_counter() - tic

@@ -1,7 +1,7 @@
 """Recording: the message model, the MCAP codec, the `Recorder`, simulators and importers."""
 
-from recorder.errors import CodecError, RecorderError
-from recorder.messages import (
+from slamreplay.recorder.errors import CodecError, RecorderError
+from slamreplay.recorder.messages import (
     TOPIC_CAMERA_CALIBRATION,
     TOPIC_CAMERA_IMAGE,
     TOPIC_GROUND_TRUTH_LANDMARKS,
@@ -18,7 +18,7 @@ from recorder.messages import (
     RangeBearingScan,
     assert_msg_equal,
 )
-from recorder.writer import Recorder
+from slamreplay.recorder.writer import Recorder
 
 __all__ = [
     "TOPIC_CAMERA_CALIBRATION", "TOPIC_CAMERA_IMAGE", "TOPIC_GROUND_TRUTH_LANDMARKS", "TOPIC_GROUND_TRUTH_POSE",

@@ -15,7 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from recorder.errors import RecorderError
+from slamreplay.recorder.errors import RecorderError
 
 BUILTIN_DISTRIBUTION = "slamreplay"
 

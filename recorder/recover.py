@@ -1,7 +1,7 @@
 """Salvage a truncated, ``.partial`` or damaged MCAP into a valid, indexed one, and say what was lost.
 
 The input is read linearly, record by record, every length checked against the file
-(:mod:`recorder.codec.mcap_io`). What is kept: every schema, channel, metadata and message
+(:mod:`slamreplay.recorder.codec.mcap_io`). What is kept: every schema, channel, metadata and message
 record that reads cleanly, re-written into a new file with zstd chunks and CRCs. What is
 dropped, as byte ranges with the reason:
 
@@ -34,13 +34,13 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
-from recorder.codec import READABLE_SCHEMAS, TopicDecoder
-from recorder.codec.mcap_io import MAGIC, McapFile, chunk_records, decompress, parse_record, record_name
-from recorder.codec.ros2 import canonical_ros_type
-from recorder.errors import CodecError, DamageError, RecorderError
-from recorder.messages import TOPIC_TYPES
-from recorder.version import version
-from recorder.writer import CHUNK_SIZE, partial_path
+from slamreplay.recorder.codec import READABLE_SCHEMAS, TopicDecoder
+from slamreplay.recorder.codec.mcap_io import MAGIC, McapFile, chunk_records, decompress, parse_record, record_name
+from slamreplay.recorder.codec.ros2 import canonical_ros_type
+from slamreplay.recorder.errors import CodecError, DamageError, RecorderError
+from slamreplay.recorder.messages import TOPIC_TYPES
+from slamreplay.recorder.version import version
+from slamreplay.recorder.writer import CHUNK_SIZE, partial_path
 
 _CHUNK_FIXED = 8 + 8 + 8 + 4 + 4  # start, end, uncompressed size, crc, compression length
 

@@ -3,7 +3,7 @@
 A recording says how noisy its sensors are, so that replaying it needs no hidden settings:
 simulators write the model they simulated, importers the dataset's (measured or documented),
 and a user's `Recorder` takes one. Pipelines read it as a configuration layer: a value the user
-gives wins, then the recording's model, then the pipeline's default (`replay.pipeline`).
+gives wins, then the recording's model, then the pipeline's default (`slamreplay.replay.pipeline`).
 
 Fields are optional (``None``: the recording does not say). Units are in the names; the
 odometry noise follows ``algorithms/common/motion.py`` (sigma growing with the square root
@@ -19,7 +19,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from recorder.errors import RecorderError
+from slamreplay.recorder.errors import RecorderError
 
 METADATA_KEY = "sensor_model"  # key of the JSON object inside the ``slamreplay.recording`` metadata record
 
@@ -100,7 +100,7 @@ class SensorModel:
 
     @classmethod
     def from_record(cls, record: Mapping[str, str], namespace: str = "") -> SensorModel | None:
-        """The model in a recording's ``slamreplay.recording`` metadata record (`recorder.writer`) of the
+        """The model in a recording's ``slamreplay.recording`` metadata record (`slamreplay.recorder.writer`) of the
         robot under ``namespace`` ("": the only one), None when it carries none (older recordings, other
         tools' files); RecorderError when it is damaged.
         """

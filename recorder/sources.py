@@ -1,7 +1,7 @@
 """Sources of recordings, simulators and importers alike: the ``Importer`` protocol and the built-in ones.
 
 ``slamreplay record NAME`` has one sub-command per importer found in the entry-point group
-``slamreplay.importers`` (:mod:`recorder.plugins`); the built-ins below are declared there in
+``slamreplay.importers`` (:mod:`slamreplay.recorder.plugins`); the built-ins below are declared there in
 slamreplay's pyproject.toml, the same way as a user's. An importer declares its command-line
 arguments (``add_arguments``) and writes one recording from their values (``record``); the
 heavy modules it needs are imported only when it records.
@@ -16,8 +16,8 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
-from recorder.errors import RecorderError
-from recorder.plugins import Plugin, discover
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.plugins import Plugin, discover
 
 IMPORTER_GROUP = "slamreplay.importers"
 Progress = Callable[[int, int], None]
@@ -124,13 +124,13 @@ class SimLandmarks:
     progress_label = "simulating"
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
-        from recorder.sim.landmarks import LandmarkSimConfig
+        from slamreplay.recorder.sim.landmarks import LandmarkSimConfig
 
         _out_and_seed(parser)
         add_dataclass_options(parser, LandmarkSimConfig)
 
     def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str:
-        from recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
+        from slamreplay.recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
 
         config = dataclass_from_options(options, LandmarkSimConfig)
         s = simulate_landmarks(Path(options["out"]), config, seed=options["seed"], progress=progress)
@@ -147,13 +147,13 @@ class SimSeabed:
     progress_label = "simulating"
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
-        from recorder.sim.seabed import SeabedSimConfig
+        from slamreplay.recorder.sim.seabed import SeabedSimConfig
 
         _out_and_seed(parser)
         add_dataclass_options(parser, SeabedSimConfig)
 
     def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str:
-        from recorder.sim.seabed import SeabedSimConfig, simulate_seabed
+        from slamreplay.recorder.sim.seabed import SeabedSimConfig, simulate_seabed
 
         config = dataclass_from_options(options, SeabedSimConfig)
         s = simulate_seabed(Path(options["out"]), config, seed=options["seed"], progress=progress)
@@ -169,13 +169,13 @@ class SimCorridor:
     progress_label = "simulating"
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
-        from recorder.sim.corridor import CorridorConfig
+        from slamreplay.recorder.sim.corridor import CorridorConfig
 
         _out_and_seed(parser)
         add_dataclass_options(parser, CorridorConfig)
 
     def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str:
-        from recorder.sim.corridor import CorridorConfig, simulate_corridor
+        from slamreplay.recorder.sim.corridor import CorridorConfig, simulate_corridor
 
         config = dataclass_from_options(options, CorridorConfig)
         s = simulate_corridor(Path(options["out"]), config, seed=options["seed"], progress=progress)
@@ -200,7 +200,7 @@ class Images:
         parser.add_argument("--rate-hz", type=float, default=1.0, help="frame rate that sets the stamps (default: 1)")
 
     def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str:
-        from recorder.importers.images import import_images
+        from slamreplay.recorder.importers.images import import_images
 
         s = import_images(Path(options["dir"]), Path(options["out"]), rate_hz=options["rate_hz"], progress=progress)
         return f"{s.images} images of {s.width_px}x{s.height_px} ({s.first} .. {s.last})"
@@ -230,7 +230,7 @@ class Mrclam:
         parser.add_argument("--out", required=True, help=OUT_HELP)
 
     def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str:
-        from recorder.importers.mrclam import import_mrclam
+        from slamreplay.recorder.importers.mrclam import import_mrclam
 
         s = import_mrclam(Path(options["dir"]), options["robot"], Path(options["out"]), progress=progress)
         return (f"{s.messages:,} messages ({s.odometry_poses:,} odometry, {s.ground_truth_poses:,} ground truth, "
@@ -251,7 +251,7 @@ class Ros2Bag:
     progress_label = "importing ROS 2 bag"
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
-        from recorder.importers.poles import PoleConfig
+        from slamreplay.recorder.importers.poles import PoleConfig
 
         parser.add_argument("bag", help="the bag folder, or its .db3 or .mcap file")
         parser.add_argument("--out", required=True, help=OUT_HELP)
@@ -271,8 +271,8 @@ class Ros2Bag:
                                 help=f"pole extractor (recorder/importers/poles.py): {f.name} (default: {f.default})")
 
     def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str:
-        from recorder.importers.poles import PoleConfig
-        from recorder.importers.ros2bag import import_ros2_bag
+        from slamreplay.recorder.importers.poles import PoleConfig
+        from slamreplay.recorder.importers.ros2bag import import_ros2_bag
 
         values = {f.name: options[f"pole_{f.name}"] for f in dataclasses.fields(PoleConfig)
                   if options.get(f"pole_{f.name}") is not None}

@@ -20,11 +20,11 @@ from typing import IO, Any
 
 from mcap.writer import CompressionType, Writer
 
-from recorder import codec
-from recorder.errors import RecorderError
-from recorder.messages import TOPIC_TYPES, Message
-from recorder.sensor_model import SensorModel, sensor_model_key
-from recorder.version import version
+from slamreplay.recorder import codec
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.messages import TOPIC_TYPES, Message
+from slamreplay.recorder.sensor_model import SensorModel, sensor_model_key
+from slamreplay.recorder.version import version
 
 METADATA_NAME = "slamreplay.recording"
 CHUNK_SIZE = 1 << 20
@@ -57,7 +57,7 @@ class Recorder:
     seed : the seed of a simulator, if any.
     parameters : the generating parameters (JSON-serializable).
     robot : a description of the robot and its sensors (JSON-serializable).
-    sensor_model : the sensors' noise and limits (`recorder.sensor_model.SensorModel`); pipelines
+    sensor_model : the sensors' noise and limits (`slamreplay.recorder.sensor_model.SensorModel`); pipelines
         use it where the user sets nothing (see `slamreplay inspect`). Several robots in one
         recording: a mapping of each robot's topic namespace (``/robot1``) to its model.
 

@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from replay.errors import ReplayError
+from slamreplay.replay.errors import ReplayError
 
 MANIFEST_FIELDS = ("pipeline", "recording.sha256", "seed", "config_hash", "slamreplay.version",
                    "slamreplay.git_commit", "window_ns", "status")
@@ -108,7 +108,7 @@ def metric_tolerance(entry: Mapping[str, Any], a: float | None, override: str | 
     The default is ``max(tolerance, rel_tolerance * |A|)``: relative, so that floating-point
     noise between environments (other numpy/scipy/BLAS, another summation order) is absorbed at
     any scale, with an absolute floor for values near zero. Measured metrics get 0.1 % and 1e-6
-    (``replay.pipeline.MEASURED_REL_TOLERANCE``: a 1 % change is still worse); counts get 0.
+    (``slamreplay.replay.pipeline.MEASURED_REL_TOLERANCE``: a 1 % change is still worse); counts get 0.
     """
     if override is not None:
         if override.endswith("%"):
@@ -220,8 +220,8 @@ def rrd_content_equal(a: Path, b: Path) -> tuple[bool | None, str]:
 
 
 def write_comparison_rrd(a_dir: str | Path, b_dir: str | Path, out: str | Path, diff: RunDiff | None = None) -> None:
-    """One ``.rrd`` comparing run B with run A, both on the same axes (`replay.diff_view`)."""
-    from replay.diff_view import write_comparison_rrd as write
+    """One ``.rrd`` comparing run B with run A, both on the same axes (`slamreplay.replay.diff_view`)."""
+    from slamreplay.replay.diff_view import write_comparison_rrd as write
 
     write(a_dir, b_dir, out, diff)
 

@@ -27,10 +27,10 @@ import rerun as rr
 import rerun.blueprint as rrb
 from rerun.chunk import Chunk, RrdReader
 
-from replay import views
-from replay.diff import RunDiff, formatted
-from replay.errors import ReplayError
-from replay.observer import deterministic_batcher
+from slamreplay.replay import views
+from slamreplay.replay.diff import RunDiff, formatted
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.observer import deterministic_batcher
 
 COLOR_COLUMNS = {"Points2D:colors": rr.Points2D, "LineStrips2D:colors": rr.LineStrips2D,
                  "Arrows2D:colors": rr.Arrows2D}
@@ -153,7 +153,7 @@ def _blueprint(a: _RunContent, b: _RunContent, a_name: str, b_name: str) -> rrb.
 
 def write_comparison_rrd(a_dir: str | Path, b_dir: str | Path, out: str | Path, diff: RunDiff | None = None) -> None:
     """One ``.rrd`` comparing run B with run A (see the module docstring); temp file, then renamed."""
-    from replay.diff import diff_runs
+    from slamreplay.replay.diff import diff_runs
 
     a_dir, b_dir, out = Path(a_dir), Path(b_dir), Path(out)
     if out.exists():

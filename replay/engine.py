@@ -15,13 +15,13 @@ from typing import Any
 
 import numpy as np
 
-from algorithms.common import se2
-from algorithms.observe import Text
-from recorder.messages import TOPIC_GROUND_TRUTH_POSE
-from replay.errors import ReplayError
-from replay.pipeline import Pipeline, ReplayContext, ReplayObserver
-from replay.reader import Envelope, RecordingReader
-from replay.trajectory import trajectory_artifacts
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.observe import Text
+from slamreplay.recorder.messages import TOPIC_GROUND_TRUTH_POSE
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.pipeline import Pipeline, ReplayContext, ReplayObserver
+from slamreplay.replay.reader import Envelope, RecordingReader
+from slamreplay.replay.trajectory import trajectory_artifacts
 
 Progress = Callable[[int, int], None]
 

@@ -12,10 +12,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from algorithms.common.posegraph import OptimizationResult, OptimizerConfig, PoseGraph, chi2, optimize
-from algorithms.common.posegraph_init import init_chordal, init_odometry
-from algorithms.common.robust import Kernel
-from replay.graph_io import GraphFileError, format_of, read_graph, write_graph
+from slamreplay.algorithms.common.posegraph import OptimizationResult, OptimizerConfig, PoseGraph, chi2, optimize
+from slamreplay.algorithms.common.posegraph_init import init_chordal, init_odometry
+from slamreplay.algorithms.common.robust import Kernel
+from slamreplay.replay.graph_io import GraphFileError, format_of, read_graph, write_graph
 
 SOLVERS = ("gn", "lm")
 INITS = ("odometry", "chordal", "file")
@@ -110,8 +110,8 @@ def _log_rrd(path: Path, source: Path, before: PoseGraph, after: PoseGraph, resu
     import rerun as rr  # deferred: only --rrd needs Rerun
     import rerun.blueprint as rrb
 
-    from replay import views
-    from replay.observer import deterministic_batcher
+    from slamreplay.replay import views
+    from slamreplay.replay.observer import deterministic_batcher
 
     digest = hashlib.sha256(source.read_bytes()).hexdigest()
     rec_id = uuid.uuid5(uuid.NAMESPACE_URL, f"slamreplay/graph-optimize/{digest}/{config}")

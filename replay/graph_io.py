@@ -17,8 +17,8 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from algorithms.common.posegraph import PoseGraph
-from algorithms.common.posegraph_init import init_odometry
+from slamreplay.algorithms.common.posegraph import PoseGraph
+from slamreplay.algorithms.common.posegraph_init import init_odometry
 
 Format = Literal["g2o", "toro"]
 

@@ -2,8 +2,8 @@
 
 For Victoria Park (no GPS in the iSAM file) the reference is the full-SLAM least-squares optimum
 of the same odometry and landmark observations with the noise GTSAM's loader assigns them
-(:func:`recorder.importers.victoria_park.gtsam_noise`), found by
-:func:`algorithms.common.landmark_graph.solve_incremental`. A filter scored against it is
+(:func:`slamreplay.recorder.importers.victoria_park.gtsam_noise`), found by
+:func:`slamreplay.algorithms.common.landmark_graph.solve_incremental`. A filter scored against it is
 scored on how close it gets to the best estimate the measurements allow, not on the truth.
 """
 
@@ -14,8 +14,8 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from algorithms.common.landmark_graph import LandmarkGraph, LsqConfig, LsqResult, noise_scales, solve_incremental
-from recorder.importers.victoria_park import VictoriaPark, gtsam_noise
+from slamreplay.algorithms.common.landmark_graph import LandmarkGraph, LsqConfig, LsqResult, noise_scales, solve_incremental
+from slamreplay.recorder.importers.victoria_park import VictoriaPark, gtsam_noise
 
 
 def victoria_park_graph(data: VictoriaPark) -> LandmarkGraph:
@@ -40,9 +40,9 @@ def measured_noise(data: VictoriaPark, poses: NDArray[np.float64], landmarks: ND
                    seed: int = 0) -> dict[str, float]:
     """The noise the measurements show about the reference, as pipeline config keys.
 
-    Each residual kind's modelled sigma (:func:`recorder.importers.victoria_park.gtsam_noise` and the
+    Each residual kind's modelled sigma (:func:`slamreplay.recorder.importers.victoria_park.gtsam_noise` and the
     file's odometry covariance) times the factor its residuals show at the optimum, corrected for
-    the unknowns that kind absorbs (:func:`algorithms.common.landmark_graph.noise_scales`, seeded).
+    the unknowns that kind absorbs (:func:`slamreplay.algorithms.common.landmark_graph.noise_scales`, seeded).
     A kind the optimum absorbs almost whole keeps its modelled sigma (factor 1).
     Odometry becomes per square root of a metre driven, as the pipelines' noise model
     (algorithms/common/motion.py) is: the forward sigma of a step of mean length.

@@ -15,8 +15,8 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from algorithms.common import se2
-from replay.pipeline import MetricSpec
+from slamreplay.algorithms.common import se2
+from slamreplay.replay.pipeline import MetricSpec
 
 F64 = NDArray[np.float64]
 METRICS_FORMAT = 1
@@ -53,7 +53,7 @@ def format_metrics(pipeline: str, values: Mapping[str, float], specs: Mapping[st
     """The metrics.json document: values with their direction, unit and diff tolerance.
 
     ``tolerance`` (absolute floor) and ``rel_tolerance`` (relative to the baseline's value)
-    are the defaults ``replay.diff.metric_tolerance`` applies.
+    are the defaults ``slamreplay.replay.diff.metric_tolerance`` applies.
 
     A metric that does not apply to a run is absent (the pipeline leaves it out); a value
     that is not finite is an error of the pipeline.

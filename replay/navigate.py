@@ -1,11 +1,11 @@
 """Closed-loop navigation on a topo-metric map with the simulator in the loop (``slamreplay navigate``).
 
 Section IV of Battesti, Bazeille, Filliat (ECMR 2011): the robot starts at a map node, Dijkstra
-plans the route to the goal node, and the :class:`~algorithms.topometric.guidance.Navigator`
+plans the route to the goal node, and the :class:`~slamreplay.algorithms.topometric.guidance.Navigator`
 follows it with the qualitative position (the last loop closure's node, heading corrected from the
 image x-translation, plus odometry since). Here the ``sim-corridor`` world closes the loop: each
 control period the robot moves by the command (an exact unicycle arc), the wheel odometry drifts
-(:class:`~recorder.sim.wheel_odometry.WheelOdometry`), and when odometry says the robot moved
+(:class:`~slamreplay.recorder.sim.wheel_odometry.WheelOdometry`), and when odometry says the robot moved
 ``image_every_m`` or turned ``image_every_deg`` the camera renders from the *true* pose.
 
 Everything goes to one recording, in this order at each control tick (same log time, file order):
@@ -40,13 +40,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from algorithms.common import se2
-from algorithms.topometric import NavigationConfig, TopoMap
-from algorithms.topometric.guidance import GuidanceConfig, NavGraph, Navigator, NavUpdate, RouteConfig, VisualMatch
-from algorithms.topometric.pathfollow import FollowerConfig, discretize, distance_to_polyline
-from recorder.codec.protobuf import yaw_from_quaternion
-from recorder.errors import RecorderError
-from recorder.messages import (
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.topometric import NavigationConfig, TopoMap
+from slamreplay.algorithms.topometric.guidance import GuidanceConfig, NavGraph, Navigator, NavUpdate, RouteConfig, VisualMatch
+from slamreplay.algorithms.topometric.pathfollow import FollowerConfig, discretize, distance_to_polyline
+from slamreplay.recorder.codec.protobuf import yaw_from_quaternion
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.messages import (
     TOPIC_CAMERA_IMAGE,
     TOPIC_CMD_VEL,
     TOPIC_GROUND_TRUTH_POSE,
@@ -58,20 +58,20 @@ from recorder.messages import (
     OdometryPose,
     VelocityCommand,
 )
-from recorder.writer import METADATA_NAME, Recorder
-from replay.codeprint import code_fingerprint
-from replay.errors import ReplayError
-from replay.reader import MCAP_MAGIC, RecordingReader
-from replay.topomap_io import load_map
+from slamreplay.recorder.writer import METADATA_NAME, Recorder
+from slamreplay.replay.codeprint import code_fingerprint
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.reader import MCAP_MAGIC, RecordingReader
+from slamreplay.replay.topomap_io import load_map
 
 SOURCE = "navigate"
 EPOCH_NS = 1_000_000_000
 MAP_FILE = "map.npz"
 # What a navigation replay runs: the localizer, the guidance and the map reader (not the mapper).
-NAV_CODE = ("algorithms.common.se2", "algorithms.topometric.bayes", "algorithms.topometric.config",
-            "algorithms.topometric.features", "algorithms.topometric.guidance", "algorithms.topometric.navigation",
-            "algorithms.topometric.pathfollow", "algorithms.topometric.topomap", "algorithms.topometric.validation",
-            "algorithms.topometric.vocabulary", "replay.navigate", "replay.topomap_io")
+NAV_CODE = ("slamreplay.algorithms.common.se2", "slamreplay.algorithms.topometric.bayes", "slamreplay.algorithms.topometric.config",
+            "slamreplay.algorithms.topometric.features", "slamreplay.algorithms.topometric.guidance", "slamreplay.algorithms.topometric.navigation",
+            "slamreplay.algorithms.topometric.pathfollow", "slamreplay.algorithms.topometric.topomap", "slamreplay.algorithms.topometric.validation",
+            "slamreplay.algorithms.topometric.vocabulary", "slamreplay.replay.navigate", "slamreplay.replay.topomap_io")
 Progress = Callable[[int, int], None]
 
 
@@ -167,7 +167,7 @@ def load_nav_map(path: str | Path) -> NavMap:
 
 
 class MapLocalizer:
-    """The map's navigation-mode loop-closure detector as an :data:`~algorithms.topometric.guidance.ImageLocalizer`.
+    """The map's navigation-mode loop-closure detector as an :data:`~slamreplay.algorithms.topometric.guidance.ImageLocalizer`.
 
     Translation threshold off (section IV-A); the x-translation is rescaled from the detector's
     working resolution to the pixels of the image handed in.
@@ -201,7 +201,7 @@ def guidance_from_dict(values: Mapping[str, Any]) -> GuidanceConfig:
 
 def load_world(world: str | Path) -> tuple[Any, Any, int]:
     """``(CorridorWorld, CorridorConfig, seed)`` from a ``sim-corridor`` (or ``navigate``) recording or a world file."""
-    from recorder.sim.corridor import CorridorConfig, CorridorWorld, world_from_file, world_from_metadata
+    from slamreplay.recorder.sim.corridor import CorridorConfig, CorridorWorld, world_from_file, world_from_metadata
 
     p = Path(world)
     if not p.is_file():
@@ -304,8 +304,8 @@ def navigate(map_path: str | Path, world: str | Path, goal: int, out: str | Path
         nav = Navigator(nav_map.graph, start, goal, localizer, cfg)
     except ValueError as err:
         raise ReplayError(f"map {nav_map.path}: {err}") from err
-    from recorder.sim.corridor import WheelOdometry
-    from recorder.sim.unicycle import arc_step
+    from slamreplay.recorder.sim.corridor import WheelOdometry
+    from slamreplay.recorder.sim.unicycle import arc_step
 
     odometry = WheelOdometry(world_cfg, rng_odom)
     known = nav_map.topomap.truth_poses
@@ -374,7 +374,7 @@ def navigate(map_path: str | Path, world: str | Path, goal: int, out: str | Path
 
 def as_recorded(msg: OdometryPose) -> NDArray[np.float64]:
     """``[x, y, yaw]`` of a pose as it reads back from a recording (the heading is stored as a
-    quaternion about +z, as :mod:`recorder.codec.protobuf` does: it comes back a few ulps off)."""
+    quaternion about +z, as :mod:`slamreplay.recorder.codec.protobuf` does: it comes back a few ulps off)."""
     half = 0.5 * msg.yaw_rad
     return np.array([msg.x_m, msg.y_m, yaw_from_quaternion(math.cos(half), 0.0, 0.0, math.sin(half))])
 

@@ -20,14 +20,14 @@ from typing import Any, ClassVar, Literal, Protocol
 import numpy as np
 import rerun.blueprint as rrb
 
-from algorithms.observe import Observation
-from recorder.errors import RecorderError
-from recorder.plugins import Plugin, discover, missing_builtins_hint
-from recorder.sensor_model import SensorModel
-from recorder.writer import METADATA_NAME
-from replay import views
-from replay.errors import ReplayError
-from replay.reader import Envelope, RecordingInfo
+from slamreplay.algorithms.observe import Observation
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.plugins import Plugin, discover, missing_builtins_hint
+from slamreplay.recorder.sensor_model import SensorModel
+from slamreplay.recorder.writer import METADATA_NAME
+from slamreplay.replay import views
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.reader import Envelope, RecordingInfo
 
 
 class ReplayObserver(Protocol):
@@ -158,7 +158,7 @@ class Pipeline(ABC):
 
     @classmethod
     def blueprint(cls, bounds: views.Bounds | None = None) -> rrb.Blueprint:
-        """The Rerun layout a run of this pipeline opens into (`replay.views`): the summary first.
+        """The Rerun layout a run of this pipeline opens into (`slamreplay.replay.views`): the summary first.
 
         ``bounds``: the world box the map views show (the run's final map), None to let Rerun fit.
         """

@@ -20,12 +20,12 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, ChunkIndex, Metadata, Schema
 from mcap.records import Message as McapMessage
 
-from recorder.codec import TopicDecoder
-from recorder.codec.mcap_io import McapFile, Summary, chunk_messages, chunk_records, decompress, record_name
-from recorder.codec.ros2 import canonical_ros_type
-from recorder.errors import CodecError, DamageError
-from recorder.messages import TOPIC_TYPES, Message
-from replay.errors import ReplayError
+from slamreplay.recorder.codec import TopicDecoder
+from slamreplay.recorder.codec.mcap_io import McapFile, Summary, chunk_messages, chunk_records, decompress, record_name
+from slamreplay.recorder.codec.ros2 import canonical_ros_type
+from slamreplay.recorder.errors import CodecError, DamageError
+from slamreplay.recorder.messages import TOPIC_TYPES, Message
+from slamreplay.replay.errors import ReplayError
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 

@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from replay.compare import Comparison, MetricResult, fmt, fmt_ms
-from replay.run import atomic_write
-from replay.trajectory import TUM_ARTIFACT, read_tum
+from slamreplay.replay.compare import Comparison, MetricResult, fmt, fmt_ms
+from slamreplay.replay.run import atomic_write
+from slamreplay.replay.trajectory import TUM_ARTIFACT, read_tum
 
 COLOURS = {"regression": "#c62828", "failed": "#c62828", "improvement": "#2e7d32"}
 A_COLOUR, B_COLOUR = "#7f7f7f", "#1f77b4"  # A grey (the baseline), B blue (the estimate under test)

@@ -9,8 +9,8 @@ so that the next attempt starts clean. Cells run there through that environment'
 from its own code only: the checkout the user works in is never touched.
 
 ``SLAMREPLAY_REV_PYTHON`` names an interpreter that already has the dependencies, to use
-instead of building a virtual environment (tests; a cluster image): cells then run as
-``python -m api.cli run`` with the worktree first on ``PYTHONPATH``, still the revision's code.
+instead of building a virtual environment (tests; a cluster image): cells then run the worktree's
+own CLI with that interpreter (``_source_cli``), still the revision's code.
 """
 
 from __future__ import annotations
@@ -27,9 +27,9 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from recorder.version import SOURCE_ROOT
-from replay.errors import ReplayError
-from replay.suite_run import CellJob
+from slamreplay.recorder.version import SOURCE_ROOT
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.suite_run import CellJob
 
 BUILD_TIMEOUT_S = 1800
 
@@ -154,9 +154,23 @@ def prepare_revision(repo: Path, rev: str, cache: Path) -> Revision:
                                           f"see {keep}")
             (root / "ready").write_text(sha + "\n")
     if override:
-        env = {"PYTHONPATH": str(src) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-        return Revision(rev, sha, src, (override, "-m", "api.cli"), env)
+        return Revision(rev, sha, src, (override, "-c", _source_cli(src), str(src)), {})
     return Revision(rev, sha, src, (str(venv / "bin" / "slamreplay"),), {})
+
+
+# ``python -c`` programs running a checkout's CLI without installing it: since the packages moved under the
+# ``slamreplay`` namespace (a package-dir mapping only an install sets up) a namespace module whose path is the
+# checkout stands in for the install; a revision from before the move imports its bare top-level packages.
+_NAMESPACED_CLI = ("import sys, types; src = sys.argv.pop(1); ns = types.ModuleType('slamreplay'); "
+                   "ns.__path__ = [src]; sys.modules['slamreplay'] = ns; "
+                   "from slamreplay.api.cli import main; sys.exit(main(sys.argv[1:]))")
+_BARE_CLI = "import sys; sys.path.insert(0, sys.argv.pop(1)); from api.cli import main; sys.exit(main(sys.argv[1:]))"
+
+
+def _source_cli(src: Path) -> str:
+    """The ``python -c`` program that runs the CLI of the checkout ``src`` (see above)."""
+    namespaced = '"slamreplay.api" = "api"' in (src / "pyproject.toml").read_text()
+    return _NAMESPACED_CLI if namespaced else _BARE_CLI
 
 
 def run_cell(revision: Revision, job: CellJob) -> str | None:

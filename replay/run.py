@@ -29,13 +29,13 @@ from typing import Any
 
 import numpy as np
 
-from recorder.errors import RecorderError
-from recorder.version import git_commit, version
-from replay import metrics as metrics_mod
-from replay.engine import Progress, replay, text_logger
-from replay.errors import ReplayError
-from replay.observer import RerunObserver
-from replay.pipeline import (
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.version import git_commit, version
+from slamreplay.replay import metrics as metrics_mod
+from slamreplay.replay.engine import Progress, replay, text_logger
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.observer import RerunObserver
+from slamreplay.replay.pipeline import (
     Pipeline,
     config_dict,
     config_hash,
@@ -46,7 +46,7 @@ from replay.pipeline import (
     robot_topic_map,
     robots_in,
 )
-from replay.reader import RecordingReader
+from slamreplay.replay.reader import RecordingReader
 
 MANIFEST_FORMAT = 1
 LIBRARIES = ("rerun-sdk", "numpy", "scipy", "opencv-contrib-python-headless", "mcap", "protobuf")
@@ -185,7 +185,7 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
                   preset: str | None = None, robot: str | None = None) -> RunResult:
     """Replay ``recording`` through ``pipeline`` into ``out_dir``.
 
-    Config values come in layers (`replay.pipeline.resolve_layers`): ``config`` (the user's) wins,
+    Config values come in layers (`slamreplay.replay.pipeline.resolve_layers`): ``config`` (the user's) wins,
     then the ``preset``, then the recording's sensor model, then the pipeline's defaults; the
     manifest records each value's origin under ``config_sources``. ``robot``: which robot of a
     multi-robot recording (topics under ``/robotN/``) to replay, with that robot's sensor model.

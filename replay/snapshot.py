@@ -29,8 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from replay.errors import ReplayError
-from replay.views import STEP
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.views import STEP
 
 VULKAN_ICD_DIRS = ("/usr/share/vulkan/icd.d", "/etc/vulkan/icd.d", "/usr/local/share/vulkan/icd.d")
 INSTALL_HINT = "apt-get install mesa-vulkan-drivers libvulkan1 (Debian/Ubuntu: Mesa's Vulkan software rasterizer)"

@@ -1,7 +1,7 @@
 """The ``victoria-park`` importer (``slamreplay record victoria-park``): in replay/ because the reference it
-records, the batch least-squares optimum of the measurements, is computed by ``replay.landmark_reference``.
+records, the batch least-squares optimum of the measurements, is computed by ``slamreplay.replay.landmark_reference``.
 
-It implements ``recorder.sources.Importer`` and is found through the entry-point group ``slamreplay.importers``.
+It implements ``slamreplay.recorder.sources.Importer`` and is found through the entry-point group ``slamreplay.importers``.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from recorder.sources import OUT_HELP, Progress
+from slamreplay.recorder.sources import OUT_HELP, Progress
 
 
 class VictoriaPark:
@@ -32,12 +32,12 @@ class VictoriaPark:
                                  "(default 0: one scan per pose, as in the file; D-SLAM needs scans seeing two trees)")
 
     def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str:
-        from recorder.importers.victoria_park import read_victoria_park, write_victoria_park
+        from slamreplay.recorder.importers.victoria_park import read_victoria_park, write_victoria_park
 
         data = read_victoria_park(Path(options["dir"]))
         reference, note, measured = None, "", None
         if not options["no_reference"]:
-            from replay.landmark_reference import measured_noise, victoria_park_reference
+            from slamreplay.replay.landmark_reference import measured_noise, victoria_park_reference
 
             log("computing the reference: the batch least-squares optimum of the measurements (2-3 minutes)")
             poses, landmarks, res = victoria_park_reference(data)

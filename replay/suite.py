@@ -37,8 +37,8 @@ if sys.version_info >= (3, 11):
 else:  # Python 3.10: the same parser, as the tomli package
     import tomli as tomllib
 
-from replay.errors import ReplayError
-from replay.pipeline import get_pipeline, resolve_config
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.pipeline import get_pipeline, resolve_config
 
 SIMULATORS = ("sim-landmarks", "sim-seabed", "sim-corridor")
 TOP_KEYS = {"seeds", "recordings", "pipelines", "name"}
@@ -201,13 +201,13 @@ class _Checker:
 def sim_config_class(sim: str) -> type:
     """The config dataclass of a simulator (the fields its CLI options set)."""
     if sim == "sim-landmarks":
-        from recorder.sim.landmarks import LandmarkSimConfig
+        from slamreplay.recorder.sim.landmarks import LandmarkSimConfig
         return LandmarkSimConfig
     if sim == "sim-seabed":
-        from recorder.sim.seabed import SeabedSimConfig
+        from slamreplay.recorder.sim.seabed import SeabedSimConfig
         return SeabedSimConfig
     if sim == "sim-corridor":
-        from recorder.sim.corridor import CorridorConfig
+        from slamreplay.recorder.sim.corridor import CorridorConfig
         return CorridorConfig
     raise ReplayError(f"unknown simulator {sim!r}; known: {', '.join(SIMULATORS)}")
 

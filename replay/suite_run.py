@@ -31,19 +31,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from recorder.version import SOURCE_ROOT, git_commit, version
-from replay.errors import ReplayError
-from replay.run import atomic_write, sha256_file
-from replay.suite import Cell, RecordingSpec, Suite, canonical, sim_config_class, sim_kwargs
+from slamreplay.recorder.version import SOURCE_ROOT, git_commit, version
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.run import atomic_write, sha256_file
+from slamreplay.replay.suite import Cell, RecordingSpec, Suite, canonical, sim_config_class, sim_kwargs
 
 RESULTS_FORMAT = 1
 SIM_MODULES = {
-    "sim-landmarks": ("recorder.sim.landmarks", "recorder.sim.unicycle", "recorder.sim.wheel_odometry"),
-    "sim-seabed": ("recorder.sim.seabed", "recorder.sim.unicycle"),
-    "sim-corridor": ("recorder.sim.corridor", "recorder.sim.corridor_plan", "recorder.sim.corridor_render",
-                     "recorder.sim.unicycle", "recorder.sim.wheel_odometry"),
+    "sim-landmarks": ("slamreplay.recorder.sim.landmarks", "slamreplay.recorder.sim.unicycle", "slamreplay.recorder.sim.wheel_odometry"),
+    "sim-seabed": ("slamreplay.recorder.sim.seabed", "slamreplay.recorder.sim.unicycle"),
+    "sim-corridor": ("slamreplay.recorder.sim.corridor", "slamreplay.recorder.sim.corridor_plan", "slamreplay.recorder.sim.corridor_render",
+                     "slamreplay.recorder.sim.unicycle", "slamreplay.recorder.sim.wheel_odometry"),
 }
-WRITER_MODULES = ("recorder.writer", "recorder.messages", "recorder.codec.protobuf", "recorder.codec.schemas")
+WRITER_MODULES = ("slamreplay.recorder.writer", "slamreplay.recorder.messages", "slamreplay.recorder.codec.protobuf", "slamreplay.recorder.codec.schemas")
 
 
 def cache_dir() -> Path:
@@ -62,7 +62,7 @@ def code_version() -> str:
     if commit == "unknown":
         import sys
 
-        from replay.codeprint import code_fingerprint
+        from slamreplay.replay.codeprint import code_fingerprint
         mods = [m for m in sys.modules if m.split(".")[0] in ("replay", "algorithms", "recorder")]
         return f"{version()}+code.{code_fingerprint(mods)}"
     if not commit.endswith("-dirty"):
@@ -83,19 +83,19 @@ def _simulate(spec: RecordingSpec, seed: int, out: Path) -> None:
     cls = sim_config_class(spec.sim or "")
     config = cls(**sim_kwargs(spec.sim or "", spec.args))
     if spec.sim == "sim-landmarks":
-        from recorder.sim.landmarks import simulate_landmarks
+        from slamreplay.recorder.sim.landmarks import simulate_landmarks
         simulate_landmarks(out, config, seed=seed)
     elif spec.sim == "sim-seabed":
-        from recorder.sim.seabed import simulate_seabed
+        from slamreplay.recorder.sim.seabed import simulate_seabed
         simulate_seabed(out, config, seed=seed)
     else:
-        from recorder.sim.corridor import simulate_corridor
+        from slamreplay.recorder.sim.corridor import simulate_corridor
         simulate_corridor(out, config, seed=seed)
 
 
 def sim_recording(spec: RecordingSpec, seed: int, cache: Path) -> Path:
     """The recording of ``spec`` at ``seed``, simulated once and cached by its inputs and code."""
-    from replay.codeprint import code_fingerprint
+    from slamreplay.replay.codeprint import code_fingerprint
 
     sim = spec.sim or ""
     key = hashlib.sha256(canonical({"sim": sim, "args": sim_kwargs(sim, spec.args), "seed": seed,

@@ -1,4 +1,4 @@
-"""Topo-metric map files: ``np.savez`` of the :class:`~algorithms.topometric.TopoMap` arrays, no pickle.
+"""Topo-metric map files: ``np.savez`` of the :class:`~slamreplay.algorithms.topometric.TopoMap` arrays, no pickle.
 
 A file holds one array per TopoMap array field plus ``header``, a uint8 array of UTF-8 JSON:
 ``{"format": "slamreplay.topomap", "version": 2, "config": <MapperConfig as a dict>}``. The mapping
@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from algorithms.topometric import TopoMap, mapper_config_from_dict
-from replay.errors import ReplayError
+from slamreplay.algorithms.topometric import TopoMap, mapper_config_from_dict
+from slamreplay.replay.errors import ReplayError
 
 FORMAT = "slamreplay.topomap"
 VERSION = 2

@@ -13,8 +13,8 @@ import math
 
 import numpy as np
 
-from algorithms.observe import LineStrips
-from replay.pipeline import ReplayObserver
+from slamreplay.algorithms.observe import LineStrips
+from slamreplay.replay.pipeline import ReplayObserver
 
 
 class TrajectoryLog:

@@ -41,7 +41,7 @@ def write_tiny_recording(path: Path, n: int = 100, *, drift: float = 0.05, seed:
     ``perturb`` scales odometry and ranges by ``1 + perturb`` (numerical noise, e.g. 1e-12)."""
     import numpy as np
 
-    from recorder import GroundTruthPose, LandmarkMap, OdometryPose, RangeBearingScan, Recorder
+    from slamreplay.recorder import GroundTruthPose, LandmarkMap, OdometryPose, RangeBearingScan, Recorder
 
     rng = np.random.default_rng(seed)
     landmarks = np.array([[2.0, 1.0], [3.0, -1.0], [5.0, 2.0], [1.0, 3.0]])

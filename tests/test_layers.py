@@ -16,16 +16,48 @@ ALLOWED_PROJECT = {"algorithms": {"algorithms"}, "recorder": {"recorder"},
 ALGORITHMS_THIRD_PARTY = {"numpy", "scipy", "cv2", "sksparse", "cvxopt"}
 
 
+def _top(module: str) -> str:
+    """The top-level name of ``module``; for the project's own, the package under ``slamreplay``."""
+    parts = module.split(".")
+    return parts[1] if parts[0] == "slamreplay" and len(parts) > 1 else parts[0]
+
+
 def imports_of(path: Path) -> set[str]:
-    """Top-level module names imported by a file."""
+    """Top-level module names imported by a file (``slamreplay.replay.run`` counts as ``replay``)."""
     tree = ast.parse(path.read_text(), filename=str(path))
     names = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
-            names |= {a.name.split(".")[0] for a in node.names}
+            names |= {_top(a.name) for a in node.names}
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            names.add(node.module.split(".")[0])
+            names.add(_top(node.module))
     return names
+
+
+def bare_project_imports(path: Path) -> list[str]:
+    """Imports of the project's packages by their bare names (``import replay``), which exist only in the
+    repository, never in an installed slamreplay."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    bad = []
+    for node in ast.walk(tree):
+        names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                 else [node.module] if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module else [])
+        bad += [f"line {node.lineno}: {n}" for n in names if n.split(".")[0] in PACKAGES]
+    return bad
+
+
+def test_project_is_imported_through_the_slamreplay_namespace() -> None:
+    """Every Python file of the repository (packages, tests, benchmarks, examples, docs) imports the project as
+    ``slamreplay.<package>``: the names an install provides."""
+    skip = {".venv", ".git", "build", "node_modules"}
+    offenders = {}
+    for path in sorted(REPO.rglob("*.py")):
+        rel = path.relative_to(REPO)
+        if skip & set(rel.parts) or rel.parts[0].startswith(".venv"):
+            continue
+        if bad := bare_project_imports(path):
+            offenders[str(rel)] = bad
+    assert not offenders, offenders
 
 
 def files(package: str) -> list[Path]:

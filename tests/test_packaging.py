@@ -47,3 +47,23 @@ def test_declared_entry_points_resolve(group: str) -> None:
         module, _, attr = value.partition(":")
         obj = getattr(importlib.import_module(module), attr)
         assert obj.name == name, value
+
+
+def test_every_package_folder_is_listed_under_the_namespace() -> None:
+    """[tool.setuptools] packages lists every folder of the four packages (data folders too) as
+    ``slamreplay.<package>...``, and package-dir maps each package to its repository folder."""
+    setup = PYPROJECT["tool"]["setuptools"]
+    assert setup["package-dir"] == {f"slamreplay.{p}": p for p in PACKAGES}
+    folders = {"slamreplay." + ".".join(d.relative_to(REPO).parts)
+               for p in PACKAGES for d in [REPO / p, *(REPO / p).rglob("*")]
+               if d.is_dir() and d.name != "__pycache__" and any(f.is_file() for f in d.iterdir())}
+    assert set(setup["packages"]) == folders
+
+
+def test_installed_names_are_under_slamreplay() -> None:
+    """The project imports as slamreplay.<package>, from this repository's folders."""
+    import slamreplay.api.cli
+    import slamreplay.replay.run
+
+    assert Path(slamreplay.api.cli.__file__).resolve() == REPO / "api" / "cli.py"
+    assert Path(slamreplay.replay.run.__file__).resolve() == REPO / "replay" / "run.py"

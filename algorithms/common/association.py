@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 from scipy.stats import chi2
 
-from algorithms.common.se2 import wrap_angle
+from slamreplay.algorithms.common.se2 import wrap_angle
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]

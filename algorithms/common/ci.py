@@ -27,7 +27,7 @@ import numpy as np
 import scipy.linalg as sla
 from numpy.typing import ArrayLike, NDArray
 
-from algorithms.common.se2 import wrap_angle
+from slamreplay.algorithms.common.se2 import wrap_angle
 
 F64 = NDArray[np.float64]
 Criterion = Literal["det", "trace"]

@@ -1,6 +1,6 @@
 """Batch least squares over planar poses and point landmarks: the full-SLAM optimum of a data set.
 
-The pose graph of :mod:`algorithms.common.posegraph` extended with landmark vertices (x, y) and
+The pose graph of :mod:`slamreplay.algorithms.common.posegraph` extended with landmark vertices (x, y) and
 range-bearing edges. Odometry edges ``(i, j, z, Ω)`` have the residual
 ``e = (⊖x_i ⊕ x_j) - z`` (angle wrapped) as in g2o's SE(2) edge [1]_; an observation of landmark
 ``l`` from pose ``i`` has ``e = h(x_i, l) - z`` with ``h = (|d|, atan2(d_y, d_x))``,

@@ -9,7 +9,7 @@ Convention (g2o ``EdgeSE2`` [1]_): an edge k from vertex i to vertex j carries a
 and ``chi2 = sum_k e_k^T Omega_k e_k``. Poses are updated additively in (x, y, theta), like g2o's
 ``VertexSE2``. One vertex (the gauge, vertex 0 by default) is held fixed.
 
-Robust kernels (:mod:`algorithms.common.robust`) act through IRLS weights ``w_k`` on ``Omega_k``;
+Robust kernels (:mod:`slamreplay.algorithms.common.robust`) act through IRLS weights ``w_k`` on ``Omega_k``;
 by default Dynamic Covariance Scaling [2]_ on loop closures (edges with ``|i - j| != 1``) only, in
 two stages: (1) DCS with Phi graduated from the largest initial loop-closure chi2 (plain least
 squares) down to 1 [3]_, so a poor start does not down-weight good closures; (2) closures whose
@@ -42,9 +42,9 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.stats import chi2 as chi2_distribution
 
-from algorithms.common.robust import DEFAULT_PARAMETER, Kernel, weights_and_cost
-from algorithms.common.se2 import wrap_angle
-from algorithms.common.sparse_cholesky import Backend, BlockSystem, SparseCholesky
+from slamreplay.algorithms.common.robust import DEFAULT_PARAMETER, Kernel, weights_and_cost
+from slamreplay.algorithms.common.se2 import wrap_angle
+from slamreplay.algorithms.common.sparse_cholesky import Backend, BlockSystem, SparseCholesky
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -372,7 +372,7 @@ def optimize(graph: PoseGraph, cfg: OptimizerConfig = OptimizerConfig()) -> Opti
     ----------
     graph : PoseGraph
         Must be connected. ``graph.poses`` is the initial guess (see
-        :mod:`algorithms.common.posegraph_init` for odometry and chordal initializations).
+        :mod:`slamreplay.algorithms.common.posegraph_init` for odometry and chordal initializations).
     cfg : OptimizerConfig
 
     Returns

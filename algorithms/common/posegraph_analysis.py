@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from algorithms.common.posegraph import OptimizerConfig, PoseGraph, _Problem
+from slamreplay.algorithms.common.posegraph import OptimizerConfig, PoseGraph, _Problem
 
 F64 = NDArray[np.float64]
 

@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from algorithms.common.posegraph import OptimizerConfig, PoseGraph, Status, _Problem, _run
-from algorithms.common.se2 import compose, inverse
+from slamreplay.algorithms.common.posegraph import OptimizerConfig, PoseGraph, Status, _Problem, _run
+from slamreplay.algorithms.common.se2 import compose, inverse
 
 F64 = NDArray[np.float64]
 

@@ -18,9 +18,9 @@ from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 
-from algorithms.common.posegraph import PoseGraph
-from algorithms.common.se2 import compose, inverse, wrap_angle
-from algorithms.common.sparse_cholesky import Backend, BlockSystem, SparseCholesky
+from slamreplay.algorithms.common.posegraph import PoseGraph
+from slamreplay.algorithms.common.se2 import compose, inverse, wrap_angle
+from slamreplay.algorithms.common.sparse_cholesky import Backend, BlockSystem, SparseCholesky
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from algorithms.common.se2 import wrap_angle
+from slamreplay.algorithms.common.se2 import wrap_angle
 
 F64 = NDArray[np.float64]
 

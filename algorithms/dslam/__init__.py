@@ -1,5 +1,5 @@
 """D-SLAM (Wang, Huang, Dissanayake 2005): decoupled EIF mapping and Covariance Intersection localization."""
 
-from algorithms.dslam.filter import DSlam, DSlamConfig, ScanResult, ScanStatus
+from slamreplay.algorithms.dslam.filter import DSlam, DSlamConfig, ScanResult, ScanStatus
 
 __all__ = ["DSlam", "DSlamConfig", "ScanResult", "ScanStatus"]

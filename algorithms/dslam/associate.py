@@ -2,11 +2,11 @@
 
 Unknown ids: the candidates are the mapped features in the robot's vicinity; the innovation
 covariance of candidate c is ``S_c = H_r P_r H_r^T + H_c P_c H_c^T + R`` with P_r the predicted
-robot covariance and P_c the feature's marginal bound (:mod:`algorithms.dslam.covariance`: from
+robot covariance and P_c the feature's marginal bound (:mod:`slamreplay.algorithms.dslam.covariance`: from
 the vicinity covariance, or the bound kept when the feature left the vicinity). D-SLAM does not
 keep the robot-map cross-covariance, so it is taken as zero here. The candidates come from a
-grid over the estimates (:mod:`algorithms.dslam.spatial`), not a scan of all N features.
-Matching, gating and the tentative list are :mod:`algorithms.common.association`; tentative
+grid over the estimates (:mod:`slamreplay.algorithms.dslam.spatial`), not a scan of all N features.
+Matching, gating and the tentative list are :mod:`slamreplay.algorithms.common.association`; tentative
 features are placed with the localized pose, after Covariance Intersection.
 
 References
@@ -23,8 +23,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from algorithms.common import rangebearing
-from algorithms.common.association import (
+from slamreplay.algorithms.common import rangebearing
+from slamreplay.algorithms.common.association import (
     AssociationConfig,
     TentativeList,
     innovation_covariance,
@@ -34,7 +34,7 @@ from algorithms.common.association import (
 )
 
 if TYPE_CHECKING:
-    from algorithms.dslam.filter import DSlam
+    from slamreplay.algorithms.dslam.filter import DSlam
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -49,7 +49,7 @@ class Association:
 
 
 class Associator:
-    """Known-id or unknown-id association for one :class:`~algorithms.dslam.filter.DSlam`."""
+    """Known-id or unknown-id association for one :class:`~slamreplay.algorithms.dslam.filter.DSlam`."""
 
     def __init__(self, mode: str, params: AssociationConfig) -> None:
         self.mode, self.params = mode, params

@@ -9,7 +9,7 @@ propagated into R_map as for one scan) and mapped by eqs. (9)-(10).
 
 **Window.** :class:`CompositeScan` keeps the scans the map has not used yet: each scan's
 readings as robot-frame points (eq. 4) with their covariances, and between consecutive scans
-the odometry link (the increments composed, with covariance, :func:`algorithms.common.motion.predict`).
+the odometry link (the increments composed, with covariance, :func:`slamreplay.algorithms.common.motion.predict`).
 :meth:`CompositeScan.build` expresses a run of scans in the frame of its last scan: moving the
 points over a link ``u`` gives ``p' = R(u_theta)^T (p - u_t)`` with Jacobians ``R^T`` on the
 points and ``[-R^T, dR^T/dtheta (p - u_t)]`` on the link, so the joint covariance
@@ -49,7 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from algorithms.common import motion, rangebearing
+from slamreplay.algorithms.common import motion, rangebearing
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]

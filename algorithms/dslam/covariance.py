@@ -19,7 +19,7 @@ at O(|V|^2) per scan whatever N:
   ``A = -J_nn^-1 (J_no - R_no R_oo^-1 J_oo)``. For a new feature this is exactly what eq. (10)
   gives I; a mapped feature's earlier information is ignored, so its block is an upper bound.
 - Phase I updates and initialises features directly (the robot is exactly at the origin), and
-  the bootstrap (:func:`algorithms.dslam.mapping.bootstrap_increment`) adds features with their
+  the bootstrap (:func:`slamreplay.algorithms.dslam.mapping.bootstrap_increment`) adds features with their
   joint covariance; both are exact.
 - A feature leaving V (farther than the vicinity radius) is marginalised out: its 2x2 marginal
   is kept, for gating and for the anchor rule when it is seen again.
@@ -50,8 +50,8 @@ import numpy as np
 import scipy.linalg as sla
 from numpy.typing import NDArray
 
-from algorithms.dslam.information import InformationMatrix, _grown, dofs
-from algorithms.dslam.recovery import TwoLevel, direct, invert_blocks, pcg
+from slamreplay.algorithms.dslam.information import InformationMatrix, _grown, dofs
+from slamreplay.algorithms.dslam.recovery import TwoLevel, direct, invert_blocks, pcg
 
 F64 = NDArray[np.float64]
 
@@ -223,7 +223,7 @@ class CovarianceCache:
         """Replace V by ``features`` with their exact joint block of I^-1 (2 columns each, block PCG). O(N).
 
         With the estimates ``x`` (2N,), PCG uses the two-level preconditioner
-        (:class:`algorithms.dslam.recovery.TwoLevel`), else block-Jacobi.
+        (:class:`slamreplay.algorithms.dslam.recovery.TwoLevel`), else block-Jacobi.
         """
         n2, k = 2 * info.n, len(features)
         idx = dofs(features)

@@ -1,7 +1,7 @@
 """D-SLAM [1]_: decoupled EIF mapping of absolute feature positions and CI localization.
 
 Per odometry increment, :meth:`DSlam.predict` propagates the robot estimate (the process model
-of :mod:`algorithms.common.motion`). Per scan, :meth:`DSlam.observe`
+of :mod:`slamreplay.algorithms.common.motion`). Per scan, :meth:`DSlam.observe`
 
 1. associates the observations with mapped features (known ids, or maximum likelihood with
    gating and the confirmed/tentative lists, section 3.1);
@@ -13,9 +13,9 @@ of :mod:`algorithms.common.motion`). Per scan, :meth:`DSlam.observe`
    the information matrix and vector by eq. (10) with ``z_map`` only; a scan with fewer than
    two mapped features goes to localization only;
 4. recovers the state (sections 3.2-3.3) without inverting I, and carries the joint covariance
-   of the features near the robot in covariance form (:mod:`algorithms.dslam.covariance`).
+   of the features near the robot in covariance form (:mod:`slamreplay.algorithms.dslam.covariance`).
 
-Every measurement the map used is also summarised (:mod:`algorithms.dslam.relinearize`: an exact
+Every measurement the map used is also summarised (:mod:`slamreplay.algorithms.dslam.relinearize`: an exact
 sufficient statistic of O(N) size, whatever the run's length): at the end of a run,
 :meth:`DSlam.finalize` relinearises them all at the final estimate (not in the paper;
 ``final_relinearization_iterations = 0`` keeps the EIF estimate ``I^-1 i`` and no summary).
@@ -46,22 +46,22 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from algorithms.common import motion, rangebearing
-from algorithms.common.association import AssociationConfig
-from algorithms.common.ci import Criterion, covariance_intersection
-from algorithms.common.motion import OdometryNoise
-from algorithms.common.se2 import wrap_angle
-from algorithms.dslam import mapping
-from algorithms.dslam.associate import Associator
-from algorithms.dslam.composite import CompositeScan
-from algorithms.dslam.covariance import CovarianceCache, RefreshReport
-from algorithms.dslam.information import InformationMatrix, dofs
-from algorithms.dslam.localization import MeasurementPose, PoseStatus, chi2_quantile, measurement_pose
-from algorithms.dslam.recast import Recast, angle_rows, init_features, map_invariants, recast
-from algorithms.dslam.recovery import Recovery, RecoveryReport, factor
-from algorithms.dslam.relinearize import MeasurementLog, relinearize
-from algorithms.dslam.spatial import Grid
-from algorithms.observe import NULL_OBSERVER, Observer, Scalar, Text
+from slamreplay.algorithms.common import motion, rangebearing
+from slamreplay.algorithms.common.association import AssociationConfig
+from slamreplay.algorithms.common.ci import Criterion, covariance_intersection
+from slamreplay.algorithms.common.motion import OdometryNoise
+from slamreplay.algorithms.common.se2 import wrap_angle
+from slamreplay.algorithms.dslam import mapping
+from slamreplay.algorithms.dslam.associate import Associator
+from slamreplay.algorithms.dslam.composite import CompositeScan
+from slamreplay.algorithms.dslam.covariance import CovarianceCache, RefreshReport
+from slamreplay.algorithms.dslam.information import InformationMatrix, dofs
+from slamreplay.algorithms.dslam.localization import MeasurementPose, PoseStatus, chi2_quantile, measurement_pose
+from slamreplay.algorithms.dslam.recast import Recast, angle_rows, init_features, map_invariants, recast
+from slamreplay.algorithms.dslam.recovery import Recovery, RecoveryReport, factor
+from slamreplay.algorithms.dslam.relinearize import MeasurementLog, relinearize
+from slamreplay.algorithms.dslam.spatial import Grid
+from slamreplay.algorithms.observe import NULL_OBSERVER, Observer, Scalar, Text
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -570,7 +570,7 @@ class DSlam:
         """End of the run: the exact EIF estimate ``I^-1 i``, then the relinearised one (module docstring).
 
         With ``final_relinearization_iterations > 0``, I and i are replaced by every logged
-        measurement linearised at the final estimate (:func:`~algorithms.dslam.relinearize.relinearize`),
+        measurement linearised at the final estimate (:func:`~slamreplay.algorithms.dslam.relinearize.relinearize`),
         so :meth:`estimates` and :meth:`marginal_covariances` describe the relinearised map; the
         report's ``iterations`` are the Gauss-Newton steps and ``error_m`` the last step (m).
         The vicinity covariance is not recomputed.

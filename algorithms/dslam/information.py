@@ -8,7 +8,7 @@ Storage: the upper-triangle blocks live in one growing array (capacity doubling)
 dict keyed by feature pair, and each feature keeps the list of its neighbours with the slots of
 the shared blocks. An update by eq. (10) on k features writes k(k+1)/2 blocks in place: O(k^2),
 whatever N. Local operations (the recovery of the features near the robot,
-:mod:`algorithms.dslam.recovery`) read the blocks of a set of rows through the neighbour lists,
+:mod:`slamreplay.algorithms.dslam.recovery`) read the blocks of a set of rows through the neighbour lists,
 in time proportional to the blocks read. Only global operations (a full PCG or a direct solve,
 which are O(N) or more anyway) assemble a CSR matrix, cached until the next update.
 

@@ -4,7 +4,7 @@ Section 2.3 of [1]_: the original range-bearing measurements of the previously s
 ``f_1 .. f_m1`` (``z_loc``, eq. 12), together with the current estimates of those features and
 their joint covariance (a sub-block of I^-1), give an estimate of the robot pose that does not
 use odometry. It is fused with the odometry prediction by Covariance Intersection
-(:mod:`algorithms.common.ci`), since the two are correlated in an unknown way.
+(:mod:`slamreplay.algorithms.common.ci`), since the two are correlated in an unknown way.
 
 The estimate is a weighted least-squares fit: a closed-form rigid alignment of the observed
 points to the mapped ones (2D Procrustes) starts Gauss-Newton on
@@ -31,8 +31,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
-from algorithms.common import rangebearing
-from algorithms.common.se2 import wrap_angle
+from slamreplay.algorithms.common import rangebearing
+from slamreplay.algorithms.common.se2 import wrap_angle
 
 F64 = NDArray[np.float64]
 STEP_TOLERANCE = 1e-9  # Gauss-Newton stops when no pose component moves more than this (m, rad)

@@ -16,9 +16,9 @@ import numpy as np
 import scipy.linalg as sla
 from numpy.typing import NDArray
 
-from algorithms.common import rangebearing
-from algorithms.common.se2 import wrap_angle
-from algorithms.dslam.recast import Recast, angle_rows, map_invariants
+from slamreplay.algorithms.common import rangebearing
+from slamreplay.algorithms.common.se2 import wrap_angle
+from slamreplay.algorithms.dslam.recast import Recast, angle_rows, map_invariants
 
 F64 = NDArray[np.float64]
 

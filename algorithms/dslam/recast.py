@@ -27,8 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from algorithms.common.rangebearing import to_points
-from algorithms.common.se2 import wrap_angle
+from slamreplay.algorithms.common.rangebearing import to_points
+from slamreplay.algorithms.common.se2 import wrap_angle
 
 F64 = NDArray[np.float64]
 

@@ -7,7 +7,7 @@ features near the robot. Both come from sparse linear solves with I:
 - the estimate solves ``I x = i`` (eq. 6), warm-started from the previous estimate, which is
   always a good initial guess because one update changes I and i on a few features only;
 - covariance column j solves ``I c = e_j``, so the joint covariance of k features costs 2k
-  solves, never an inverse (:mod:`algorithms.dslam.covariance`, for a full recomputation).
+  solves, never an inverse (:mod:`slamreplay.algorithms.dslam.covariance`, for a full recomputation).
 
 Solvers: preconditioned conjugate gradients (several right-hand sides in lock-step, one sparse
 product per iteration) with a 2x2 block-Jacobi preconditioner or a two-level one
@@ -41,7 +41,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
-from algorithms.dslam.information import InformationMatrix, _grown, dofs
+from slamreplay.algorithms.dslam.information import InformationMatrix, _grown, dofs
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]

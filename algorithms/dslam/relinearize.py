@@ -50,11 +50,11 @@ import numpy as np
 import scipy.linalg as sla
 from numpy.typing import NDArray
 
-from algorithms.common import rangebearing
-from algorithms.common.se2 import wrap_angle
-from algorithms.dslam.information import InformationMatrix
-from algorithms.dslam.recast import angle_rows, map_invariants
-from algorithms.dslam.recovery import direct
+from slamreplay.algorithms.common import rangebearing
+from slamreplay.algorithms.common.se2 import wrap_angle
+from slamreplay.algorithms.dslam.information import InformationMatrix
+from slamreplay.algorithms.dslam.recast import angle_rows, map_invariants
+from slamreplay.algorithms.dslam.recovery import direct
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]

@@ -1,5 +1,5 @@
 """EKF-SLAM: the full-covariance baseline ("traditional SLAM") D-SLAM is compared with."""
 
-from algorithms.ekfslam.filter import EkfScanResult, EkfSlam, EkfSlamConfig
+from slamreplay.algorithms.ekfslam.filter import EkfScanResult, EkfSlam, EkfSlamConfig
 
 __all__ = ["EkfScanResult", "EkfSlam", "EkfSlamConfig"]

@@ -3,15 +3,15 @@
 One Extended Kalman Filter over the robot pose and every landmark position,
 ``x = [x_r, y_r, phi_r, x_1, y_1, ..., x_N, y_N]`` with a dense covariance P, in the initial robot
 frame (the robot starts exactly at the origin, P = 0). It uses the same inputs, noise models and
-association modes as :class:`algorithms.dslam.DSlam`:
+association modes as :class:`slamreplay.algorithms.dslam.DSlam`:
 
-- prediction per odometry increment (:mod:`algorithms.common.motion`): O(N) (robot rows of P);
+- prediction per odometry increment (:mod:`slamreplay.algorithms.common.motion`): O(N) (robot rows of P);
 - update per scan with all associated range-bearing observations at once
-  (:mod:`algorithms.common.rangebearing`), ``K = P H^T S^-1``, ``P -= K S K^T``: O(N^2);
+  (:mod:`slamreplay.algorithms.common.rangebearing`), ``K = P H^T S^-1``, ``P -= K S K^T``: O(N^2);
 - new landmarks by augmentation from the updated pose, with their full cross-covariances;
 - known ids, or unknown ids by maximum likelihood with gating on the exact innovation
   covariance (robot-landmark correlation included) and the confirmed/tentative lists of
-  :mod:`algorithms.common.association`.
+  :mod:`slamreplay.algorithms.common.association`.
 
 ``jacobians = "first_estimates"`` is the first-estimates-Jacobian EKF (FEJ-EKF) of [3]_, the
 consistent baseline: the standard EKF linearises each step at the latest estimates, so the
@@ -43,8 +43,8 @@ import numpy as np
 import scipy.linalg as sla
 from numpy.typing import ArrayLike, NDArray
 
-from algorithms.common import motion, rangebearing
-from algorithms.common.association import (
+from slamreplay.algorithms.common import motion, rangebearing
+from slamreplay.algorithms.common.association import (
     AssociationConfig,
     TentativeList,
     innovation_covariance,
@@ -52,9 +52,9 @@ from algorithms.common.association import (
     match,
     outliers,
 )
-from algorithms.common.motion import OdometryNoise
-from algorithms.common.se2 import wrap_angle
-from algorithms.observe import NULL_OBSERVER, Observer
+from slamreplay.algorithms.common.motion import OdometryNoise
+from slamreplay.algorithms.common.se2 import wrap_angle
+from slamreplay.algorithms.observe import NULL_OBSERVER, Observer
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from algorithms.ifmi.registration import Registration
+from slamreplay.algorithms.ifmi.registration import Registration
 
 F64 = NDArray[np.float64]
 J = np.array([[0.0, -1.0], [-1.0, 0.0]])

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from algorithms.ifmi import spectral
+from slamreplay.algorithms.ifmi import spectral
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -47,7 +47,7 @@ class IfmiConfig:
     max_scale : largest scale change searched (and its inverse).
     refine_translation : after the coarse pass of steps 7-9, warp the reference by the whole estimate,
         shift included, before the full-resolution POMF; else that POMF uses the reference re-rotated
-        and re-scaled only (:mod:`algorithms.ifmi.registration`).
+        and re-scaled only (:mod:`slamreplay.algorithms.ifmi.registration`).
     """
 
     n_angle: int = 0

@@ -44,9 +44,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from algorithms.ifmi import spectral
-from algorithms.ifmi.plan import DEFAULT_CONFIG, IfmiConfig, Plan, Prepared, affine, plan, prepare
-from algorithms.observe import NULL_OBSERVER, Image, Observer, Points, Scalar
+from slamreplay.algorithms.ifmi import spectral
+from slamreplay.algorithms.ifmi.plan import DEFAULT_CONFIG, IfmiConfig, Plan, Prepared, affine, plan, prepare
+from slamreplay.algorithms.observe import NULL_OBSERVER, Image, Observer, Points, Scalar
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]

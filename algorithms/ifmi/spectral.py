@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from algorithms.ifmi.fft import irfft2, rfft2
+from slamreplay.algorithms.ifmi.fft import irfft2, rfft2
 
 __all__ = ["irfft2", "rfft2"]  # re-exported: the spectra of this module are theirs
 

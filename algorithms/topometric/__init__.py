@@ -7,14 +7,14 @@ loop closure. The result is a :class:`TopoMap`; :meth:`TopoMap.localizer` gives 
 detector (:class:`Localizer`).
 """
 
-from algorithms.topometric.bayes import FilterConfig, FilterStep, LocationFilter
-from algorithms.topometric.config import MapperConfig, mapper_config_from_dict
-from algorithms.topometric.features import FeatureConfig, FeatureExtractor, Features
-from algorithms.topometric.mapper import Candidate, MapperStep, Relaxation, StepStatus, TopoMetricMapper
-from algorithms.topometric.navigation import Localization, Localizer, LocalizerStep, NavigationConfig
-from algorithms.topometric.topomap import TopoMap
-from algorithms.topometric.validation import Motion2D, Validation, ValidationConfig, ValidationStatus, validate
-from algorithms.topometric.vocabulary import Vocabulary, VocabularyConfig
+from slamreplay.algorithms.topometric.bayes import FilterConfig, FilterStep, LocationFilter
+from slamreplay.algorithms.topometric.config import MapperConfig, mapper_config_from_dict
+from slamreplay.algorithms.topometric.features import FeatureConfig, FeatureExtractor, Features
+from slamreplay.algorithms.topometric.mapper import Candidate, MapperStep, Relaxation, StepStatus, TopoMetricMapper
+from slamreplay.algorithms.topometric.navigation import Localization, Localizer, LocalizerStep, NavigationConfig
+from slamreplay.algorithms.topometric.topomap import TopoMap
+from slamreplay.algorithms.topometric.validation import Motion2D, Validation, ValidationConfig, ValidationStatus, validate
+from slamreplay.algorithms.topometric.vocabulary import Vocabulary, VocabularyConfig
 
 __all__ = ["Candidate", "FeatureConfig", "FeatureExtractor", "Features", "FilterConfig", "FilterStep",
            "Localization", "Localizer", "LocalizerStep", "LocationFilter", "MapperConfig", "MapperStep", "Motion2D",

@@ -38,7 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from algorithms.common import se2
+from slamreplay.algorithms.common import se2
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]

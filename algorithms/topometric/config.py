@@ -5,10 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from algorithms.topometric.bayes import FilterConfig
-from algorithms.topometric.features import FeatureConfig
-from algorithms.topometric.validation import ValidationConfig
-from algorithms.topometric.vocabulary import VocabularyConfig
+from slamreplay.algorithms.topometric.bayes import FilterConfig
+from slamreplay.algorithms.topometric.features import FeatureConfig
+from slamreplay.algorithms.topometric.validation import ValidationConfig
+from slamreplay.algorithms.topometric.vocabulary import VocabularyConfig
 
 
 @dataclass(frozen=True, slots=True)

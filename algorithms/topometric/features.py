@@ -3,7 +3,7 @@
 Section III-B of Bazeille, Battesti, Filliat (ECMR 2011) [1]_ replaces SIFT by STAR keypoints [2]_
 ("more than 20 times" faster). The paper names no descriptor for them; we use BRIEF-32 (256 bits,
 Hamming distance), the binary descriptor OpenCV pairs with STAR, which the incremental binary
-vocabulary (:mod:`algorithms.topometric.vocabulary`) and the matcher need.
+vocabulary (:mod:`slamreplay.algorithms.topometric.vocabulary`) and the matcher need.
 
 References
 ----------

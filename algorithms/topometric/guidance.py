@@ -11,14 +11,14 @@ Pure numpy, no I/O. The pieces, in the paper's order:
 - :class:`QualitativePose`: on a loop closure the position is the node's, the heading the
   node's corrected by that deviation; between loop closures, the last corrected pose composed
   with the odometry since then (IV-B).
-- :mod:`algorithms.topometric.pathfollow`: the global path discretized every centimetre, the
+- :mod:`slamreplay.algorithms.topometric.pathfollow`: the global path discretized every centimetre, the
   local path, the target point and the PID (IV-C).
 - :class:`Navigator`: ties them together around a pluggable image localizer (image and odometry
   since the last image -> :class:`VisualMatch` or None), so the closed-loop runner and the replay
   pipeline run the same code and give the same outputs.
 
 The navigation-mode loop-closure detector itself (bag of words, filter, 2-point RANSAC with the
-translation threshold off) is :class:`algorithms.topometric.navigation.Localizer`; the replay
+translation threshold off) is :class:`slamreplay.algorithms.topometric.navigation.Localizer`; the replay
 layer adapts it to :data:`ImageLocalizer`.
 
 References
@@ -37,9 +37,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from algorithms.common import se2
-from algorithms.observe import NULL_OBSERVER, LineStrips, Observer, Points, Pose, Scalar
-from algorithms.topometric.pathfollow import Command, FollowerConfig, PathFollower, discretize
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.observe import NULL_OBSERVER, LineStrips, Observer, Points, Pose, Scalar
+from slamreplay.algorithms.topometric.pathfollow import Command, FollowerConfig, PathFollower, discretize
 
 F64 = NDArray[np.float64]
 

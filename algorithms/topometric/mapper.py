@@ -40,16 +40,16 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from algorithms.common import se2
-from algorithms.common.posegraph import OptimizerConfig, chi2
-from algorithms.common.posegraph_incremental import IncrementalConfig, IncrementalOptimizer
-from algorithms.common.robust import Kernel
-from algorithms.topometric.bayes import FilterStep, LocationFilter
-from algorithms.topometric.config import MapperConfig
-from algorithms.topometric.features import FeatureExtractor, Features
-from algorithms.topometric.topomap import TopoMap
-from algorithms.topometric.validation import Validation, validate
-from algorithms.topometric.vocabulary import Vocabulary
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.common.posegraph import OptimizerConfig, chi2
+from slamreplay.algorithms.common.posegraph_incremental import IncrementalConfig, IncrementalOptimizer
+from slamreplay.algorithms.common.robust import Kernel
+from slamreplay.algorithms.topometric.bayes import FilterStep, LocationFilter
+from slamreplay.algorithms.topometric.config import MapperConfig
+from slamreplay.algorithms.topometric.features import FeatureExtractor, Features
+from slamreplay.algorithms.topometric.topomap import TopoMap
+from slamreplay.algorithms.topometric.validation import Validation, validate
+from slamreplay.algorithms.topometric.vocabulary import Vocabulary
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]

@@ -20,11 +20,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from algorithms.topometric.bayes import FilterConfig, FilterStep, LocationFilter
-from algorithms.topometric.features import FeatureExtractor, Features
-from algorithms.topometric.topomap import TopoMap
-from algorithms.topometric.validation import Motion2D, Validation, ValidationConfig, validate
-from algorithms.topometric.vocabulary import Vocabulary
+from slamreplay.algorithms.topometric.bayes import FilterConfig, FilterStep, LocationFilter
+from slamreplay.algorithms.topometric.features import FeatureExtractor, Features
+from slamreplay.algorithms.topometric.topomap import TopoMap
+from slamreplay.algorithms.topometric.validation import Motion2D, Validation, ValidationConfig, validate
+from slamreplay.algorithms.topometric.vocabulary import Vocabulary
 
 F64 = NDArray[np.float64]
 

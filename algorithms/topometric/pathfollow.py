@@ -33,7 +33,7 @@ from typing import cast
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from algorithms.common import se2
+from slamreplay.algorithms.common import se2
 
 F64 = NDArray[np.float64]
 

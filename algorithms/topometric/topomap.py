@@ -4,7 +4,7 @@ A map is a graph of locations (relaxed poses in the map frame) linked by odometr
 each location keeps the keypoints and BRIEF descriptors of the image that created it (what a
 navigation image is validated against) and the word histogram of all its images, over the
 dictionary built during mapping (section III of [1]_). All arrays are flat with offsets, so the map
-saves as plain arrays (see ``replay.topomap_io``).
+saves as plain arrays (see ``slamreplay.replay.topomap_io``).
 
 References
 ----------
@@ -21,12 +21,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from algorithms.topometric.config import MapperConfig
-from algorithms.topometric.features import DESCRIPTOR_BYTES, Features
-from algorithms.topometric.vocabulary import Vocabulary
+from slamreplay.algorithms.topometric.config import MapperConfig
+from slamreplay.algorithms.topometric.features import DESCRIPTOR_BYTES, Features
+from slamreplay.algorithms.topometric.vocabulary import Vocabulary
 
 if TYPE_CHECKING:
-    from algorithms.topometric.navigation import Localizer, NavigationConfig
+    from slamreplay.algorithms.topometric.navigation import Localizer, NavigationConfig
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -150,7 +150,7 @@ class TopoMap:
         return voc
 
     def localizer(self, config: NavigationConfig | None = None, start_location: int | None = None) -> Localizer:
-        """A navigation-mode detector on this map (see :class:`algorithms.topometric.navigation.Localizer`)."""
-        from algorithms.topometric.navigation import Localizer, NavigationConfig
+        """A navigation-mode detector on this map (see :class:`slamreplay.algorithms.topometric.navigation.Localizer`)."""
+        from slamreplay.algorithms.topometric.navigation import Localizer, NavigationConfig
 
         return Localizer(self, config or NavigationConfig(), start_location)

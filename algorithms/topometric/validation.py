@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from algorithms.topometric.features import Features
+from slamreplay.algorithms.topometric.features import Features
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]

@@ -13,7 +13,7 @@ query costs O(words hit + postings of those words), not O(locations x words):
 
 N the number of locations, N_w those containing w, ||c_L|| the L2 norm of L's word counts
 (without idf, so it needs no update when N changes; the query's own norm is a common factor,
-irrelevant to the mu + sigma likelihood of :mod:`algorithms.topometric.bayes`).
+irrelevant to the mu + sigma likelihood of :mod:`slamreplay.algorithms.topometric.bayes`).
 
 References
 ----------
@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from algorithms.topometric.features import DESCRIPTOR_BYTES
+from slamreplay.algorithms.topometric.features import DESCRIPTOR_BYTES
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]

@@ -1,7 +1,7 @@
 """The codec: the only code in slamreplay that touches message bytes.
 
 Writing uses protobuf with the Foxglove well-known schemas and slamreplay's custom schemas
-(:mod:`recorder.codec.schemas`). Reading accepts those and ROS 2 (``ros2msg``/CDR) messages.
+(:mod:`slamreplay.recorder.codec.schemas`). Reading accepts those and ROS 2 (``ros2msg``/CDR) messages.
 A :class:`TopicDecoder` is made once per channel and turns its raw bytes into messages.
 """
 
@@ -22,10 +22,10 @@ from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
 from mcap_ros2._vendor.rosidl_adapter.parser import InvalidSpecification, InvalidValue
 from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 
-from recorder.codec.protobuf import READABLE_SCHEMAS, encode, proto_converter, schema_data, schema_name
-from recorder.codec.ros2 import canonical_ros_type, from_ros2
-from recorder.errors import CodecError
-from recorder.messages import LandmarkMap, Message, PlanarPose, RangeBearingScan
+from slamreplay.recorder.codec.protobuf import READABLE_SCHEMAS, encode, proto_converter, schema_data, schema_name
+from slamreplay.recorder.codec.ros2 import canonical_ros_type, from_ros2
+from slamreplay.recorder.errors import CodecError
+from slamreplay.recorder.messages import LandmarkMap, Message, PlanarPose, RangeBearingScan
 
 __all__ = ["READABLE_SCHEMAS", "TopicDecoder", "encode", "schema_data", "schema_name"]
 

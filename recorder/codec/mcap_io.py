@@ -39,7 +39,7 @@ from mcap.records import (
     Statistics,
 )
 
-from recorder.errors import DamageError
+from slamreplay.recorder.errors import DamageError
 
 MAGIC = b"\x89MCAP0\r\n"
 FOOTER_RECORD = 1 + 8 + 20  # opcode, length, summary_start, summary_offset_start, summary_crc

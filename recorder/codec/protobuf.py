@@ -32,15 +32,15 @@ from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame as PoseInFrame
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage as RawImageProto
 from mcap_protobuf.schema import build_file_descriptor_set
 
-from recorder.codec.schemas import (
+from slamreplay.recorder.codec.schemas import (
     ImuYawRateProto,
     LandmarkMapProto,
     NavLocalizationProto,
     RangeBearingScanProto,
     VelocityCommandProto,
 )
-from recorder.errors import CodecError
-from recorder.messages import (
+from slamreplay.recorder.errors import CodecError
+from slamreplay.recorder.messages import (
     CameraCalibration,
     CameraImage,
     GroundTruthPose,

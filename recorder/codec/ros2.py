@@ -3,7 +3,7 @@
 Supported: ``nav_msgs/msg/Odometry``, ``geometry_msgs/msg/PoseStamped`` and
 ``PoseWithCovarianceStamped`` (as odometry or ground-truth poses), ``sensor_msgs/msg/Image``
 (mono8, rgb8, bgr8) and ``sensor_msgs/msg/CompressedImage`` (png, jpeg). Decoding of CDR bytes
-into objects is done by ``mcap_ros2`` (or ``rosbags`` in :mod:`recorder.importers.ros2bag`);
+into objects is done by ``mcap_ros2`` (or ``rosbags`` in :mod:`slamreplay.recorder.importers.ros2bag`);
 this module maps those objects onto the message model. Schema names may use the ROS 1 style
 ``nav_msgs/Odometry`` too.
 """
@@ -12,9 +12,9 @@ from __future__ import annotations
 
 from typing import Any, cast
 
-from recorder.codec.protobuf import decode_image_bytes, raw_pixels, yaw_from_quaternion
-from recorder.errors import CodecError
-from recorder.messages import CameraImage, Message, PlanarPose
+from slamreplay.recorder.codec.protobuf import decode_image_bytes, raw_pixels, yaw_from_quaternion
+from slamreplay.recorder.errors import CodecError
+from slamreplay.recorder.messages import CameraImage, Message, PlanarPose
 
 ROS2_SCHEMAS = (
     "nav_msgs/msg/Odometry",

@@ -1,5 +1,5 @@
 """Importers that turn public datasets into slamreplay recordings."""
 
-from recorder.importers.mrclam import ImportSummary, import_mrclam
+from slamreplay.recorder.importers.mrclam import ImportSummary, import_mrclam
 
 __all__ = ["ImportSummary", "import_mrclam"]

@@ -19,9 +19,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from recorder.errors import RecorderError
-from recorder.messages import TOPIC_CAMERA_IMAGE, CameraImage
-from recorder.writer import Recorder
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.messages import TOPIC_CAMERA_IMAGE, CameraImage
+from slamreplay.recorder.writer import Recorder
 
 IMPORTER: Final = "images"
 EPOCH_NS: Final = 1_000_000_000

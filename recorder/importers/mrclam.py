@@ -36,8 +36,8 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
-from recorder.errors import RecorderError
-from recorder.messages import (
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.messages import (
     TOPIC_GROUND_TRUTH_LANDMARKS,
     TOPIC_GROUND_TRUTH_POSE,
     TOPIC_ODOM,
@@ -48,8 +48,8 @@ from recorder.messages import (
     OdometryPose,
     RangeBearingScan,
 )
-from recorder.sensor_model import SensorModel
-from recorder.writer import Recorder, refuse_existing
+from slamreplay.recorder.sensor_model import SensorModel
+from slamreplay.recorder.writer import Recorder, refuse_existing
 
 IMPORTER: Final = "mrclam"
 DATASET: Final = "MRCLAM Dataset6"

@@ -33,11 +33,11 @@ from typing import Any, Final
 
 import numpy as np
 
-from recorder.codec.ros2 import POSE_TYPES, from_ros2
-from recorder.errors import RecorderError
-from recorder.importers.poles import PoleConfig, extract_poles
-from recorder.importers.tf_tree import TfTree
-from recorder.messages import (
+from slamreplay.recorder.codec.ros2 import POSE_TYPES, from_ros2
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.importers.poles import PoleConfig, extract_poles
+from slamreplay.recorder.importers.tf_tree import TfTree
+from slamreplay.recorder.messages import (
     TOPIC_CAMERA_CALIBRATION,
     TOPIC_CAMERA_IMAGE,
     TOPIC_GROUND_TRUTH_POSE,
@@ -52,8 +52,8 @@ from recorder.messages import (
     OdometryPose,
     RangeBearingScan,
 )
-from recorder.sensor_model import SensorModel
-from recorder.writer import Recorder
+from slamreplay.recorder.sensor_model import SensorModel
+from slamreplay.recorder.writer import Recorder
 
 IMPORTER: Final = "ros2"
 TF_TYPE: Final = "tf2_msgs/msg/TFMessage"

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
-from recorder.errors import RecorderError
+from slamreplay.recorder.errors import RecorderError
 
 F64 = NDArray[np.float64]
 

@@ -44,8 +44,8 @@ from typing import Final
 import numpy as np
 from numpy.typing import NDArray
 
-from recorder.errors import RecorderError
-from recorder.messages import (
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.messages import (
     TOPIC_GROUND_TRUTH_LANDMARKS,
     TOPIC_GROUND_TRUTH_POSE,
     TOPIC_ODOM,
@@ -56,8 +56,8 @@ from recorder.messages import (
     OdometryPose,
     RangeBearingScan,
 )
-from recorder.sensor_model import SensorModel
-from recorder.writer import Recorder
+from slamreplay.recorder.sensor_model import SensorModel
+from slamreplay.recorder.writer import Recorder
 
 IMPORTER: Final = "victoria-park"
 DATASET: Final = "Victoria Park (iSAM/GTSAM graph form)"
@@ -116,7 +116,7 @@ def sensor_model() -> dict[str, float]:
 
     Landmarks: 0.25 m in range and 0.049 rad in bearing, the sigmas the sightings show about the
     reference (the optimum under :func:`gtsam_noise`), corrected for what the optimum absorbs, as
-    :func:`replay.landmark_reference.measured_noise` computes at import (``slamreplay record
+    :func:`slamreplay.replay.landmark_reference.measured_noise` computes at import (``slamreplay record
     victoria-park`` stores its values in the recording's parameters); the file's own convention says
     0.63 m and 0.2 rad. Odometry: the optimum absorbs its residuals almost whole, so its noise cannot
     be measured this way and the file's stands: 0.01 m and 0.002 rad per step, steps of 0.58 m on

@@ -1,6 +1,6 @@
 """Simulator ``sim-corridor``: a forward camera on a wheeled robot driven round an indoor floor plan.
 
-The floor plan (:mod:`recorder.sim.corridor_plan`, about 22 m x 18 m) has corridors forming two
+The floor plan (:mod:`slamreplay.recorder.sim.corridor_plan`, about 22 m x 18 m) has corridors forming two
 loops, a dead end and two rooms. Its walls are lined with panels cut from real photos of office
 corridors (``recorder/sim/textures``, BSD-3-Clause, from RTAB-Map), so places look different;
 a few runs of panels are repeated on purpose elsewhere, so some places look alike, as in the
@@ -21,7 +21,7 @@ Recorded topics (times in integer ns from :data:`EPOCH_NS`, never the wall clock
 - ``/camera/calibration``: the intrinsics above, once at the start;
 - ``/ground_truth/pose`` and ``/odom`` at ``odom_rate_hz``: the true pose in ``world`` (metres;
   the robot starts at the origin facing +x) and the drifting wheel odometry
-  (:class:`~recorder.sim.wheel_odometry.WheelOdometry`) starting at (0, 0, 0);
+  (:class:`~slamreplay.recorder.sim.wheel_odometry.WheelOdometry`) starting at (0, 0, 0);
 - ``/camera/image`` at ``camera_rate_hz``: the mono8 image rendered from the true pose at the
   same stamp as a pose, written after it.
 
@@ -46,8 +46,8 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
-from recorder.errors import RecorderError
-from recorder.messages import (
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.messages import (
     TOPIC_CAMERA_CALIBRATION,
     TOPIC_CAMERA_IMAGE,
     TOPIC_GROUND_TRUTH_POSE,
@@ -57,12 +57,12 @@ from recorder.messages import (
     GroundTruthPose,
     OdometryPose,
 )
-from recorder.sensor_model import SensorModel
-from recorder.sim.corridor_plan import TOURS, PurePursuit
-from recorder.sim.corridor_render import CorridorWorld
-from recorder.sim.unicycle import arc_step, between, wrap_angle
-from recorder.sim.wheel_odometry import WheelOdometry
-from recorder.writer import METADATA_NAME, Recorder
+from slamreplay.recorder.sensor_model import SensorModel
+from slamreplay.recorder.sim.corridor_plan import TOURS, PurePursuit
+from slamreplay.recorder.sim.corridor_render import CorridorWorld
+from slamreplay.recorder.sim.unicycle import arc_step, between, wrap_angle
+from slamreplay.recorder.sim.wheel_odometry import WheelOdometry
+from slamreplay.recorder.writer import METADATA_NAME, Recorder
 
 __all__ = ["EPOCH_NS", "SIMULATOR", "CorridorConfig", "CorridorSummary", "CorridorWorld", "WheelOdometry",
            "drive_route", "simulate_corridor", "world_from_file", "world_from_metadata"]
@@ -270,7 +270,7 @@ def simulate_corridor(out: Path, config: CorridorConfig, seed: int, progress: Pr
 def drive_route(waypoints: F64, config: CorridorConfig, rng: np.random.Generator) -> F64:
     """True poses ``(n, 3)`` [x_m, y_m, yaw_rad (unwrapped)] at ``odom_rate_hz`` along ``waypoints``.
 
-    The teleoperator is :class:`~recorder.sim.corridor_plan.PurePursuit` plus a smooth random
+    The teleoperator is :class:`~slamreplay.recorder.sim.corridor_plan.PurePursuit` plus a smooth random
     steering wobble (an AR(1) process of ``steer_jitter_dps``, only while moving); each step is an
     exact unicycle arc.
     """

@@ -46,7 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from recorder.messages import (
+from slamreplay.recorder.messages import (
     TOPIC_GROUND_TRUTH_LANDMARKS,
     TOPIC_GROUND_TRUTH_POSE,
     TOPIC_ODOM,
@@ -57,9 +57,9 @@ from recorder.messages import (
     OdometryPose,
     RangeBearingScan,
 )
-from recorder.sensor_model import SensorModel
-from recorder.sim.unicycle import arc_step, integrate, wrap_angle
-from recorder.writer import Recorder
+from slamreplay.recorder.sensor_model import SensorModel
+from slamreplay.recorder.sim.unicycle import arc_step, integrate, wrap_angle
+from slamreplay.recorder.writer import Recorder
 
 SIMULATOR: Final = "sim-landmarks"
 EPOCH_NS: Final = 1_000_000_000  # first stamp of every simulated recording: fixed, nonzero, not the wall clock

@@ -41,9 +41,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from recorder.errors import RecorderError
-from recorder.importers.images import SUFFIXES as IMAGE_SUFFIXES
-from recorder.messages import (
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.importers.images import SUFFIXES as IMAGE_SUFFIXES
+from slamreplay.recorder.messages import (
     TOPIC_CAMERA_IMAGE,
     TOPIC_GROUND_TRUTH_POSE,
     TOPIC_ODOM,
@@ -51,9 +51,9 @@ from recorder.messages import (
     GroundTruthPose,
     OdometryPose,
 )
-from recorder.sensor_model import SensorModel
-from recorder.sim.unicycle import between, compose, wrap_angle
-from recorder.writer import Recorder
+from slamreplay.recorder.sensor_model import SensorModel
+from slamreplay.recorder.sim.unicycle import between, compose, wrap_angle
+from slamreplay.recorder.writer import Recorder
 
 SIMULATOR: Final = "sim-seabed"
 EPOCH_NS: Final = 1_000_000_000

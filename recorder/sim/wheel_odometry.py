@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 if TYPE_CHECKING:
-    from recorder.sim.corridor import CorridorConfig
+    from slamreplay.recorder.sim.corridor import CorridorConfig
 
 F64 = NDArray[np.float64]
 

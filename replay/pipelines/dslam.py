@@ -6,7 +6,7 @@ the observed landmarks' ellipses; NEES, CI weight and solver iterations as time 
 ``info_every_scans`` scans, and at the end: the links of the information matrix as segments
 between features (the paper's Fig. 3c) and its block sparsity pattern as an image (Fig. 3d).
 Metrics add ``info_nnz_blocks`` and ``info_nnz_blocks_per_landmark`` to the shared ones
-(:mod:`replay.pipelines.landmark_slam`).
+(:mod:`slamreplay.replay.pipelines.landmark_slam`).
 """
 
 from __future__ import annotations
@@ -18,12 +18,12 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import rerun.blueprint as rrb
 
-from algorithms.dslam import DSlam, DSlamConfig, ScanStatus
-from algorithms.dslam.localization import PoseStatus
-from algorithms.observe import CovarianceEllipses, Image, Points, Pose, Scalar, Segments, State
-from replay import views
-from replay.pipeline import MetricSpec, ReplayContext
-from replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, LandmarkSlamPipeline
+from slamreplay.algorithms.dslam import DSlam, DSlamConfig, ScanStatus
+from slamreplay.algorithms.dslam.localization import PoseStatus
+from slamreplay.algorithms.observe import CovarianceEllipses, Image, Points, Pose, Scalar, Segments, State
+from slamreplay.replay import views
+from slamreplay.replay.pipeline import MetricSpec, ReplayContext
+from slamreplay.replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, LandmarkSlamPipeline
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,7 +1,7 @@
 """Pipeline ``ekfslam``: full EKF-SLAM, the baseline D-SLAM is compared with, on the same inputs.
 
 Same configuration keys (noise models, association), drawing and metrics as ``dslam``
-(:mod:`replay.pipelines.landmark_slam`), without the D-SLAM-only parts (measurement pose, CI,
+(:mod:`slamreplay.replay.pipelines.landmark_slam`), without the D-SLAM-only parts (measurement pose, CI,
 anchors, information matrix).
 """
 
@@ -14,10 +14,10 @@ from typing import Literal
 import numpy as np
 import rerun.blueprint as rrb
 
-from algorithms.ekfslam import EkfSlam, EkfSlamConfig
-from algorithms.observe import Image
-from replay import views
-from replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, LandmarkSlamPipeline
+from slamreplay.algorithms.ekfslam import EkfSlam, EkfSlamConfig
+from slamreplay.algorithms.observe import Image
+from slamreplay.replay import views
+from slamreplay.replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, LandmarkSlamPipeline
 
 
 @dataclass(frozen=True, slots=True)

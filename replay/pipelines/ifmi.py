@@ -17,7 +17,7 @@ Illumination, with no per-dataset setting: each image goes through a homomorphic
 (the lamp's light multiplies the scene). That alone leaves the frames' fixed pattern (the
 Skerki camera's vertical stripes, the rim of the hot spot) to lock the full-band POMF at
 (0, 0); the registration reads the PNR in the finest band where the Dirac is clear
-(:func:`algorithms.ifmi.spectral.band_peak`), below those frequencies. Subtracting the
+(:func:`slamreplay.algorithms.ifmi.spectral.band_peak`), below those frequencies. Subtracting the
 sequence's mean image, as the data's README suggests, put a ghost of every frame into every
 frame and lowered the accepted consecutive Skerki pairs from 48 to 45 of 56 (the mean of all
 frames) or 36 (a running mean).
@@ -35,18 +35,18 @@ from dataclasses import dataclass
 import numpy as np
 import rerun.blueprint as rrb
 
-from algorithms.common import se2
-from algorithms.common.posegraph import OptimizerConfig, PoseGraph, chi2, optimize
-from algorithms.common.posegraph_analysis import marginal_covariances
-from algorithms.ifmi import IfmiConfig, Prepared, Registration, Status, prepare, register_prepared
-from algorithms.ifmi.mapping import edge_from_registration, flatten_illumination, render_mosaic, solve_log_scales
-from algorithms.ifmi.plan import MIN_SIZE
-from algorithms.observe import CovarianceEllipses, Image, LineStrips, Points, Scalar, Segments, State, Text
-from recorder.messages import TOPIC_CAMERA_IMAGE, TOPIC_GROUND_TRUTH_POSE, CameraImage, GroundTruthPose
-from replay import views
-from replay.errors import ReplayError
-from replay.pipeline import MetricSpec, Pipeline, ReplayContext
-from replay.reader import Envelope
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.common.posegraph import OptimizerConfig, PoseGraph, chi2, optimize
+from slamreplay.algorithms.common.posegraph_analysis import marginal_covariances
+from slamreplay.algorithms.ifmi import IfmiConfig, Prepared, Registration, Status, prepare, register_prepared
+from slamreplay.algorithms.ifmi.mapping import edge_from_registration, flatten_illumination, render_mosaic, solve_log_scales
+from slamreplay.algorithms.ifmi.plan import MIN_SIZE
+from slamreplay.algorithms.observe import CovarianceEllipses, Image, LineStrips, Points, Scalar, Segments, State, Text
+from slamreplay.recorder.messages import TOPIC_CAMERA_IMAGE, TOPIC_GROUND_TRUTH_POSE, CameraImage, GroundTruthPose
+from slamreplay.replay import views
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext
+from slamreplay.replay.reader import Envelope
 
 WEAK_SIGMA = 1e3  # a rejected consecutive registration keeps the graph connected with a nearly free edge
 

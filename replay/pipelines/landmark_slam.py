@@ -24,11 +24,11 @@ import rerun.blueprint as rrb
 from scipy.optimize import linear_sum_assignment
 from scipy.stats import chi2
 
-from algorithms.common import se2
-from algorithms.common.association import AssociationConfig
-from algorithms.common.motion import OdometryNoise, between1, compose1
-from algorithms.observe import CovarianceEllipses, Points, Pose, Scalar, Segments
-from recorder.messages import (
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.common.association import AssociationConfig
+from slamreplay.algorithms.common.motion import OdometryNoise, between1, compose1
+from slamreplay.algorithms.observe import CovarianceEllipses, Points, Pose, Scalar, Segments
+from slamreplay.recorder.messages import (
     TOPIC_GROUND_TRUTH_LANDMARKS,
     TOPIC_GROUND_TRUTH_POSE,
     TOPIC_ODOM,
@@ -38,13 +38,13 @@ from recorder.messages import (
     OdometryPose,
     RangeBearingScan,
 )
-from recorder.sensor_model import SensorModel
-from replay import views
-from replay.errors import ReplayError
-from replay.metrics import mean_nees_band, position_errors, rmse
-from replay.pipeline import MetricSpec, Pipeline, ReplayContext
-from replay.reader import Envelope
-from replay.trajectory import TrajectoryLog
+from slamreplay.recorder.sensor_model import SensorModel
+from slamreplay.replay import views
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.metrics import mean_nees_band, position_errors, rmse
+from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext
+from slamreplay.replay.reader import Envelope
+from slamreplay.replay.trajectory import TrajectoryLog
 
 Association = Literal["auto", "known", "unknown"]
 

@@ -11,13 +11,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from algorithms.deadreckoning import DeadReckoning
-from algorithms.observe import Pose
-from recorder.messages import TOPIC_GROUND_TRUTH_POSE, TOPIC_ODOM, GroundTruthPose, OdometryPose
-from replay.metrics import position_errors, rmse
-from replay.pipeline import MetricSpec, Pipeline, ReplayContext
-from replay.reader import Envelope
-from replay.trajectory import TrajectoryLog
+from slamreplay.algorithms.deadreckoning import DeadReckoning
+from slamreplay.algorithms.observe import Pose
+from slamreplay.recorder.messages import TOPIC_GROUND_TRUTH_POSE, TOPIC_ODOM, GroundTruthPose, OdometryPose
+from slamreplay.replay.metrics import position_errors, rmse
+from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext
+from slamreplay.replay.reader import Envelope
+from slamreplay.replay.trajectory import TrajectoryLog
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,13 +1,13 @@
 """Pipeline ``topometric``: visual topo-metric mapping (Battesti, Bazeille, Filliat, ECMR 2011, section III).
 
-Each ``/camera/image`` goes to :class:`~algorithms.topometric.TopoMetricMapper` with the latest
+Each ``/camera/image`` goes to :class:`~slamreplay.algorithms.topometric.TopoMetricMapper` with the latest
 ``/odom`` pose; the mapper takes an image every 50 cm or 10 degrees of odometry, adds a location or
 closes a loop, and relaxes the graph at each loop closure. Logged: each taken image with its
 keypoints (``camera/image``), each candidate as the map image beside the current one with inlier
 and outlier matches and its 2D motion (``camera/candidate``), the filter's posterior over locations
 (``topo/posterior``, plus ``metrics/posterior_*``), the graph (``world/graph/current``) and around
 each relaxation ``world/graph/before`` and ``world/graph/after``, and the decisions as text
-(``topo/log``). The map goes to ``map.npz`` (:mod:`replay.topomap_io`); with ``/ground_truth/pose``
+(``topo/log``). The map goes to ``map.npz`` (:mod:`slamreplay.replay.topomap_io`); with ``/ground_truth/pose``
 it also holds, for evaluation only, each location's true pose (that of its reference image,
 interpolated at the image's log time; NaN outside the ground truth's time span) as ``truth_poses``:
 ``slamreplay navigate`` and ``topometric-nav`` score a drive against the route through these true
@@ -35,10 +35,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 import rerun.blueprint as rrb
 
-from algorithms.common import se2
-from algorithms.observe import Bars, Image, LineStrips, Points, Scalar, Segments, State, Text
-from algorithms.topometric import Candidate, MapperConfig, MapperStep, StepStatus, TopoMetricMapper
-from recorder.messages import (
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.observe import Bars, Image, LineStrips, Points, Scalar, Segments, State, Text
+from slamreplay.algorithms.topometric import Candidate, MapperConfig, MapperStep, StepStatus, TopoMetricMapper
+from slamreplay.recorder.messages import (
     TOPIC_CAMERA_IMAGE,
     TOPIC_GROUND_TRUTH_POSE,
     TOPIC_ODOM,
@@ -46,10 +46,10 @@ from recorder.messages import (
     GroundTruthPose,
     OdometryPose,
 )
-from replay import views
-from replay.pipeline import MetricSpec, Pipeline, ReplayContext
-from replay.reader import Envelope
-from replay.topomap_io import save_map
+from slamreplay.replay import views
+from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext
+from slamreplay.replay.reader import Envelope
+from slamreplay.replay.topomap_io import save_map
 
 STAGES = ("features", "bow", "filter", "validation", "relaxation")
 

@@ -3,7 +3,7 @@
 The recording's metadata names the map (path and sha256), the start and goal nodes, the guidance
 configuration and the seed; the pipeline loads the map (``map_path`` overrides the recorded path,
 but its sha256 must match: another map cannot reproduce the run), plans the same route and runs
-the same :class:`~algorithms.topometric.guidance.Navigator` on the recorded odometry and images:
+the same :class:`~slamreplay.algorithms.topometric.guidance.Navigator` on the recorded odometry and images:
 ``/odom`` -> :meth:`~Navigator.on_odometry`, ``/camera/image`` -> :meth:`~Navigator.on_image`,
 ``/cmd_vel`` -> :meth:`~Navigator.control`. Each replayed localization and command is compared
 with the recorded ``/nav/localization`` and ``/cmd_vel``: ``replay_mismatches`` counts the
@@ -18,7 +18,7 @@ true, odometry and estimated trajectories (``world/trajectory/{truth,odometry,es
 the path the drive is scored against (``world/nav/reference_path``).
 
 Scoring, as the paper's Fig. 4 compares the replay and the mapping trajectories, both true
-(:func:`replay.navigate.reference_path`): the cross-track error is the distance of the *true*
+(:func:`slamreplay.replay.navigate.reference_path`): the cross-track error is the distance of the *true*
 position (``/ground_truth/pose``) to the *true path*, the route's nodes at the mapping drive's
 ground-truth poses stored in the map (``truth_poses``), discretized like the global path; the goal
 distance is to the goal node's true pose. A map without them (an older map, or mapping without
@@ -38,11 +38,11 @@ from typing import Any
 import numpy as np
 import rerun.blueprint as rrb
 
-from algorithms.common import se2
-from algorithms.observe import Image, LineStrips, Points, Pose, Scalar, Segments, Text
-from algorithms.topometric.guidance import Navigator, NavUpdate
-from algorithms.topometric.pathfollow import distance_to_polyline
-from recorder.messages import (
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.observe import Image, LineStrips, Points, Pose, Scalar, Segments, Text
+from slamreplay.algorithms.topometric.guidance import Navigator, NavUpdate
+from slamreplay.algorithms.topometric.pathfollow import distance_to_polyline
+from slamreplay.recorder.messages import (
     TOPIC_CAMERA_IMAGE,
     TOPIC_CMD_VEL,
     TOPIC_GROUND_TRUTH_POSE,
@@ -54,10 +54,10 @@ from recorder.messages import (
     OdometryPose,
     VelocityCommand,
 )
-from recorder.writer import METADATA_NAME
-from replay import views
-from replay.errors import ReplayError
-from replay.navigate import (
+from slamreplay.recorder.writer import METADATA_NAME
+from slamreplay.replay import views
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.navigate import (
     SOURCE,
     MapLocalizer,
     guidance_from_dict,
@@ -66,9 +66,9 @@ from replay.navigate import (
     nav_code_fingerprint,
     reference_path,
 )
-from replay.pipeline import MetricSpec, Pipeline, ReplayContext
-from replay.reader import Envelope
-from replay.trajectory import TrajectoryLog
+from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext
+from slamreplay.replay.reader import Envelope
+from slamreplay.replay.trajectory import TrajectoryLog
 
 
 @dataclass(frozen=True, slots=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from algorithms.common.ci import covariance_intersection
+from slamreplay.algorithms.common.ci import covariance_intersection
 
 
 def test_symmetric_closed_form_det_and_trace() -> None:

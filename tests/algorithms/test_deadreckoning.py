@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from algorithms.common import se2
-from algorithms.deadreckoning import DeadReckoning
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.deadreckoning import DeadReckoning
 
 
 def test_matches_se2_composition() -> None:

@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from algorithms.common import se2
-from algorithms.common.rangebearing import noise, predict
-from algorithms.dslam import DSlam, DSlamConfig, ScanStatus
-from algorithms.dslam.covariance import CovarianceCache
-from algorithms.dslam.information import InformationMatrix, dofs
-from algorithms.dslam.localization import PoseStatus, measurement_pose
-from algorithms.dslam.mapping import choose_anchors, recast_increment
-from algorithms.dslam.recast import init_features, map_invariants, recast, robot_invariants
-from algorithms.dslam.recovery import Recovery, direct, invert_blocks, pcg
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.common.rangebearing import noise, predict
+from slamreplay.algorithms.dslam import DSlam, DSlamConfig, ScanStatus
+from slamreplay.algorithms.dslam.covariance import CovarianceCache
+from slamreplay.algorithms.dslam.information import InformationMatrix, dofs
+from slamreplay.algorithms.dslam.localization import PoseStatus, measurement_pose
+from slamreplay.algorithms.dslam.mapping import choose_anchors, recast_increment
+from slamreplay.algorithms.dslam.recast import init_features, map_invariants, recast, robot_invariants
+from slamreplay.algorithms.dslam.recovery import Recovery, direct, invert_blocks, pcg
 
 F64 = NDArray[np.float64]
 POINTS = np.array([[2.0, 1.0], [3.5, -1.0], [1.0, 3.0], [4.0, 2.5], [-1.0, 2.0]])

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from algorithms.common import se2
-from algorithms.common.motion import OdometryNoise
-from algorithms.common.rangebearing import to_points
-from algorithms.dslam import DSlam, DSlamConfig, ScanStatus
-from algorithms.dslam.composite import CompositeScan, _move
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.common.motion import OdometryNoise
+from slamreplay.algorithms.common.rangebearing import to_points
+from slamreplay.algorithms.dslam import DSlam, DSlamConfig, ScanStatus
+from slamreplay.algorithms.dslam.composite import CompositeScan, _move
 
 F64 = NDArray[np.float64]
 GATE = 18.42  # chi-square 0.9999, 2 dof
@@ -212,7 +212,7 @@ def test_composite_config_is_checked(field: str) -> None:
 
 def test_a_misread_id_does_not_start_a_feature() -> None:
     """Known ids with the outlier gate: a reading of an unmapped id far from its earlier readings is not used."""
-    from algorithms.common.association import AssociationConfig
+    from slamreplay.algorithms.common.association import AssociationConfig
 
     slam = DSlam(DSlamConfig(odometry_noise=NOISE, association_params=AssociationConfig(outlier_probability=0.9999)))
     anchors_r, anchors_b = np.array([2.0, 2.5]), np.array([0.4, -0.3])

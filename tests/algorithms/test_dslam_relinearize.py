@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from algorithms.common import se2
-from algorithms.common.rangebearing import noise, predict
-from algorithms.dslam import DSlam, DSlamConfig
-from algorithms.dslam.mapping import phase_one_terms, recast_terms
-from algorithms.dslam.recast import recast
-from algorithms.dslam.recovery import direct
-from algorithms.dslam.relinearize import MeasurementLog, relinearize
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.common.rangebearing import noise, predict
+from slamreplay.algorithms.dslam import DSlam, DSlamConfig
+from slamreplay.algorithms.dslam.mapping import phase_one_terms, recast_terms
+from slamreplay.algorithms.dslam.recast import recast
+from slamreplay.algorithms.dslam.recovery import direct
+from slamreplay.algorithms.dslam.relinearize import MeasurementLog, relinearize
 
 F64 = NDArray[np.float64]
 TRUTH = np.array([[2.0, 1.0], [2.5, -1.5], [5.0, 0.5], [6.0, -2.0], [8.5, -0.5]])

@@ -12,9 +12,9 @@ import pytest
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from algorithms.common import se2
-from algorithms.common.motion import OdometryNoise
-from algorithms.dslam import DSlam, DSlamConfig, ScanStatus
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.common.motion import OdometryNoise
+from slamreplay.algorithms.dslam import DSlam, DSlamConfig, ScanStatus
 
 F64 = NDArray[np.float64]
 START = np.array([0.5, 0.5, 0.7])
@@ -144,7 +144,7 @@ def test_runs_are_deterministic() -> None:
 
 def test_a_local_step_never_touches_the_whole_map(monkeypatch: pytest.MonkeyPatch) -> None:
     """Scans recovered locally use no global product of I (O(N)); the grid finds the same features as a scan of all."""
-    from algorithms.dslam.information import InformationMatrix
+    from slamreplay.algorithms.dslam.information import InformationMatrix
 
     calls = [0]
     original = InformationMatrix.csr

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from test_dslam_sim import NOISE, SIGMA_B, SIGMA_R, landmark_world, run_dslam, score
 
-from algorithms.common import se2
-from algorithms.common.motion import OdometryNoise
-from algorithms.ekfslam import EkfSlam, EkfSlamConfig
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.common.motion import OdometryNoise
+from slamreplay.algorithms.ekfslam import EkfSlam, EkfSlamConfig
 
 
 def run_ekf(seed: int, association: str = "known", n: int = 400):  # type: ignore[no-untyped-def]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import scipy.fft
 
-from algorithms.ifmi import (
+from slamreplay.algorithms.ifmi import (
     IfmiConfig,
     SequentialRegistrar,
     Status,
@@ -20,10 +20,10 @@ from algorithms.ifmi import (
     register_prepared,
     spectral,
 )
-from algorithms.ifmi.mapping import flatten_illumination
-from algorithms.observe import Image, Scalar
-from recorder.sim.seabed import procedural_texture
-from replay.observer import MemoryObserver
+from slamreplay.algorithms.ifmi.mapping import flatten_illumination
+from slamreplay.algorithms.observe import Image, Scalar
+from slamreplay.recorder.sim.seabed import procedural_texture
+from slamreplay.replay.observer import MemoryObserver
 
 N = 256
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from algorithms.common.landmark_graph import (
+from slamreplay.algorithms.common.landmark_graph import (
     LandmarkGraph,
     LsqConfig,
     _system,

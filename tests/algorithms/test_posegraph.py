@@ -10,8 +10,8 @@ import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import algorithms.common.sparse_cholesky as sc
-from algorithms.common.posegraph import (
+import slamreplay.algorithms.common.sparse_cholesky as sc
+from slamreplay.algorithms.common.posegraph import (
     OptimizerConfig,
     PoseGraph,
     Status,
@@ -20,12 +20,12 @@ from algorithms.common.posegraph import (
     linearize,
     optimize,
 )
-from algorithms.common.posegraph_analysis import aligned_position_rmse, marginal_covariances
-from algorithms.common.posegraph_incremental import IncrementalConfig, IncrementalOptimizer
-from algorithms.common.posegraph_init import init_chordal, init_odometry, spanning_tree
-from algorithms.common.robust import Kernel, weights_and_cost
-from algorithms.common.se2 import between, compose, from_matrix, to_matrix, wrap_angle
-from replay.graph_io import read_graph
+from slamreplay.algorithms.common.posegraph_analysis import aligned_position_rmse, marginal_covariances
+from slamreplay.algorithms.common.posegraph_incremental import IncrementalConfig, IncrementalOptimizer
+from slamreplay.algorithms.common.posegraph_init import init_chordal, init_odometry, spanning_tree
+from slamreplay.algorithms.common.robust import Kernel, weights_and_cost
+from slamreplay.algorithms.common.se2 import between, compose, from_matrix, to_matrix, wrap_angle
+from slamreplay.replay.graph_io import read_graph
 
 NONE = OptimizerConfig(kernel=Kernel.NONE)
 angle = st.floats(-np.pi, np.pi, allow_nan=False)

@@ -7,7 +7,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from algorithms.common import se2
+from slamreplay.algorithms.common import se2
 
 coords = st.floats(-100, 100, allow_nan=False)
 poses = st.tuples(coords, coords, st.floats(-np.pi, np.pi - 1e-9)).map(np.array)

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from algorithms.topometric import (
+from slamreplay.algorithms.topometric import (
     FilterConfig,
     LocationFilter,
     MapperConfig,

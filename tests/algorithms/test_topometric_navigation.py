@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from algorithms.common import se2
-from algorithms.topometric.guidance import (
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.topometric.guidance import (
     GuidanceConfig,
     NavGraph,
     Navigator,
@@ -18,7 +18,7 @@ from algorithms.topometric.guidance import (
     heading_deviation_rad,
     plan_route,
 )
-from algorithms.topometric.pathfollow import FollowerConfig, PathFollower, discretize, distance_to_polyline
+from slamreplay.algorithms.topometric.pathfollow import FollowerConfig, PathFollower, discretize, distance_to_polyline
 
 EAST, NORTH, WEST = 0.0, 0.5 * math.pi, math.pi
 

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from api.executor import Outcome, Report, Task, run_task
+from slamreplay.api.executor import Outcome, Report, Task, run_task
 
 HOG_STEP_BYTES = 32 << 20
 HOG_MAX_BYTES = 3 << 30  # the stand-in gives up (and "succeeds") here, so a broken limit fails the test, not the host

@@ -15,8 +15,8 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore", UserWarning)  # StarletteDeprecationWarning: it asks for httpx2; httpx works
     from fastapi.testclient import TestClient
 
-from api.app import create_app
-from api.settings import Settings
+from slamreplay.api.app import create_app
+from slamreplay.api.settings import Settings
 
 UNKNOWN_SHA = "0" * 64
 UNKNOWN_JOB = "0" * 32

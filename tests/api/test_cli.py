@@ -11,9 +11,9 @@ import pytest
 from conftest import write_tiny_recording
 from mcap.writer import Writer
 
-from api.cli import main
-from api.hints import view_hint
-from recorder import OdometryPose, Recorder, codec
+from slamreplay.api.cli import main
+from slamreplay.api.hints import view_hint
+from slamreplay.recorder import OdometryPose, Recorder, codec
 
 
 def run_cli(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
@@ -99,7 +99,7 @@ def test_run_error_paths(rec: Path, tmp_path: Path, capsys: pytest.CaptureFixtur
     no_success(tmp_path / "r5")
     gt_only = tmp_path / "gt.mcap"
     with Recorder(gt_only, source={}) as r:
-        from recorder import GroundTruthPose
+        from slamreplay.recorder import GroundTruthPose
 
         r.write("/ground_truth/pose", GroundTruthPose(1, 0, 0, 0))
     assert_bad_input(*run(gt_only, "r6"), "has no /odom topic")
@@ -161,7 +161,7 @@ def test_inspect_recover_pipelines(rec: Path, tmp_path: Path, capsys: pytest.Cap
 def test_console_script_help_and_errors(tmp_path: Path) -> None:
     """The installed entry point: --help works; a bad file gives one line and exit 2 in a real process."""
     exe = Path(sys.executable).parent / "slamreplay"
-    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "api.cli"]
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "slamreplay.api.cli"]
     help_ = subprocess.run([*cmd, "run", "--help"], capture_output=True, text=True)
     assert help_.returncode == 0 and "--pipeline" in help_.stdout
     junk = tmp_path / "x.mcap"
@@ -220,7 +220,7 @@ def test_graph_optimize(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
 
 def test_failed_run_retry_and_nested_out(rec: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """The README's story: a run fails (missing topic), the retry into the same --out works; --out a/b/c is created."""
-    from recorder import GroundTruthPose
+    from slamreplay.recorder import GroundTruthPose
 
     gt_only = tmp_path / "gt.mcap"
     with Recorder(gt_only, source={}) as r:

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from api.demo import PIPELINES, run_demo
-from replay.pipeline import all_pipelines
+from slamreplay.api.demo import PIPELINES, run_demo
+from slamreplay.replay.pipeline import all_pipelines
 
 
 def test_every_demo_pipeline_exists() -> None:
@@ -30,8 +30,8 @@ def test_next_steps_work_as_printed(tmp_path: Path, monkeypatch: pytest.MonkeyPa
 
     from conftest import write_tiny_recording
 
-    from api.demo import next_steps
-    from replay.run import run_recording
+    from slamreplay.api.demo import next_steps
+    from slamreplay.replay.run import run_recording
 
     rec = write_tiny_recording(tmp_path / "tiny.mcap")
     ekf = run_recording(rec, "ekfslam", tmp_path / "runs" / "ekf", seed=1)

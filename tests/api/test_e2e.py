@@ -32,7 +32,7 @@ def free_port() -> int:
 def server(data_dir: Path, log: Path) -> Iterator[httpx.Client]:
     """Run `slamreplay serve` with 2 workers and a token; yield a client once /healthz answers; stop it with SIGTERM."""
     port = free_port()
-    cmd = [sys.executable, "-m", "api.cli", "serve", "--port", str(port), "--data-dir", str(data_dir),
+    cmd = [sys.executable, "-m", "slamreplay.api.cli", "serve", "--port", str(port), "--data-dir", str(data_dir),
            "--workers", "2", "--log-level", "warning"]
     env = {k: v for k, v in os.environ.items() if not k.startswith("SLAMREPLAY_")}
     env |= {"SLAMREPLAY_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}

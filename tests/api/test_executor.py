@@ -13,8 +13,8 @@ import pytest
 from conftest import write_tiny_recording
 from service_helpers import claimed, make_store
 
-from api.executor import LocalExecutor, Outcome, Task, describe_exit, run_task
-from api.store import Store
+from slamreplay.api.executor import LocalExecutor, Outcome, Task, describe_exit, run_task
+from slamreplay.api.store import Store
 
 
 @pytest.fixture(scope="module")

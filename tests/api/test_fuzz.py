@@ -15,9 +15,9 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore", UserWarning)  # StarletteDeprecationWarning: it asks for httpx2; httpx works
     from fastapi.testclient import TestClient
 
-from api.app import create_app
-from api.executor import Outcome, Task
-from api.settings import Settings
+from slamreplay.api.app import create_app
+from slamreplay.api.executor import Outcome, Task
+from slamreplay.api.settings import Settings
 
 schemathesis = pytest.importorskip("schemathesis")  # the `dev` extra has it; skip in a bare install
 TOKEN = "fuzz-token"

@@ -19,17 +19,17 @@ from conftest import write_tiny_recording  # noqa: E402
 from service_helpers import claimed, make_store, run_all, wait_for  # noqa: E402
 from standin_jobs import standin_job  # noqa: E402
 
-from api.executor import Outcome, Task, run_task  # noqa: E402
-from api.limits import JobLimits  # noqa: E402
-from api.ray_executor import RayExecutor  # noqa: E402
-from api.settings import Settings  # noqa: E402
-from api.store import Store  # noqa: E402
+from slamreplay.api.executor import Outcome, Task, run_task  # noqa: E402
+from slamreplay.api.limits import JobLimits  # noqa: E402
+from slamreplay.api.ray_executor import RayExecutor  # noqa: E402
+from slamreplay.api.settings import Settings  # noqa: E402
+from slamreplay.api.store import Store  # noqa: E402
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore", UserWarning)
     from fastapi.testclient import TestClient
 
-from api.app import create_app  # noqa: E402
+from slamreplay.api.app import create_app  # noqa: E402
 
 pytestmark = pytest.mark.ray
 MEMORY_MIB = 900  # a Ray worker holds about 270 MiB after importing the pipelines

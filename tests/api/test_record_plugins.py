@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from conftest import make_distribution
 
-from api.cli import main
-from recorder.errors import RecorderError
-from recorder.plugins import refresh
-from recorder.sources import get_importer, importer_plugins
-from replay.reader import RecordingReader
+from slamreplay.api.cli import main
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.plugins import refresh
+from slamreplay.recorder.sources import get_importer, importer_plugins
+from slamreplay.replay.reader import RecordingReader
 
 BUILTINS = {"images", "mrclam", "ros2", "sim-corridor", "sim-landmarks", "sim-seabed", "victoria-park"}
 
@@ -22,8 +22,8 @@ CSV_IMPORTER = '''
 import csv
 from pathlib import Path
 
-from recorder import OdometryPose, Recorder
-from recorder.errors import RecorderError
+from slamreplay.recorder import OdometryPose, Recorder
+from slamreplay.recorder.errors import RecorderError
 
 
 class CsvOdometry:

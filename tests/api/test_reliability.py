@@ -22,13 +22,13 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore", UserWarning)
     from fastapi.testclient import TestClient
 
-import api.recordings
-from api.app import create_app
-from api.errors import ApiError, is_disk_full
-from api.executor import Outcome, Task
-from api.settings import Settings
-from recorder import GroundTruthPose, Recorder
-from recorder.recover import recover
+import slamreplay.api.recordings as api_recordings
+from slamreplay.api.app import create_app
+from slamreplay.api.errors import ApiError, is_disk_full
+from slamreplay.api.executor import Outcome, Task
+from slamreplay.api.settings import Settings
+from slamreplay.recorder import GroundTruthPose, Recorder
+from slamreplay.recorder.recover import recover
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +75,7 @@ def test_upload_onto_a_full_disk_is_507_and_the_service_keeps_serving(
     other routes answer meanwhile, and the same upload succeeds once there is room."""
     client, data = served
     real_open = open
-    monkeypatch.setattr(api.recordings, "open", lambda p, mode="r": _FullDisk(real_open(p, mode), 4096),
+    monkeypatch.setattr(api_recordings, "open", lambda p, mode="r": _FullDisk(real_open(p, mode), 4096),
                         raising=False)
     body = recording.read_bytes()
     assert len(body) > 4096
@@ -147,7 +147,7 @@ def test_dropped_upload_leaves_nothing(tmp_path: Path, recording: Path) -> None:
 
     settings = Settings(data_dir=tmp_path, workers=1)
     settings.make_dirs()
-    service = api.recordings.RecordingService(settings, create_app(settings, InlineExecutor()).state.jobs.store)
+    service = api_recordings.RecordingService(settings, create_app(settings, InlineExecutor()).state.jobs.store)
     body = recording.read_bytes()
 
     async def cut() -> AsyncIterator[bytes]:
@@ -238,7 +238,7 @@ def test_real_full_disk_tmpfs(tmp_path: Path) -> None:
 
 def test_api_error_507_is_an_api_error() -> None:
     """The 507 error goes through the one error handler like every service error."""
-    from api.errors import disk_full_error
+    from slamreplay.api.errors import disk_full_error
 
     err = disk_full_error("doing x")
     assert isinstance(err, ApiError) and err.status == 507 and "while doing x" in err.detail

@@ -13,7 +13,7 @@ import pytest
 from conftest import REPO, write_tiny_recording
 from test_cli import assert_bad_input, run_cli
 
-from replay import suite_run
+from slamreplay.replay import suite_run
 
 
 @pytest.fixture(autouse=True)
@@ -82,7 +82,7 @@ def test_failed_cell_recorded_and_suite_goes_on(tmp_path: Path, capsys: pytest.C
 
 def test_topic_map_and_out_checks(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A recording's topic_map reaches its runs; --out must be a results directory or new."""
-    from recorder import OdometryPose, Recorder
+    from slamreplay.recorder import OdometryPose, Recorder
 
     with Recorder(tmp_path / "robot.mcap", source={"test": "renamed"}, seed=0) as rec:
         for k in range(30):

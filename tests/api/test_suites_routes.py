@@ -17,10 +17,10 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore", UserWarning)
     from fastapi.testclient import TestClient
 
-from api.app import create_app
-from api.cli import main
-from api.settings import Settings
-from api.web import COOKIE, rrd_key, session_value
+from slamreplay.api.app import create_app
+from slamreplay.api.cli import main
+from slamreplay.api.settings import Settings
+from slamreplay.api.web import COOKIE, rrd_key, session_value
 
 UNKNOWN = "0" * 32
 

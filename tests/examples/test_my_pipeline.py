@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from api.cli import main
-from recorder.plugins import refresh
+from slamreplay.api.cli import main
+from slamreplay.recorder.plugins import refresh
 
 REPO = Path(__file__).resolve().parents[2]
 EXAMPLE = REPO / "examples" / "my_pipeline"

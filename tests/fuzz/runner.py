@@ -67,7 +67,7 @@ def _fd2_captured() -> Iterator[io.StringIO]:
 def _call(argv: list[str], time_limit_s: int) -> tuple[str, int | None, str, str]:
     """(outcome, exit code, stdout, stderr) of ``slamreplay ARGV`` run in this process; stderr holds what
     Python printed and what C code wrote to file descriptor 2, as a user's terminal would show both."""
-    from api.cli import main
+    from slamreplay.api.cli import main
 
     out, err = io.StringIO(), io.StringIO()
     rc: int | None = None
@@ -92,8 +92,8 @@ def _call(argv: list[str], time_limit_s: int) -> tuple[str, int | None, str, str
 
 def _check_recovered(stdout: str, out: Path) -> str | None:
     """Why a recover that exited 0 did not tell the truth (None: it did)."""
-    from replay.inspect import inspect_recording
-    from replay.reader import RecordingReader
+    from slamreplay.replay.inspect import inspect_recording
+    from slamreplay.replay.reader import RecordingReader
 
     kept = re.search(r"recovered (\d+) messages", stdout)
     if kept is None:

@@ -8,8 +8,8 @@ from typing import TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from recorder.messages import Message, PlanarPose
-from replay.reader import RecordingReader
+from slamreplay.recorder.messages import Message, PlanarPose
+from slamreplay.replay.reader import RecordingReader
 
 M = TypeVar("M")
 

@@ -11,9 +11,9 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from mcap.records import Schema
 
-from recorder import codec
-from recorder.errors import CodecError
-from recorder.messages import (
+from slamreplay.recorder import codec
+from slamreplay.recorder.errors import CodecError
+from slamreplay.recorder.messages import (
     CameraCalibration,
     CameraImage,
     GroundTruthPose,
@@ -120,7 +120,7 @@ def test_decoder_reports_nan_and_garbage() -> None:
     msg = RangeBearingScan(1, [1.0], [0.0], [3])
     schema = Schema(id=1, name=codec.schema_name(msg), encoding="protobuf", data=codec.schema_data(msg))
     dec = codec.TopicDecoder("/landmarks/range_bearing", RangeBearingScan, schema, "protobuf")
-    from recorder.codec.schemas import RangeBearingScanProto
+    from slamreplay.recorder.codec.schemas import RangeBearingScanProto
 
     bad = RangeBearingScanProto(ranges=[float("nan")], bearings=[0.0], landmark_ids=[1]).SerializeToString()
     with pytest.raises(CodecError, match=r"/landmarks/range_bearing message at log_time 42 ns.*NaN"):
@@ -131,7 +131,7 @@ def test_decoder_reports_nan_and_garbage() -> None:
 
 def test_implausible_decoded_values_are_damage() -> None:
     """A pose a billion metres out, or a range beyond it, decodes to CodecError: damaged bytes, not a place."""
-    from recorder.codec import TopicDecoder
+    from slamreplay.recorder.codec import TopicDecoder
 
     pose = OdometryPose(5, 2e9, 0.0, 0.0)
     schema = Schema(id=1, name=codec.schema_name(pose), encoding="protobuf", data=codec.schema_data(pose))
@@ -151,7 +151,7 @@ def _schema(name: str, encoding: str, data: bytes) -> Schema:
 
 def test_damaged_schema_is_codec_error() -> None:
     """A FileDescriptorSet that is not protobuf, or whose files do not build, is a CodecError naming the topic."""
-    from recorder.codec import TopicDecoder
+    from slamreplay.recorder.codec import TopicDecoder
 
     pose = OdometryPose(5, 0.0, 0.0, 0.0)
     with pytest.raises(CodecError, match=r"topic /odom: its schema foxglove.PoseInFrame \(protobuf, 4 bytes\) is "

@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from api.cli import main
-from recorder.errors import RecorderError
-from recorder.importers.images import frame_key, import_images
-from replay.reader import RecordingReader
+from slamreplay.api.cli import main
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.importers.images import frame_key, import_images
+from slamreplay.replay.reader import RecordingReader
 
 
 def test_sorted_by_frame_counter(tmp_path: Path) -> None:

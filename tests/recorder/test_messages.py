@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recorder.messages import CameraCalibration, CameraImage, LandmarkMap, OdometryPose, RangeBearingScan
+from slamreplay.recorder.messages import CameraCalibration, CameraImage, LandmarkMap, OdometryPose, RangeBearingScan
 
 
 def test_pose_rejects_nan_and_bad_stamp() -> None:

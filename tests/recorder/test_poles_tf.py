@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from recorder.errors import RecorderError
-from recorder.importers.poles import PoleConfig, extract_poles
-from recorder.importers.tf_tree import TfTree
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.importers.poles import PoleConfig, extract_poles
+from slamreplay.recorder.importers.tf_tree import TfTree
 
 
 def _scan(poles: list[tuple[float, float, float]], walls: float | None = None, noise: float = 0.0,

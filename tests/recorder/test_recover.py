@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 from mcap.writer import CompressionType, Writer
 
-from recorder import GroundTruthPose, Recorder, RecorderError, codec
-from recorder.codec.mcap_io import MAGIC
-from recorder.errors import DamageError
-from recorder.recover import describe, recover
-from replay.inspect import inspect_recording
-from replay.reader import RecordingReader
+from slamreplay.recorder import GroundTruthPose, Recorder, RecorderError, codec
+from slamreplay.recorder.codec.mcap_io import MAGIC
+from slamreplay.recorder.errors import DamageError
+from slamreplay.recorder.recover import describe, recover
+from slamreplay.replay.inspect import inspect_recording
+from slamreplay.replay.reader import RecordingReader
 
 
 def big_recording(path: Path, n: int = 30000) -> Path:

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from ros2bag_fixtures import LASER_X_M, BagTruth, write_bag
 
-from api.cli import main
-from recorder.errors import RecorderError
-from recorder.importers.ros2bag import ImportSummary, import_ros2_bag, plan_bag, sensor_model
-from recorder.messages import (
+from slamreplay.api.cli import main
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.importers.ros2bag import ImportSummary, import_ros2_bag, plan_bag, sensor_model
+from slamreplay.recorder.messages import (
     CameraCalibration,
     CameraImage,
     GroundTruthPose,
@@ -21,8 +21,8 @@ from recorder.messages import (
     OdometryPose,
     RangeBearingScan,
 )
-from replay.reader import RecordingReader
-from replay.run import run_recording
+from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.run import run_recording
 
 STORAGES = ("sqlite3", "mcap")
 

@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recorder.errors import RecorderError
-from recorder.messages import CameraImage, GroundTruthPose, OdometryPose
-from recorder.sim.seabed import SeabedSimConfig, procedural_texture, simulate_seabed
-from replay.reader import RecordingReader
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.messages import CameraImage, GroundTruthPose, OdometryPose
+from slamreplay.recorder.sim.seabed import SeabedSimConfig, procedural_texture, simulate_seabed
+from slamreplay.replay.reader import RecordingReader
 
 SMALL = SeabedSimConfig(image_px=96, legs=2, leg_length_m=1.5, metres_per_pixel=0.01)
 

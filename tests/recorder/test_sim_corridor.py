@@ -14,9 +14,9 @@ import pytest
 from conftest import write_tiny_recording
 from readback import by_topic, poses, read_recording
 
-from api.cli import main
-from recorder.errors import RecorderError
-from recorder.messages import (
+from slamreplay.api.cli import main
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.messages import (
     TOPIC_CAMERA_CALIBRATION,
     TOPIC_CAMERA_IMAGE,
     TOPIC_GROUND_TRUTH_POSE,
@@ -25,7 +25,7 @@ from recorder.messages import (
     CameraImage,
     assert_msg_equal,
 )
-from recorder.sim.corridor import (
+from slamreplay.recorder.sim.corridor import (
     CorridorConfig,
     CorridorWorld,
     WheelOdometry,
@@ -34,9 +34,9 @@ from recorder.sim.corridor import (
     world_from_file,
     world_from_metadata,
 )
-from recorder.sim.corridor_plan import TOURS
-from recorder.sim.unicycle import arc_step, wrap_angle
-from replay.reader import RecordingReader
+from slamreplay.recorder.sim.corridor_plan import TOURS
+from slamreplay.recorder.sim.unicycle import arc_step, wrap_angle
+from slamreplay.replay.reader import RecordingReader
 
 SMALL = CorridorConfig(route="left", speed_mps=1.0, turn_rate_dps=60.0, camera_rate_hz=1.0, odom_rate_hz=10.0)
 NO_DRIFT = {"odom_wheel_ratio_error": 0.0, "odom_wheelbase_error": 0.0, "odom_scale_error": 0.0, "odom_sigma_m": 0.0,

@@ -15,7 +15,7 @@ from mcap.reader import make_reader
 from numpy.typing import NDArray
 from readback import by_topic, poses, read_recording
 
-from recorder.messages import (
+from slamreplay.recorder.messages import (
     TOPIC_GROUND_TRUTH_LANDMARKS,
     TOPIC_GROUND_TRUTH_POSE,
     TOPIC_ODOM,
@@ -25,8 +25,8 @@ from recorder.messages import (
     RangeBearingScan,
     assert_msg_equal,
 )
-from recorder.sim import LandmarkSimConfig, simulate_landmarks
-from recorder.sim.landmarks import EPOCH_NS, landmark_positions, simulate_motion
+from slamreplay.recorder.sim import LandmarkSimConfig, simulate_landmarks
+from slamreplay.recorder.sim.landmarks import EPOCH_NS, landmark_positions, simulate_motion
 
 NOISE_FREE: dict[str, Any] = {"range_sigma_m": 0.0, "bearing_sigma_deg": 0.0, "odom_speed_sigma_mps": 0.0,
                               "odom_turn_sigma_radps": 0.0}

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from api.cli import main
-from recorder.errors import RecorderError
-from recorder.importers.victoria_park import read_victoria_park, sensor_model, write_victoria_park
-from recorder.messages import GroundTruthPose, LandmarkMap, OdometryPose, RangeBearingScan
-from replay.reader import RecordingReader
+from slamreplay.api.cli import main
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.importers.victoria_park import read_victoria_park, sensor_model, write_victoria_park
+from slamreplay.recorder.messages import GroundTruthPose, LandmarkMap, OdometryPose, RangeBearingScan
+from slamreplay.replay.reader import RecordingReader
 
 REAL = Path(__file__).resolve().parents[3] / "shared" / "data" / "victoria-park-isam"
 COV = "0.0001 0 0 4e-06 0 4e-06"

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from recorder import GroundTruthPose, OdometryPose, Recorder, RecorderError
-from recorder.writer import METADATA_NAME
+from slamreplay.recorder import GroundTruthPose, OdometryPose, Recorder, RecorderError
+from slamreplay.recorder.writer import METADATA_NAME
 
 
 def test_clean_close_renames_partial(tmp_path: Path) -> None:
@@ -70,7 +70,7 @@ def test_write_errors(tmp_path: Path) -> None:
         with pytest.raises(RecorderError, match="carries OdometryPose"):
             rec.write("/odom", GroundTruthPose(1, 0, 0, 0))
         rec.write("/custom", OdometryPose(1, 0, 0, 0))
-        from recorder import RangeBearingScan
+        from slamreplay.recorder import RangeBearingScan
 
         with pytest.raises(RecorderError, match="has schema foxglove.PoseInFrame"):
             rec.write("/custom", RangeBearingScan(1, [], [], []))
@@ -103,8 +103,8 @@ class _FullDisk:
 def test_full_disk_is_a_clear_error_and_keeps_a_recoverable_partial(tmp_path: Path,
                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     """ENOSPC mid-recording: one RecorderError saying so, no FILE, and a FILE.partial that recover salvages."""
-    import recorder.writer as writer_module
-    from recorder.recover import recover
+    import slamreplay.recorder.writer as writer_module
+    from slamreplay.recorder.recover import recover
 
     real_open = open
     monkeypatch.setattr(writer_module, "open", lambda p, mode: _FullDisk(real_open(p, mode), 300_000), raising=False)
@@ -123,9 +123,9 @@ def test_full_disk_is_a_clear_error_and_keeps_a_recoverable_partial(tmp_path: Pa
 def test_partial_holds_header_and_metadata_before_any_message(tmp_path: Path) -> None:
     """While recording, before the first chunk is written, FILE.partial already holds the header and metadata:
     a process killed then leaves a truncated recording that says what it was, not an empty file."""
-    from recorder.errors import DamageError
-    from recorder.recover import recover
-    from replay.inspect import inspect_recording
+    from slamreplay.recorder.errors import DamageError
+    from slamreplay.recorder.recover import recover
+    from slamreplay.replay.inspect import inspect_recording
 
     rec = Recorder(tmp_path / "r.mcap", source={"simulator": "test"})
     rec.open()

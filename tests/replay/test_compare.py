@@ -7,9 +7,9 @@ from typing import Any
 
 import pytest
 
-from replay.compare import Side, compare, judge, paired_test
-from replay.errors import ReplayError
-from replay.report import write_reports
+from slamreplay.replay.compare import Side, compare, judge, paired_test
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.report import write_reports
 
 
 def rows(values: list[float], *, metric: str = "landmark_rmse_m", better: str = "lower", tol: float = 1e-9,
@@ -114,7 +114,7 @@ def test_reports(tmp_path: Path) -> None:
 
 def test_pair_rrds_are_written_once_and_linked(tmp_path: Path) -> None:
     """--rrd-dir: one file per succeeded A/B pair (same seeds), linked relative to each report."""
-    from replay.report import pair_file_links, write_pair_rrds
+    from slamreplay.replay.report import pair_file_links, write_pair_rrds
 
     a = rows(A)
     b = rows([0.075, 0.121, 0.089], code="b")

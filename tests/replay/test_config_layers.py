@@ -11,15 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recorder import Recorder
-from recorder.errors import RecorderError
-from recorder.importers.mrclam import measure_sensor_model
-from recorder.sensor_model import SensorModel
-from recorder.sim.landmarks import LandmarkSimConfig, sensor_model, simulate_landmarks
-from replay.errors import ReplayError
-from replay.pipeline import get_pipeline, recording_sensor_model, resolve_layers
-from replay.reader import RecordingReader
-from replay.run import run_recording
+from slamreplay.recorder import Recorder
+from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.importers.mrclam import measure_sensor_model
+from slamreplay.recorder.sensor_model import SensorModel
+from slamreplay.recorder.sim.landmarks import LandmarkSimConfig, sensor_model, simulate_landmarks
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.pipeline import get_pipeline, recording_sensor_model, resolve_layers
+from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.run import run_recording
 from tests.conftest import write_tiny_recording
 
 
@@ -34,7 +34,7 @@ def test_sensor_model_round_trip_and_validation(tmp_path: Path) -> None:
     model = SensorModel(range_sigma_m=0.1, bearing_sigma_rad=0.02, fx_px=500.0, width_px=640, source="mine")
     path = tmp_path / "r.mcap"
     with Recorder(path, source={"test": "model"}, sensor_model=model) as rec:
-        rec.write("/odom", __import__("recorder").OdometryPose(1, 0.0, 0.0, 0.0))
+        rec.write("/odom", __import__("slamreplay.recorder", fromlist=["OdometryPose"]).OdometryPose(1, 0.0, 0.0, 0.0))
     back = recording_sensor_model(RecordingReader(path).info)
     assert back == model and back.values() == {"range_sigma_m": 0.1, "bearing_sigma_rad": 0.02, "fx_px": 500.0,
                                                "width_px": 640}
@@ -61,8 +61,8 @@ def test_simulator_states_the_noise_it_drew(sim: Path) -> None:
     assert model.heading_sigma_per_sqrt_rad == 0.0 and model.outlier_rate == 0.0
     # Known answer: the MRCLAM importer's estimator, run on a long simulation, finds the stated figures.
     cfg = LandmarkSimConfig(duration_s=1200.0, landmarks=64)
-    from recorder.sim.landmarks import landmark_positions, odometry_readings, simulate_motion
-    from recorder.sim.unicycle import integrate
+    from slamreplay.recorder.sim.landmarks import landmark_positions, odometry_readings, simulate_motion
+    from slamreplay.recorder.sim.unicycle import integrate
 
     rng = np.random.default_rng(0).spawn(3)
     n = int(cfg.duration_s * cfg.odom_rate_hz)
@@ -126,7 +126,7 @@ def test_old_recordings_without_a_model_use_defaults(tmp_path: Path) -> None:
 
 def test_cli_shows_the_model_and_presets(sim: Path, tmp_path: Path) -> None:
     def cli(*args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run([sys.executable, "-m", "api.cli", *args], capture_output=True, text=True, check=False)
+        return subprocess.run([sys.executable, "-m", "slamreplay.api.cli", *args], capture_output=True, text=True, check=False)
 
     out = cli("inspect", str(sim))
     assert out.returncode == 0, out.stderr
@@ -142,7 +142,7 @@ def test_cli_shows_the_model_and_presets(sim: Path, tmp_path: Path) -> None:
 
 def test_a_setting_that_cannot_apply_is_an_error(tmp_path: Path) -> None:
     """association=known on scans without ids would map nothing: an error naming the fix, not an empty map."""
-    from recorder import OdometryPose, RangeBearingScan
+    from slamreplay.recorder import OdometryPose, RangeBearingScan
 
     path = tmp_path / "noids.mcap"
     with Recorder(path, source={"test": "no ids"}) as rec:

@@ -9,9 +9,9 @@ import pytest
 from conftest import write_tiny_recording
 from rerun.chunk import RrdReader
 
-from replay.diff import diff_runs, format_table, parse_tolerances, write_comparison_rrd
-from replay.errors import ReplayError
-from replay.run import run_recording
+from slamreplay.replay.diff import diff_runs, format_table, parse_tolerances, write_comparison_rrd
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.run import run_recording
 
 
 @pytest.fixture

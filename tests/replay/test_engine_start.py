@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recorder import GroundTruthPose, OdometryPose, Recorder
-from replay import engine
-from replay.engine import start_from_stream, start_pose
-from replay.errors import ReplayError
-from replay.reader import RecordingReader
+from slamreplay.recorder import GroundTruthPose, OdometryPose, Recorder
+from slamreplay.replay import engine
+from slamreplay.replay.engine import start_from_stream, start_pose
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.reader import RecordingReader
 
 TOPICS = ["/odom", "/ground_truth/pose"]
 

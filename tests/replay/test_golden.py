@@ -3,7 +3,7 @@
 The references live in tests/golden/ and are written only on purpose, never by the test itself:
 ``pytest tests/replay/test_golden.py --update-golden`` after an intended change, then review the
 diff of tests/golden/ like code. A metric matches its reference within the metric's own diff
-tolerance (``replay.diff.metric_tolerance``: 0.1 % relative for measured values, exact for
+tolerance (``slamreplay.replay.diff.metric_tolerance``: 0.1 % relative for measured values, exact for
 counts), so the same references hold on every supported Python, numpy and BLAS.
 """
 
@@ -17,12 +17,12 @@ from typing import Any
 import pytest
 from conftest import write_tiny_recording
 
-from replay.diff import metric_tolerance
-from replay.engine import replay
-from replay.metrics import format_metrics
-from replay.observer import MemoryObserver
-from replay.pipeline import get_pipeline, resolve_config
-from replay.reader import RecordingReader
+from slamreplay.replay.diff import metric_tolerance
+from slamreplay.replay.engine import replay
+from slamreplay.replay.metrics import format_metrics
+from slamreplay.replay.observer import MemoryObserver
+from slamreplay.replay.pipeline import get_pipeline, resolve_config
+from slamreplay.replay.reader import RecordingReader
 
 GOLDEN_DIR = Path(__file__).resolve().parents[1] / "golden"
 EVENTS = GOLDEN_DIR / "odometry_tiny.json"

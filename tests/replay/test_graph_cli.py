@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from algorithms.common.posegraph import PoseGraph, chi2
-from algorithms.common.se2 import between, compose
-from replay.diff import rerun_cli
-from replay.graph_cli import optimize_file
-from replay.graph_io import GraphFileError, read_graph, write_graph
+from slamreplay.algorithms.common.posegraph import PoseGraph, chi2
+from slamreplay.algorithms.common.se2 import between, compose
+from slamreplay.replay.diff import rerun_cli
+from slamreplay.replay.graph_cli import optimize_file
+from slamreplay.replay.graph_io import GraphFileError, read_graph, write_graph
 
 KEYS = {"vertices", "edges", "chi2_initial", "chi2_final", "edges_rejected", "iterations", "status", "time_s"}
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recorder.sim.seabed import SeabedSimConfig, simulate_seabed
-from replay.run import run_recording
+from slamreplay.recorder.sim.seabed import SeabedSimConfig, simulate_seabed
+from slamreplay.replay.run import run_recording
 
 CONFIG = SeabedSimConfig(legs=3, leg_length_m=3.0)
 
@@ -38,7 +38,7 @@ def test_map_improves_and_is_deterministic(survey: Path, tmp_path: Path) -> None
 
 def test_bad_config_is_rejected(survey: Path, tmp_path: Path) -> None:
     """A bad config value fails before anything is written."""
-    from replay.errors import ReplayError
+    from slamreplay.replay.errors import ReplayError
 
     with pytest.raises(ReplayError, match="min_pnr"):
         run_recording(survey, "ifmi", tmp_path / "c", config={"min_pnr": "-1"})
@@ -46,10 +46,10 @@ def test_bad_config_is_rejected(survey: Path, tmp_path: Path) -> None:
 
 def test_images_too_small_for_ifmi_are_a_clear_error(tmp_path: Path) -> None:
     """20x20 images: one line naming the size iFMI needs (it was an internal error)."""
-    from recorder import Recorder
-    from recorder.messages import CameraImage
-    from replay.errors import ReplayError
-    from replay.run import run_recording
+    from slamreplay.recorder import Recorder
+    from slamreplay.recorder.messages import CameraImage
+    from slamreplay.replay.errors import ReplayError
+    from slamreplay.replay.run import run_recording
 
     rng = np.random.default_rng(0)
     with Recorder(tmp_path / "tiny.mcap", source={"test": "tiny images"}) as rec:

@@ -7,9 +7,9 @@ from pathlib import Path
 import pytest
 from mcap.writer import Writer
 
-from api.cli import main
-from recorder import GroundTruthPose, Recorder, codec
-from replay.inspect import empty_contradiction, inspect_recording
+from slamreplay.api.cli import main
+from slamreplay.recorder import GroundTruthPose, Recorder, codec
+from slamreplay.replay.inspect import empty_contradiction, inspect_recording
 
 
 def test_recorder_closed_without_messages_is_empty(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

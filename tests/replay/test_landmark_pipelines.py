@@ -9,17 +9,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from algorithms.observe import Image, Points, Text
-from recorder import GroundTruthPose, OdometryPose, RangeBearingScan, Recorder
-from recorder.importers.mrclam import import_mrclam
-from recorder.sim import LandmarkSimConfig, simulate_landmarks
-from replay.diff import rerun_cli
-from replay.engine import replay
-from replay.errors import ReplayError
-from replay.observer import MemoryObserver
-from replay.pipeline import get_pipeline, resolve_config
-from replay.reader import RecordingReader
-from replay.run import run_recording
+from slamreplay.algorithms.observe import Image, Points, Text
+from slamreplay.recorder import GroundTruthPose, OdometryPose, RangeBearingScan, Recorder
+from slamreplay.recorder.importers.mrclam import import_mrclam
+from slamreplay.recorder.sim import LandmarkSimConfig, simulate_landmarks
+from slamreplay.replay.diff import rerun_cli
+from slamreplay.replay.engine import replay
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.observer import MemoryObserver
+from slamreplay.replay.pipeline import get_pipeline, resolve_config
+from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.run import run_recording
 
 
 @pytest.fixture(scope="module")
@@ -139,9 +139,9 @@ def test_mrclam_robot1(shared_data: Path, tmp_path: Path) -> None:
 
 def test_paper_preset_turns_every_extra_off() -> None:
     """dslam's "paper" preset: every key is a documented config key, and each changes what its note says."""
-    from algorithms.dslam import DSlam, ScanStatus
-    from algorithms.dslam.localization import PoseStatus
-    from replay.pipelines.dslam import DSlamPipeline
+    from slamreplay.algorithms.dslam import DSlam, ScanStatus
+    from slamreplay.algorithms.dslam.localization import PoseStatus
+    from slamreplay.replay.pipelines.dslam import DSlamPipeline
 
     cls = get_pipeline("dslam")
     assert cls is DSlamPipeline

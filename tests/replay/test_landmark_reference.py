@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from recorder.importers.victoria_park import VictoriaPark
-from replay.landmark_reference import measured_noise, victoria_park_reference
+from slamreplay.recorder.importers.victoria_park import VictoriaPark
+from slamreplay.replay.landmark_reference import measured_noise, victoria_park_reference
 
 
 def _world(seed: int) -> tuple[VictoriaPark, np.ndarray, np.ndarray]:

@@ -25,12 +25,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from api.cli import main as cli
-from recorder.messages import assert_msg_equal
-from replay.errors import ReplayError
-from replay.navigate import NavigateSummary, NavMap, load_nav_map, navigate, reference_path
-from replay.reader import RecordingReader
-from replay.run import run_recording
+from slamreplay.api.cli import main as cli
+from slamreplay.recorder.messages import assert_msg_equal
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.navigate import NavigateSummary, NavMap, load_nav_map, navigate, reference_path
+from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.run import run_recording
 from tests.conftest import REPO, write_tiny_recording
 
 pytestmark = pytest.mark.slow
@@ -41,7 +41,7 @@ SHORTCUT_CROSS_TRACK_M = 0.35  # the shortcut crosses the map's worst junction (
 @pytest.fixture(scope="module")
 def world(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """The mapping recording, its ``topometric`` run (the map) and a navigation world with more odometry drift."""
-    from recorder.sim.corridor import CorridorConfig, simulate_corridor
+    from slamreplay.recorder.sim.corridor import CorridorConfig, simulate_corridor
 
     d = tmp_path_factory.mktemp("nav")
     cfg = CorridorConfig(route="outer,left", camera_rate_hz=2.5, compression="png")
@@ -200,7 +200,7 @@ def test_navigation_is_deterministic(world: dict[str, Path], short: Path) -> Non
 
 def slamreplay(args: list[str], hash_seed: str, **env: str) -> subprocess.CompletedProcess[str]:
     """The CLI in a fresh interpreter with the given PYTHONHASHSEED."""
-    return subprocess.run([sys.executable, "-m", "api.cli", *args], cwd=REPO, capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "slamreplay.api.cli", *args], cwd=REPO, capture_output=True, text=True,
                           env={**os.environ, "PYTHONHASHSEED": hash_seed, **env}, timeout=300, check=False)
 
 

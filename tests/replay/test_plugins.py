@@ -10,15 +10,15 @@ from pathlib import Path
 import pytest
 from conftest import make_distribution, write_tiny_recording
 
-from api.cli import main
-from recorder.plugins import refresh
-from replay.errors import ReplayError
-from replay.pipeline import all_pipelines, get_pipeline, pipeline_plugins
+from slamreplay.api.cli import main
+from slamreplay.recorder.plugins import refresh
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.pipeline import all_pipelines, get_pipeline, pipeline_plugins
 
 BUILTINS = {"dslam", "ekfslam", "ifmi", "odometry", "topometric", "topometric-nav"}
 
 GOOD = '''
-from replay.pipelines.odometry import OdometryPipeline
+from slamreplay.replay.pipelines.odometry import OdometryPipeline
 
 
 class Good(OdometryPipeline):
@@ -138,9 +138,9 @@ def test_unknown_pipeline_names_the_known_ones() -> None:
 def test_uninstalled_source_tree_says_to_install(monkeypatch: pytest.MonkeyPatch,
                                                  capsys: pytest.CaptureFixture[str]) -> None:
     """With no entry points at all (a source tree that was never installed): one line saying to install it."""
-    import recorder.plugins
+    import slamreplay.recorder.plugins as plugins
 
-    monkeypatch.setattr(recorder.plugins.md, "entry_points", lambda group: [])
+    monkeypatch.setattr(plugins.md, "entry_points", lambda group: [])
     refresh()
     try:
         with pytest.raises(ReplayError, match=r"only seen once it is installed \(`pip install -e \.`"):

@@ -9,10 +9,10 @@ import pytest
 from mcap.writer import Writer
 from ros2_fixtures import write_ros2_bag
 
-from recorder import GroundTruthPose, OdometryPose, RangeBearingScan, Recorder, codec
-from recorder.messages import CameraImage
-from replay.errors import ReplayError
-from replay.reader import RecordingReader
+from slamreplay.recorder import GroundTruthPose, OdometryPose, RangeBearingScan, Recorder, codec
+from slamreplay.recorder.messages import CameraImage
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.reader import RecordingReader
 
 
 def test_order_is_log_time_then_file_position(tmp_path: Path) -> None:
@@ -124,7 +124,7 @@ def test_crc_mismatch_is_reported(tmp_path: Path) -> None:
 def test_nan_and_missing_topic(tmp_path: Path) -> None:
     """A NaN written by another tool, and asking for a topic the file lacks."""
     path = tmp_path / "nan.mcap"
-    from recorder.codec.schemas import RangeBearingScanProto
+    from slamreplay.recorder.codec.schemas import RangeBearingScanProto
 
     good = RangeBearingScan(1, [1.0], [0.0], [1])
     with open(path, "wb") as f:

@@ -8,8 +8,8 @@ from pathlib import Path
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from recorder import GroundTruthPose, OdometryPose, RangeBearingScan, Recorder, assert_msg_equal
-from replay.reader import RecordingReader
+from slamreplay.recorder import GroundTruthPose, OdometryPose, RangeBearingScan, Recorder, assert_msg_equal
+from slamreplay.replay.reader import RecordingReader
 
 coord = st.floats(-1e3, 1e3, allow_nan=False)
 message = st.one_of(

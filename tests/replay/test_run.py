@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 from conftest import write_tiny_recording
 
-from recorder import GroundTruthPose, OdometryPose, Recorder
-from replay.diff import rerun_cli
-from replay.engine import replay, start_pose
-from replay.errors import ReplayError
-from replay.observer import MemoryObserver
-from replay.pipeline import get_pipeline, resolve_config
-from replay.reader import RecordingReader
-from replay.run import run_recording
+from slamreplay.recorder import GroundTruthPose, OdometryPose, Recorder
+from slamreplay.replay.diff import rerun_cli
+from slamreplay.replay.engine import replay, start_pose
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.observer import MemoryObserver
+from slamreplay.replay.pipeline import get_pipeline, resolve_config
+from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.run import run_recording
 
 
 def test_dead_reckoning_known_answer(tmp_path: Path) -> None:
@@ -193,7 +193,7 @@ def test_full_disk_fails_the_run_cleanly(tiny_recording: Path, tmp_path: Path, m
     """ENOSPC while a run writes its files: a ReplayError saying so, and nothing left that looks finished."""
     import errno
 
-    import replay.run as run_module
+    import slamreplay.replay.run as run_module
 
     real = run_module.atomic_write
 

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from replay.errors import ReplayError
-from replay.suite import key_line, load_suite, parse_suite
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.suite import key_line, load_suite, parse_suite
 
 GOOD = """\
 seeds = [1, 2]                                # run seeds
@@ -50,7 +50,7 @@ def test_parse_and_expand(tmp_path: Path) -> None:
 
 
 def _a_dslam_float_key() -> str:
-    from replay.pipeline import config_schema, get_pipeline
+    from slamreplay.replay.pipeline import config_schema, get_pipeline
 
     return next(r["key"] for r in config_schema(get_pipeline("dslam").Config) if r["type"] == "float")
 

@@ -11,14 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recorder.sim.corridor import CorridorConfig, simulate_corridor
-from replay.errors import ReplayError
-from replay.run import run_recording
-from replay.topomap_io import load_map, save_map
+from slamreplay.recorder.sim.corridor import CorridorConfig, simulate_corridor
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.run import run_recording
+from slamreplay.replay.topomap_io import load_map, save_map
 
 CONFIG = CorridorConfig(route="left", laps=2, camera_rate_hz=2.0)
 REPO = Path(__file__).resolve().parents[2]
-RUN = "import sys; from replay.run import run_recording; run_recording(sys.argv[1], 'topometric', sys.argv[2], seed=0)"
+RUN = "import sys; from slamreplay.replay.run import run_recording; run_recording(sys.argv[1], 'topometric', sys.argv[2], seed=0)"
 
 
 @pytest.fixture(scope="module")
@@ -82,7 +82,7 @@ def test_map_file_round_trip(runs: tuple[Path, Path]) -> None:
 
 def test_map_holds_the_true_pose_of_each_location(corridor: Path, runs: tuple[Path, Path]) -> None:
     """truth_poses: the ground truth at each location's reference image, near the relaxed pose (ATE scale)."""
-    from replay.reader import RecordingReader
+    from slamreplay.replay.reader import RecordingReader
 
     topo = load_map(runs[0] / "map.npz")
     assert topo.truth_poses is not None and topo.truth_poses.shape == (topo.n_locations, 3)

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from replay.run import run_recording
-from replay.trajectory import read_tum, to_tum
+from slamreplay.replay.run import run_recording
+from slamreplay.replay.trajectory import read_tum, to_tum
 
 
 def test_tum_round_trip() -> None:

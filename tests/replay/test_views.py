@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
-from replay import views
-from replay.diff import write_comparison_rrd
-from replay.diff_view import _RunContent, first_divergence
-from replay.errors import ReplayError
-from replay.pipeline import get_pipeline
+from slamreplay.replay import views
+from slamreplay.replay.diff import write_comparison_rrd
+from slamreplay.replay.diff_view import _RunContent, first_divergence
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.pipeline import get_pipeline
 from tests.replay.view_runs import blueprint_views, matches, rrd_entities
 
 pytestmark = pytest.mark.slow

@@ -11,15 +11,15 @@ import numpy as np
 import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
-from replay.run import run_recording
+from slamreplay.replay.run import run_recording
 
 
 def make_runs(out: Path) -> dict[str, Path]:
     """One run directory per pipeline, on short seeded simulations (about a minute in all)."""
-    from recorder.sim.corridor import CorridorConfig, simulate_corridor
-    from recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
-    from recorder.sim.seabed import SeabedSimConfig, simulate_seabed
-    from replay.navigate import load_nav_map, navigate
+    from slamreplay.recorder.sim.corridor import CorridorConfig, simulate_corridor
+    from slamreplay.recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
+    from slamreplay.recorder.sim.seabed import SeabedSimConfig, simulate_seabed
+    from slamreplay.replay.navigate import load_nav_map, navigate
 
     out.mkdir(parents=True, exist_ok=True)
     runs: dict[str, Path] = {}
@@ -55,7 +55,7 @@ def rrd_entities(rrd: Path) -> dict[str, dict[str, Any]]:
 
 
 def blueprint_views(bp: rrb.Blueprint) -> list[tuple[str, str, list[str]]]:
-    """(tab name, view name, content patterns) of every view of a blueprint made by `replay.views`."""
+    """(tab name, view name, content patterns) of every view of a blueprint made by `slamreplay.replay.views`."""
     out: list[tuple[str, str, list[str]]] = []
     tabs = bp.root_container
     assert isinstance(tabs, rrb.Tabs), "a run's layout is a row of tabs"

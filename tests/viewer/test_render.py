@@ -10,12 +10,12 @@ import numpy as np
 import psutil
 import pytest
 
-from algorithms.observe import LineStrips
-from api.cli import main as cli
-from replay import views
-from replay.errors import ReplayError
-from replay.observer import RerunObserver
-from replay.snapshot import check_graphics, snapshot
+from slamreplay.algorithms.observe import LineStrips
+from slamreplay.api.cli import main as cli
+from slamreplay.replay import views
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.observer import RerunObserver
+from slamreplay.replay.snapshot import check_graphics, snapshot
 from tests.replay.view_runs import make_runs
 
 pytestmark = pytest.mark.viewer

@@ -15,14 +15,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from algorithms.common.motion import between1
-from algorithms.observe import CovarianceEllipses, Pose, Scalar
+from slamreplay.algorithms.common.motion import between1
+from slamreplay.algorithms.observe import CovarianceEllipses, Pose, Scalar
 from my_pipeline.filter import ConstantVelocityFilter, CvNoise, mean_velocity
-from recorder.messages import TOPIC_GROUND_TRUTH_POSE, TOPIC_ODOM, GroundTruthPose, OdometryPose
-from replay.metrics import position_errors, rmse
-from replay.pipeline import MetricSpec, Pipeline, ReplayContext
-from replay.reader import Envelope
-from replay.trajectory import TrajectoryLog
+from slamreplay.recorder.messages import TOPIC_GROUND_TRUTH_POSE, TOPIC_ODOM, GroundTruthPose, OdometryPose
+from slamreplay.replay.metrics import position_errors, rmse
+from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext
+from slamreplay.replay.reader import Envelope
+from slamreplay.replay.trajectory import TrajectoryLog
 
 
 def _help(text: str) -> dict[str, str]:
