@@ -9,65 +9,43 @@ interactive ``/docs`` page is then off, as a browser cannot send the token from 
 
 from __future__ import annotations
 
-import hmac
 import sqlite3
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from typing import Annotated, Any
+from typing import Annotated
 
 from fastapi import APIRouter, Depends, FastAPI, Path, Query, Request, Response
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.concurrency import run_in_threadpool
 
-from slamreplay.api.errors import ApiError, UnauthorizedError, disk_full_error, is_disk_full
+from slamreplay.api.deps import ERRORS, JobsDep, RecordingsDep, require_token
+from slamreplay.api.errors import ApiError, disk_full_error, is_disk_full
 from slamreplay.api.executor import Executor, LocalExecutor
 from slamreplay.api.jobs import JobService
-from slamreplay.api.models import JOB_ID, SHA256, DiffOut, ErrorOut, HealthOut, JobOut, JobSpec, JobStatusName, RecordingOut
+from slamreplay.api.models import (
+    JOB_ID,
+    SHA256,
+    DiffOut,
+    HealthOut,
+    JobOut,
+    JobSpec,
+    JobStatusName,
+    RecordingOut,
+)
 from slamreplay.api.monitoring import CONTENT_TYPE, prometheus_text
 from slamreplay.api.multipart import FILE_FIELD, form_file, is_form
 from slamreplay.api.recordings import RecordingService
-from slamreplay.api.settings import Settings, get_settings
+from slamreplay.api.settings import Settings
 from slamreplay.api.store import Store
+from slamreplay.api.web import install_web
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.version import version
 from slamreplay.replay.diff import diff_runs, parse_tolerances
 from slamreplay.replay.errors import ReplayError
 
-SettingsDep = Annotated[Settings, Depends(get_settings)]
 RecordingId = Annotated[str, Path(pattern=SHA256, description="sha256 of the recording")]
 JobId = Annotated[str, Path(pattern=JOB_ID, description="job id (32 hex digits)")]
 JobQuery = Annotated[str, Query(pattern=JOB_ID, description="job id (32 hex digits)")]
-# Errors are JSON on every route, file downloads included (FastAPI would document them with the route's media type).
-ERRORS: dict[int | str, dict[str, Any]] = {
-    code: {"model": ErrorOut, "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}}}
-    for code in (400, 401, 404, 409, 413, 415, 422, 507)}
-_bearer = HTTPBearer(auto_error=False, description="SLAMREPLAY_TOKEN, when the server has one")
-
-
-def get_jobs(request: Request) -> JobService:
-    jobs: JobService = request.app.state.jobs
-    return jobs
-
-
-def get_recordings(request: Request) -> RecordingService:
-    recordings: RecordingService = request.app.state.recordings
-    return recordings
-
-
-JobsDep = Annotated[JobService, Depends(get_jobs)]
-RecordingsDep = Annotated[RecordingService, Depends(get_recordings)]
-
-
-def require_token(settings: SettingsDep,
-                  credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
-    """401 unless the request carries the server's bearer token (when it has one)."""
-    if settings.token is None:
-        return
-    if credentials is None:
-        raise UnauthorizedError("this server needs a token: send the header `Authorization: Bearer <SLAMREPLAY_TOKEN>`")
-    if not hmac.compare_digest(credentials.credentials.encode(), settings.token.encode()):
-        raise UnauthorizedError("wrong bearer token")
 
 
 async def handle_error(request: Request, exc: Exception) -> JSONResponse:
@@ -274,8 +252,7 @@ def create_app(settings: Settings | None = None, executor: Executor | None = Non
         app.add_exception_handler(exc, handle_error)
     app.include_router(public)
     app.include_router(router)
-    from slamreplay.api.web import install_web  # suites, compare, the web page at / (api/suites_routes.py, api/web.py)
-    install_web(app)
+    install_web(app)  # suites, compare, the web page at / (api/suites_routes.py, api/web.py)
     if not docs:
         @app.get("/openapi.json", include_in_schema=False, dependencies=[Depends(require_token)])
         def openapi() -> JSONResponse:

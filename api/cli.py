@@ -10,13 +10,13 @@ import argparse
 import json
 import sys
 import traceback
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from slamreplay.api.graph_cli import add_graph_parser
 from slamreplay.api.hints import spell_commands, tool, view_hint
+from slamreplay.api.progress import progress_bar
 from slamreplay.api.suite_cli import add_suite_parsers
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.replay.errors import ReplayError
@@ -30,33 +30,6 @@ class CliError(Exception):
 
 def _eprint(*args: Any) -> None:
     print(*args, file=sys.stderr)
-
-
-@contextmanager
-def progress_bar(description: str, quiet: bool) -> Iterator[Callable[[int, int], None]]:
-    """A rich progress bar on stderr, yielding ``update(done, total)``; silent with ``--quiet``."""
-    if quiet or not sys.stderr.isatty():
-        yield lambda done, total: None
-        return
-    from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-               TextColumn("eta"), TimeRemainingColumn())
-    with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
-        task = bar.add_task(description, total=None)
-
-        def update(done: int, total: int) -> None:
-            bar.update(task, completed=done, total=max(total, done))
-
-        yield update
 
 
 def _parse_pairs(items: Sequence[str], what: str) -> dict[str, str]:
@@ -287,7 +260,8 @@ def cmd_navigate(args: argparse.Namespace) -> int:
 
 
 def cmd_diff(args: argparse.Namespace) -> int:
-    from slamreplay.replay.diff import diff_runs, format_table, parse_tolerances, write_comparison_rrd
+    from slamreplay.replay.diff import diff_runs, format_table, parse_tolerances
+    from slamreplay.replay.diff_view import write_comparison_rrd
 
     diff = diff_runs(args.run_a, args.run_b, parse_tolerances(args.tolerance))
     if args.rrd:

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from slamreplay.api.hints import has_display, tool, view_hint
+from slamreplay.api.progress import progress_bar
 from slamreplay.replay.run import RunResult, run_recording
 
 MARKER = ".slamreplay-demo"
@@ -35,7 +36,6 @@ NAV_GOAL_ALONG_M = 20.0  # the demo navigates to the first map node this far alo
 
 
 def _recordings(out: Path, data: Path | None, quiet: bool) -> list[Path]:
-    from slamreplay.api.cli import progress_bar
     from slamreplay.recorder.sim.corridor import CorridorConfig, simulate_corridor
     from slamreplay.recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
     from slamreplay.recorder.sim.seabed import SeabedSimConfig, simulate_seabed
@@ -78,7 +78,6 @@ def _navigation(out: Path, map_run: Path, world: Path, quiet: bool) -> Path:
     """Drive the sim-corridor world on the demo's map, NAV_GOAL_ALONG_M along the mapped route (paper section IV)."""
     import numpy as np
 
-    from slamreplay.api.cli import progress_bar
     from slamreplay.replay.navigate import load_nav_map, navigate
 
     poses = load_nav_map(map_run).graph.poses
@@ -93,7 +92,6 @@ def _navigation(out: Path, map_run: Path, world: Path, quiet: bool) -> Path:
 
 def run_demo(out: Path, data: Path | None, quiet: bool = False) -> int:
     """Record, replay, print a metrics table; returns the exit code."""
-    from slamreplay.api.cli import progress_bar
 
     if out.exists():
         if not (out / MARKER).exists():

@@ -9,7 +9,7 @@ from typing import Any
 
 def add_graph_parser(sub: Any) -> None:
     """Add the ``graph`` command group to the CLI's subparsers."""
-    from slamreplay.replay.graph_cli import INITS, ROBUST, SOLVERS
+    from slamreplay.replay.graph_io import INITS, ROBUST, SOLVERS
 
     graph = sub.add_parser("graph", help="pose-graph tools (g2o VERTEX_SE2/EDGE_SE2, TORO VERTEX2/EDGE2)")
     gsub = graph.add_subparsers(dest="graph_command", required=True, metavar="GRAPH_COMMAND")
@@ -32,8 +32,7 @@ def add_graph_parser(sub: Any) -> None:
 
 def cmd_graph_optimize(args: argparse.Namespace) -> int:
     from slamreplay.replay.errors import ReplayError
-    from slamreplay.replay.graph_cli import optimize_file
-    from slamreplay.replay.graph_io import GraphFileError
+    from slamreplay.replay.graph_io import GraphFileError, optimize_file
 
     try:
         summary = optimize_file(args.file, args.out, solver=args.solver, init=args.init, robust=args.robust,

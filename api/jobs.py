@@ -25,7 +25,7 @@ from slamreplay.api.errors import ConflictError, NotFoundError
 from slamreplay.api.executor import Executor, Outcome, Task
 from slamreplay.api.settings import Settings
 from slamreplay.api.store import JobRow, Store
-from slamreplay.replay.diff import write_comparison_rrd
+from slamreplay.replay.diff_view import write_comparison_rrd
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.pipeline import all_pipelines, get_pipeline, resolve_config
 

@@ -20,6 +20,8 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import unquote, urlparse
 
+from slamreplay.recorder.files import replacing
+
 LOCAL_SCHEMES = ("", "file")
 
 
@@ -78,9 +80,8 @@ def put_file(src: Path, url: str) -> None:
         if is_local(url):
             dst = local_path(url)
             dst.parent.mkdir(parents=True, exist_ok=True)
-            tmp = dst.with_name(f".{dst.name}.partial")
-            shutil.copyfile(src, tmp)
-            os.replace(tmp, dst)
+            with replacing(dst) as tmp:
+                shutil.copyfile(src, tmp)
             return
         fs, path = _fs(url)
         fs.put_file(str(src), path)
@@ -139,9 +140,8 @@ def get_dir(url: str, dst: Path) -> None:
     for name in list_files(url):
         out = dst.joinpath(*name.split("/"))
         out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(f".{out.name}.partial")
-        get_file(join(url, *name.split("/")), tmp)
-        os.replace(tmp, out)
+        with replacing(out) as tmp:
+            get_file(join(url, *name.split("/")), tmp)
 
 
 @contextmanager

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from slamreplay.api.executor import Outcome, Report, Task, run_task
+from slamreplay.api.progress import progress_bar
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.suite_run import CellJob
 
@@ -87,7 +88,6 @@ def executor_runner(kind: str, jobs: int) -> Any:
 def run_suite_at(suite_path: str, out: Path, rev: str | None, executor: str, jobs: int, quiet: bool,
                  repo: Path | None = None) -> list[dict[str, Any]]:
     """Run a suite with the running code (``rev`` None) or at revision ``rev``; the results rows."""
-    from slamreplay.api.cli import progress_bar
     from slamreplay.replay.revisions import find_repo, prepare_revision, run_cells
     from slamreplay.replay.suite import load_suite
     from slamreplay.replay.suite_run import cache_dir, code_version, run_suite
@@ -158,7 +158,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
         result.commits = commit_range(find_repo(), a.sha, b.sha)
     pair_links = None
     if args.rrd_dir is not None:
-        from slamreplay.replay.diff import write_comparison_rrd
+        from slamreplay.replay.diff_view import write_comparison_rrd
         from slamreplay.replay.report import pair_file_links, write_pair_rrds
         pair_links = pair_file_links(write_pair_rrds(result, Path(args.rrd_dir), write_comparison_rrd))
     write_reports(result, args.report, args.markdown, pair_links)

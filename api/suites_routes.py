@@ -26,7 +26,7 @@ from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.responses import HTMLResponse, JSONResponse
 from pydantic import BaseModel, Field
 
-from slamreplay.api.app import ERRORS, require_token
+from slamreplay.api.deps import ERRORS, require_token, viewer_href
 from slamreplay.api.errors import ApiError
 from slamreplay.api.models import JOB_ID
 from slamreplay.api.suites import SuiteCell, SuiteRow, SuiteService
@@ -139,7 +139,6 @@ def get_suite(suite_id: SuiteId, suites: SuitesDep) -> SuiteOut:
 
 def service_links(base_url: str, token: str | None) -> Links:
     """Report links into the web page: each run's job page, each A/B pair in the Rerun web viewer."""
-    from slamreplay.api.web import viewer_href
 
     def run(row: Any) -> str | None:
         job = row.get("job_id")

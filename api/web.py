@@ -19,7 +19,7 @@ import json
 import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
-from urllib.parse import quote, urlencode
+from urllib.parse import urlencode
 
 from fastapi import APIRouter, Depends, FastAPI, Query, Request
 from fastapi import Path as PathParam
@@ -27,7 +27,7 @@ from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Redirect
 from fastapi.templating import Jinja2Templates
 from starlette.concurrency import run_in_threadpool
 
-from slamreplay.api.app import JobsDep, RecordingsDep, SettingsDep, get_jobs
+from slamreplay.api.deps import JobsDep, RecordingsDep, SettingsDep, get_jobs, rrd_key, viewer_href
 from slamreplay.api.errors import ApiError, UnauthorizedError
 from slamreplay.api.models import JOB_ID
 from slamreplay.api.multipart import form_file, is_form
@@ -69,20 +69,6 @@ async def login_required(request: Request, exc: Exception) -> Response:
         return RedirectResponse("/login?" + urlencode({"next": request.url.path + (
             f"?{request.url.query}" if request.url.query else "")}), 303)
     return JSONResponse({"detail": "log in at /login with the server's token first"}, 401)
-
-
-def rrd_key(token: str | None, rrd_path: str) -> str:
-    """The key in a viewer's .rrd URL: a MAC of the path under the token (any key does without a token)."""
-    return hmac.new((token or "").encode(), rrd_path.encode(), hashlib.sha256).hexdigest()[:32]
-
-
-def viewer_href(base_url: str, token: str | None, rrd_path: str) -> str:
-    """The Rerun web viewer (served here) opening the .rrd at ``/ui/shared/KEY{rrd_path}`` of this server.
-
-    The viewer fetches the file itself, without the page's cookie, so the URL carries its own
-    key: it opens that one file and nothing else (a link to share, like the token's holder can)."""
-    url = f"{base_url.rstrip('/')}/ui/shared/{rrd_key(token, rrd_path)}{rrd_path}"
-    return "/viewer/?url=" + quote(url, safe="")
 
 
 def _fmt(v: Any) -> str:

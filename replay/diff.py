@@ -219,13 +219,6 @@ def rrd_content_equal(a: Path, b: Path) -> tuple[bool | None, str]:
     return False, last[:500]
 
 
-def write_comparison_rrd(a_dir: str | Path, b_dir: str | Path, out: str | Path, diff: RunDiff | None = None) -> None:
-    """One ``.rrd`` comparing run B with run A, both on the same axes (`slamreplay.replay.diff_view`)."""
-    from slamreplay.replay.diff_view import write_comparison_rrd as write
-
-    write(a_dir, b_dir, out, diff)
-
-
 def formatted(m: MetricDelta) -> tuple[str, str, str]:
     """A, B and B - A of a metric as a diff shows them ("-" where absent)."""
     fa = "-" if m.a is None else f"{m.a:.6g}"

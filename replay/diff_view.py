@@ -27,8 +27,9 @@ import rerun as rr
 import rerun.blueprint as rrb
 from rerun.chunk import Chunk, RrdReader
 
+from slamreplay.recorder.files import replacing
 from slamreplay.replay import views
-from slamreplay.replay.diff import RunDiff, formatted
+from slamreplay.replay.diff import RunDiff, diff_runs, formatted
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.observer import deterministic_batcher
 
@@ -153,7 +154,6 @@ def _blueprint(a: _RunContent, b: _RunContent, a_name: str, b_name: str) -> rrb.
 
 def write_comparison_rrd(a_dir: str | Path, b_dir: str | Path, out: str | Path, diff: RunDiff | None = None) -> None:
     """One ``.rrd`` comparing run B with run A (see the module docstring); temp file, then renamed."""
-    from slamreplay.replay.diff import diff_runs
 
     a_dir, b_dir, out = Path(a_dir), Path(b_dir), Path(out)
     if out.exists():
@@ -162,19 +162,15 @@ def write_comparison_rrd(a_dir: str | Path, b_dir: str | Path, out: str | Path, 
         if not (d / "run.rrd").is_file():
             raise ReplayError(f"{d} has no run.rrd")
     diff = diff if diff is not None else diff_runs(a_dir, b_dir, compare_rrd=False)
-    tmp = out.with_name(f".{out.name}.partial")
     rec = rr.RecordingStream(views.app_id("diff"), recording_id=f"diff-{a_dir.name}-{b_dir.name}",
                              send_properties=False, batcher_config=deterministic_batcher())
     rec.set_log_time_enabled(False)
-    rec.save(tmp)
-    try:
-        a = _copy(rec, a_dir, "A")
-        b = _copy(rec, b_dir, "B")
-        rec.log("diff/summary", rr.TextDocument(_markdown(diff, a, b), media_type="text/markdown"), static=True)
-        rec.send_blueprint(_blueprint(a, b, a_dir.name, b_dir.name), make_active=True, make_default=True)
-    except BaseException:
-        rec.disconnect()
-        tmp.unlink(missing_ok=True)
-        raise
-    rec.disconnect()
-    tmp.replace(out)
+    with replacing(out) as tmp:
+        rec.save(tmp)
+        try:
+            a = _copy(rec, a_dir, "A")
+            b = _copy(rec, b_dir, "B")
+            rec.log("diff/summary", rr.TextDocument(_markdown(diff, a, b), media_type="text/markdown"), static=True)
+            rec.send_blueprint(_blueprint(a, b, a_dir.name, b_dir.name), make_active=True, make_default=True)
+        finally:
+            rec.disconnect()

@@ -14,7 +14,13 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from slamreplay.algorithms.common.landmark_graph import LandmarkGraph, LsqConfig, LsqResult, noise_scales, solve_incremental
+from slamreplay.algorithms.common.landmark_graph import (
+    LandmarkGraph,
+    LsqConfig,
+    LsqResult,
+    noise_scales,
+    solve_incremental,
+)
 from slamreplay.recorder.importers.victoria_park import VictoriaPark, gtsam_noise
 
 

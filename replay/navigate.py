@@ -41,8 +41,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamreplay.algorithms.common import se2
-from slamreplay.algorithms.topometric import NavigationConfig, TopoMap
-from slamreplay.algorithms.topometric.guidance import GuidanceConfig, NavGraph, Navigator, NavUpdate, RouteConfig, VisualMatch
+from slamreplay.algorithms.topometric import Localizer, NavigationConfig, TopoMap
+from slamreplay.algorithms.topometric.guidance import (
+    GuidanceConfig,
+    NavGraph,
+    Navigator,
+    NavUpdate,
+    RouteConfig,
+    VisualMatch,
+)
 from slamreplay.algorithms.topometric.pathfollow import FollowerConfig, discretize, distance_to_polyline
 from slamreplay.recorder.codec.protobuf import yaw_from_quaternion
 from slamreplay.recorder.errors import RecorderError
@@ -68,10 +75,10 @@ SOURCE = "navigate"
 EPOCH_NS = 1_000_000_000
 MAP_FILE = "map.npz"
 # What a navigation replay runs: the localizer, the guidance and the map reader (not the mapper).
-NAV_CODE = ("slamreplay.algorithms.common.se2", "slamreplay.algorithms.topometric.bayes", "slamreplay.algorithms.topometric.config",
-            "slamreplay.algorithms.topometric.features", "slamreplay.algorithms.topometric.guidance", "slamreplay.algorithms.topometric.navigation",
-            "slamreplay.algorithms.topometric.pathfollow", "slamreplay.algorithms.topometric.topomap", "slamreplay.algorithms.topometric.validation",
-            "slamreplay.algorithms.topometric.vocabulary", "slamreplay.replay.navigate", "slamreplay.replay.topomap_io")
+NAV_CODE = ("slamreplay.algorithms.common.se2",
+            *(f"slamreplay.algorithms.topometric.{m}" for m in ("bayes", "config", "features", "guidance", "navigation",
+                                                               "pathfollow", "topomap", "validation", "vocabulary")),
+            "slamreplay.replay.navigate", "slamreplay.replay.topomap_io")
 Progress = Callable[[int, int], None]
 
 
@@ -167,14 +174,15 @@ def load_nav_map(path: str | Path) -> NavMap:
 
 
 class MapLocalizer:
-    """The map's navigation-mode loop-closure detector as an :data:`~slamreplay.algorithms.topometric.guidance.ImageLocalizer`.
+    """The map's navigation-mode loop-closure detector as an
+    :data:`~slamreplay.algorithms.topometric.guidance.ImageLocalizer`.
 
     Translation threshold off (section IV-A); the x-translation is rescaled from the detector's
     working resolution to the pixels of the image handed in.
     """
 
     def __init__(self, topomap: TopoMap, start: int, rng: np.random.Generator) -> None:
-        self.detector = topomap.localizer(NavigationConfig(), start_location=start)
+        self.detector = Localizer(topomap, NavigationConfig(), start)
         self.rng = rng
         self.width = topomap.config.features.width
 

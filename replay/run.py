@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.files import atomic_write
 from slamreplay.recorder.version import git_commit, version
 from slamreplay.replay import metrics as metrics_mod
 from slamreplay.replay.engine import Progress, replay, text_logger
@@ -60,19 +61,6 @@ class RunResult:
     metrics: dict[str, float]
     manifest: dict[str, Any]
 
-
-def atomic_write(path: Path, data: str | bytes) -> None:
-    """Write ``path`` so that it appears complete or not at all."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data.encode() if isinstance(data, str) else data)
-            f.flush()
-            os.fsync(f.fileno())
-    except OSError:
-        tmp.unlink(missing_ok=True)  # a full disk leaves no stray temporary file
-        raise
-    os.replace(tmp, path)
 
 
 def sha256_file(path: Path) -> str:

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from slamreplay.recorder.files import atomic_write
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.views import STEP
 
@@ -225,16 +226,12 @@ def snapshot(source: Path, out_dir: Path, *, size: tuple[int, int] = (1600, 900)
             viewer.set_blueprint(bp, "recording")
             viewer.set_time(timeline, sequence=cursor, play_state="paused")
             path = out_dir / f"{i + 1:02d}-{_slug(name)}.png"
-            tmp = path.with_name(f".{path.name}.partial")
-            tmp.write_bytes(_settled_screenshot(viewer))
-            os.replace(tmp, path)
+            atomic_write(path, _settled_screenshot(viewer))
             shots.append(Shot(name, path))
             if per_view and key is not None:
                 for j, (view_id, view_name) in enumerate(_views_in(bp, child)):
                     vpath = out_dir / f"{i + 1:02d}-{_slug(name)}--{j + 1:02d}-{_slug(view_name)}.png"
-                    vtmp = vpath.with_name(f".{vpath.name}.partial")
-                    vtmp.write_bytes(bytes(viewer.take_screenshot(view_id)))
-                    os.replace(vtmp, vpath)
+                    atomic_write(vpath, bytes(viewer.take_screenshot(view_id)))
                     shots.append(Shot(f"{name} / {view_name}", vpath))
     return shots
 

@@ -1,7 +1,8 @@
 """The ``victoria-park`` importer (``slamreplay record victoria-park``): in replay/ because the reference it
 records, the batch least-squares optimum of the measurements, is computed by ``slamreplay.replay.landmark_reference``.
 
-It implements ``slamreplay.recorder.sources.Importer`` and is found through the entry-point group ``slamreplay.importers``.
+It implements ``slamreplay.recorder.sources.Importer`` and is found through the entry-point group
+``slamreplay.importers``.
 """
 
 from __future__ import annotations

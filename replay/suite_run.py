@@ -31,19 +31,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from slamreplay.recorder.files import atomic_write, replacing
 from slamreplay.recorder.version import SOURCE_ROOT, git_commit, version
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.run import atomic_write, sha256_file
+from slamreplay.replay.run import sha256_file
 from slamreplay.replay.suite import Cell, RecordingSpec, Suite, canonical, sim_config_class, sim_kwargs
 
 RESULTS_FORMAT = 1
-SIM_MODULES = {
-    "sim-landmarks": ("slamreplay.recorder.sim.landmarks", "slamreplay.recorder.sim.unicycle", "slamreplay.recorder.sim.wheel_odometry"),
-    "sim-seabed": ("slamreplay.recorder.sim.seabed", "slamreplay.recorder.sim.unicycle"),
-    "sim-corridor": ("slamreplay.recorder.sim.corridor", "slamreplay.recorder.sim.corridor_plan", "slamreplay.recorder.sim.corridor_render",
-                     "slamreplay.recorder.sim.unicycle", "slamreplay.recorder.sim.wheel_odometry"),
-}
-WRITER_MODULES = ("slamreplay.recorder.writer", "slamreplay.recorder.messages", "slamreplay.recorder.codec.protobuf", "slamreplay.recorder.codec.schemas")
+SIM_MODULES = {sim: tuple(f"slamreplay.recorder.sim.{m}" for m in modules) for sim, modules in {
+    "sim-landmarks": ("landmarks", "unicycle", "wheel_odometry"),
+    "sim-seabed": ("seabed", "unicycle"),
+    "sim-corridor": ("corridor", "corridor_config", "corridor_plan", "corridor_render", "unicycle", "wheel_odometry"),
+}.items()}
+WRITER_MODULES = tuple(f"slamreplay.recorder.{m}" for m in ("writer", "messages", "codec.protobuf", "codec.schemas"))
 
 
 def cache_dir() -> Path:
@@ -131,13 +131,10 @@ def url_recording(spec: RecordingSpec, cache: Path) -> Path:
     if out.is_file():
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
-    part = out.with_name(f".{out.name}.{os.getpid()}.partial")
     try:
-        with fs.open(path, "rb") as src, open(part, "wb") as dst:
+        with replacing(out) as part, fs.open(path, "rb") as src, open(part, "wb") as dst:
             shutil.copyfileobj(src, dst, 1 << 20)
-        os.replace(part, out)
     except OSError as err:
-        part.unlink(missing_ok=True)
         raise ReplayError(f"recording {spec.name}: cannot fetch {url}: {err}") from None
     return out
 

@@ -91,3 +91,39 @@ def test_only_api_uses_web_stack_and_only_replay_uses_rerun() -> None:
     for package in ("recorder", "algorithms"):
         for path in files(package):
             assert "rerun" not in imports_of(path), f"{path.relative_to(REPO)} imports rerun"
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(REPO).with_suffix("").parts
+    return "slamreplay." + ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def test_no_import_circles() -> None:
+    """No two modules import each other, directly or round a longer loop (imports inside functions and under
+    TYPE_CHECKING count too: a loop hidden there is still one). ``from pkg import name`` counts as an import of
+    ``pkg.name`` when that is a module, else of ``pkg``; a package's ``__init__`` re-exporting its own modules
+    is not a loop."""
+    paths = {_module_name(p): p for package in PACKAGES for p in files(package)}
+    edges: dict[str, set[str]] = {m: set() for m in paths}
+    for mod, path in paths.items():
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                targets = [f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in paths else node.module
+                           for a in node.names]
+            else:
+                continue
+            edges[mod] |= {t for t in targets if t in paths and t != mod and not mod.startswith(t + ".")}
+    loops = []
+    for start in sorted(edges):  # a loop through ``start`` is a path from one of its imports back to it
+        seen, stack = set(), [(n, [start, n]) for n in sorted(edges[start])]
+        while stack:
+            node, trail = stack.pop()
+            if node == start:
+                loops.append(" -> ".join(trail))
+                break
+            if node not in seen:
+                seen.add(node)
+                stack += [(n, [*trail, n]) for n in sorted(edges[node])]
+    assert not loops, loops

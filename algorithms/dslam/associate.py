@@ -18,7 +18,7 @@ References
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -32,12 +32,33 @@ from slamreplay.algorithms.common.association import (
     match,
     outliers,
 )
-
-if TYPE_CHECKING:
-    from slamreplay.algorithms.dslam.filter import DSlam
+from slamreplay.algorithms.dslam.covariance import CovarianceCache
+from slamreplay.algorithms.dslam.recovery import Recovery
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
+
+
+class _Margins(Protocol):
+    @property
+    def vicinity_margin_m(self) -> float: ...
+
+
+class FilterState(Protocol):
+    """What association reads of the filter (:class:`~slamreplay.algorithms.dslam.filter.DSlam` is one): the
+    robot's pose and covariance, the map's estimates and marginals, and the features near a point. A protocol,
+    so that this module does not import the filter that owns an ``Associator``."""
+
+    pose: F64
+    pose_cov: F64
+    max_range: float
+    recovery: Recovery
+    covariance: CovarianceCache
+
+    @property
+    def config(self) -> _Margins: ...
+
+    def within(self, position: F64, radius: float) -> list[int]: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,7 +97,7 @@ class Associator:
         """The landmark id of observation ``j`` of the current scan (known ids), else -1."""
         return int(self._ids[j]) if self._ids is not None else -1
 
-    def associate(self, slam: DSlam, r: F64, b: F64, ids: I64 | None, r_old: F64) -> Association:
+    def associate(self, slam: FilterState, r: F64, b: F64, ids: I64 | None, r_old: F64) -> Association:
         """Match the scan's observations with mapped features (predicted robot pose)."""
         m = len(r)
         self._ids = ids
@@ -109,7 +130,7 @@ class Associator:
             far = np.ones(m, dtype=bool)
         return Association(features, tuple(np.flatnonzero(far).tolist()))
 
-    def _reject_outliers(self, slam: DSlam, r: F64, b: F64, features: I64, r_old: F64) -> None:
+    def _reject_outliers(self, slam: FilterState, r: F64, b: F64, features: I64, r_old: F64) -> None:
         """Known ids: drop observations of mapped features that fail the outlier gate (``features`` in place)."""
         obs = np.flatnonzero(features >= 0)
         if not len(obs) or not np.isfinite(self.params.outlier_gate):
@@ -122,7 +143,7 @@ class Associator:
         features[obs[bad]] = -1
         self.rejected += int(bad.sum())
 
-    def check_unmapped(self, slam: DSlam, r: F64, b: F64, new: list[int], r_old: F64) -> list[int]:
+    def check_unmapped(self, slam: FilterState, r: F64, b: F64, new: list[int], r_old: F64) -> list[int]:
         """Known ids with the outlier gate on: the readings of unmapped ids that agree with their earlier readings.
 
         The tentative list of section 3.1, for known ids: every reading of an id that is not
@@ -153,7 +174,7 @@ class Associator:
             kept.append(j)
         return kept
 
-    def confirm(self, slam: DSlam, r: F64, b: F64, assoc: Association, r_old: F64
+    def confirm(self, slam: FilterState, r: F64, b: F64, assoc: Association, r_old: F64
                 ) -> tuple[list[int], I64]:
         """The observations to map as new features now, and the tentative entry of each observation.
 

@@ -13,7 +13,13 @@ from slamreplay.algorithms.topometric.features import FeatureConfig, FeatureExtr
 from slamreplay.algorithms.topometric.mapper import Candidate, MapperStep, Relaxation, StepStatus, TopoMetricMapper
 from slamreplay.algorithms.topometric.navigation import Localization, Localizer, LocalizerStep, NavigationConfig
 from slamreplay.algorithms.topometric.topomap import TopoMap
-from slamreplay.algorithms.topometric.validation import Motion2D, Validation, ValidationConfig, ValidationStatus, validate
+from slamreplay.algorithms.topometric.validation import (
+           Motion2D,
+           Validation,
+           ValidationConfig,
+           ValidationStatus,
+           validate,
+)
 from slamreplay.algorithms.topometric.vocabulary import Vocabulary, VocabularyConfig
 
 __all__ = ["Candidate", "FeatureConfig", "FeatureExtractor", "Features", "FilterConfig", "FilterStep",

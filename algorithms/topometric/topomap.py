@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,9 +24,6 @@ from numpy.typing import NDArray
 from slamreplay.algorithms.topometric.config import MapperConfig
 from slamreplay.algorithms.topometric.features import DESCRIPTOR_BYTES, Features
 from slamreplay.algorithms.topometric.vocabulary import Vocabulary
-
-if TYPE_CHECKING:
-    from slamreplay.algorithms.topometric.navigation import Localizer, NavigationConfig
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -148,9 +145,3 @@ class TopoMap:
         for k in range(self.n_locations):
             voc.add_location(*self.histogram(k))
         return voc
-
-    def localizer(self, config: NavigationConfig | None = None, start_location: int | None = None) -> Localizer:
-        """A navigation-mode detector on this map (see :class:`slamreplay.algorithms.topometric.navigation.Localizer`)."""
-        from slamreplay.algorithms.topometric.navigation import Localizer, NavigationConfig
-
-        return Localizer(self, config or NavigationConfig(), start_location)

@@ -15,7 +15,7 @@ import itertools
 import json
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Final
+from typing import Any, Final
 
 import cv2
 import numpy as np
@@ -23,10 +23,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.importers.images import SUFFIXES as IMAGE_SUFFIXES
+from slamreplay.recorder.sim.corridor_config import CorridorConfig
 from slamreplay.recorder.sim.corridor_plan import floor_plan, route_waypoints
-
-if TYPE_CHECKING:
-    from slamreplay.recorder.sim.corridor import CorridorConfig
 
 BUILTIN_TEXTURES: Final = Path(__file__).parent / "textures"
 TEX_W, TEX_H = 192, 256  # every texture is resized to this (width, height)
@@ -160,8 +158,6 @@ class CorridorWorld:
     @classmethod
     def from_json(cls, text: str) -> CorridorWorld:
         """The world named by :meth:`to_json`'s output."""
-        from slamreplay.recorder.sim.corridor import CorridorConfig
-
         spec = json.loads(text)
         return cls.from_config(CorridorConfig.from_dict(spec.get("config", {})), int(spec["seed"]))
 

@@ -17,13 +17,11 @@ References
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-if TYPE_CHECKING:
-    from slamreplay.recorder.sim.corridor import CorridorConfig
+from slamreplay.recorder.sim.corridor_config import CorridorConfig
 
 F64 = NDArray[np.float64]
 

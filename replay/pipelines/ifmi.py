@@ -39,7 +39,12 @@ from slamreplay.algorithms.common import se2
 from slamreplay.algorithms.common.posegraph import OptimizerConfig, PoseGraph, chi2, optimize
 from slamreplay.algorithms.common.posegraph_analysis import marginal_covariances
 from slamreplay.algorithms.ifmi import IfmiConfig, Prepared, Registration, Status, prepare, register_prepared
-from slamreplay.algorithms.ifmi.mapping import edge_from_registration, flatten_illumination, render_mosaic, solve_log_scales
+from slamreplay.algorithms.ifmi.mapping import (
+    edge_from_registration,
+    flatten_illumination,
+    render_mosaic,
+    solve_log_scales,
+)
 from slamreplay.algorithms.ifmi.plan import MIN_SIZE
 from slamreplay.algorithms.observe import CovarianceEllipses, Image, LineStrips, Points, Scalar, Segments, State, Text
 from slamreplay.recorder.messages import TOPIC_CAMERA_IMAGE, TOPIC_GROUND_TRUTH_POSE, CameraImage, GroundTruthPose

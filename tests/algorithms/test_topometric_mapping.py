@@ -12,8 +12,10 @@ import pytest
 
 from slamreplay.algorithms.topometric import (
     FilterConfig,
+    Localizer,
     LocationFilter,
     MapperConfig,
+    NavigationConfig,
     StepStatus,
     TopoMetricMapper,
 )
@@ -118,7 +120,7 @@ def test_localizer_finds_map_node_without_learning() -> None:
     """Navigation mode: a shifted view of place 7 matches node 7 (translation off); nothing is added."""
     m, _ = run_mapper(route_images()[:12])
     topo = m.topomap()
-    loc = topo.localizer(start_location=6)
+    loc = Localizer(topo, NavigationConfig(), 6)
     words = loc.vocabulary.n_words
     a = cv2.getRotationMatrix2D((159.5, 119.5), 0.0, 1.0)
     a[:, 2] += (55.0, 0.0)

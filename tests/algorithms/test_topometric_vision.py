@@ -10,7 +10,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from slamreplay.algorithms.topometric import FeatureExtractor, Features, ValidationConfig, ValidationStatus, Vocabulary, validate
+from slamreplay.algorithms.topometric import (
+    FeatureExtractor,
+    Features,
+    ValidationConfig,
+    ValidationStatus,
+    Vocabulary,
+    validate,
+)
 from slamreplay.algorithms.topometric.validation import estimate_motion
 
 CENTRE = (159.5, 119.5)

@@ -19,8 +19,9 @@ with warnings.catch_warnings():
 
 from slamreplay.api.app import create_app
 from slamreplay.api.cli import main
+from slamreplay.api.deps import rrd_key
 from slamreplay.api.settings import Settings
-from slamreplay.api.web import COOKIE, rrd_key, session_value
+from slamreplay.api.web import COOKIE, session_value
 
 UNKNOWN = "0" * 32
 

@@ -74,7 +74,7 @@ def _limit_address_space() -> None:
 def test_length_field_is_not_trusted_for_an_allocation() -> None:
     """Under the issue's 3 GB address-space limit, a 3.75 GB record length gives a clean report, not MemoryError."""
     path = CASES_DIR / "summary-record-length.mcap"
-    proc = subprocess.run([sys.executable, "-c", "import sys; from slamreplay.api.cli import main; sys.exit(main(sys.argv[1:]))",
+    proc = subprocess.run([sys.executable, "-m", "slamreplay.api.cli",
                            "inspect", str(path)], capture_output=True, text=True, timeout=120,
                           preexec_fn=_limit_address_space, cwd=Path(__file__).resolve().parents[2])
     assert proc.returncode == 1, proc.stderr

@@ -126,7 +126,8 @@ def test_old_recordings_without_a_model_use_defaults(tmp_path: Path) -> None:
 
 def test_cli_shows_the_model_and_presets(sim: Path, tmp_path: Path) -> None:
     def cli(*args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run([sys.executable, "-m", "slamreplay.api.cli", *args], capture_output=True, text=True, check=False)
+        return subprocess.run([sys.executable, "-m", "slamreplay.api.cli", *args], capture_output=True, text=True,
+                              check=False)
 
     out = cli("inspect", str(sim))
     assert out.returncode == 0, out.stderr

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from slamreplay.algorithms.topometric import Localizer, NavigationConfig
 from slamreplay.recorder.sim.corridor import CorridorConfig, simulate_corridor
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.run import run_recording
@@ -18,7 +19,8 @@ from slamreplay.replay.topomap_io import load_map, save_map
 
 CONFIG = CorridorConfig(route="left", laps=2, camera_rate_hz=2.0)
 REPO = Path(__file__).resolve().parents[2]
-RUN = "import sys; from slamreplay.replay.run import run_recording; run_recording(sys.argv[1], 'topometric', sys.argv[2], seed=0)"
+RUN = ("import sys; from slamreplay.replay.run import run_recording; "
+       "run_recording(sys.argv[1], 'topometric', sys.argv[2], seed=0)")
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +77,7 @@ def test_map_file_round_trip(runs: tuple[Path, Path]) -> None:
     for name in ("poses", "edge_i", "edge_j", "descriptors", "histogram_words", "words"):
         np.testing.assert_array_equal(getattr(topo, name), getattr(again, name))
     assert again.config == topo.config
-    assert topo.localizer(start_location=0).vocabulary.n_words == len(topo.words)
+    assert Localizer(topo, NavigationConfig(), 0).vocabulary.n_words == len(topo.words)
     assert topo.truth_poses is not None and again.truth_poses is not None
     np.testing.assert_array_equal(topo.truth_poses, again.truth_poses)
 

@@ -10,8 +10,7 @@ import pytest
 from rerun.chunk import RrdReader
 
 from slamreplay.replay import views
-from slamreplay.replay.diff import write_comparison_rrd
-from slamreplay.replay.diff_view import _RunContent, first_divergence
+from slamreplay.replay.diff_view import _RunContent, first_divergence, write_comparison_rrd
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.pipeline import get_pipeline
 from tests.replay.view_runs import blueprint_views, matches, rrd_entities

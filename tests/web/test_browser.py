@@ -43,7 +43,8 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     port = _free_port()
     env = {**os.environ, "SLAMREPLAY_TOKEN": TOKEN}
     log = open(data.parent / "serve.log", "w")  # noqa: SIM115 (closed below)
-    proc = subprocess.Popen([sys.executable, "-m", "slamreplay.api.cli", "serve", "--port", str(port), "--data-dir", str(data),
+    proc = subprocess.Popen([sys.executable, "-m", "slamreplay.api.cli", "serve", "--port", str(port),
+                             "--data-dir", str(data),
                              "--workers", "1"], env=env, stdout=log, stderr=subprocess.STDOUT)
     base = f"http://127.0.0.1:{port}"
     try:

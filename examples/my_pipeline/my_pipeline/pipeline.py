@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from my_pipeline.filter import ConstantVelocityFilter, CvNoise, mean_velocity
 from slamreplay.algorithms.common.motion import between1
 from slamreplay.algorithms.observe import CovarianceEllipses, Pose, Scalar
-from my_pipeline.filter import ConstantVelocityFilter, CvNoise, mean_velocity
 from slamreplay.recorder.messages import TOPIC_GROUND_TRUTH_POSE, TOPIC_ODOM, GroundTruthPose, OdometryPose
 from slamreplay.replay.metrics import position_errors, rmse
 from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext
