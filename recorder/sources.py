@@ -10,13 +10,12 @@ heavy modules it needs are imported only when it records.
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import typing
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.options import add_dataclass_options, dataclass_from_options
 from slamreplay.recorder.plugins import Plugin, discover
 
 IMPORTER_GROUP = "slamreplay.importers"
@@ -83,28 +82,6 @@ def get_importer(name: str) -> Importer:
 
 # ---------------------------------------------------------------------------------------
 # Helpers for importers whose options are a config dataclass
-
-
-def add_dataclass_options(parser: argparse.ArgumentParser, config_cls: type, prefix: str = "cfg_") -> None:
-    """One ``--field-name`` option per field of a config dataclass, its help from the field's metadata."""
-    hints = typing.get_type_hints(config_cls)
-    for f in dataclasses.fields(config_cls):
-        tp = hints[f.name]
-        args = typing.get_args(tp)
-        base = next((a for a in args if a is not type(None)), tp) if args else tp
-        default = f.default if f.default is not dataclasses.MISSING else None
-        kind = base if base in (int, float, str) else str
-        parser.add_argument(f"--{f.name.replace('_', '-')}", dest=f"{prefix}{f.name}", type=kind, default=None,
-                            metavar=kind.__name__.upper(), help=f"{f.metadata.get('help', '')} (default: {default})")
-
-
-def dataclass_from_options(options: Mapping[str, Any], config_cls: type, prefix: str = "cfg_") -> Any:
-    """The config dataclass from the options given (others keep their defaults); RecorderError when invalid."""
-    values = {k[len(prefix):]: v for k, v in options.items() if k.startswith(prefix) and v is not None}
-    try:
-        return config_cls(**values)
-    except (TypeError, ValueError) as err:
-        raise RecorderError(f"invalid simulator option: {err}") from err
 
 
 def _out_and_seed(parser: argparse.ArgumentParser) -> None:
@@ -238,10 +215,6 @@ class Mrclam:
                 f"sightings and {s.unknown_barcodes_dropped} unknown barcodes dropped)")
 
 
-def _flag(text: str) -> bool:
-    return text.lower() in ("1", "true", "yes")
-
-
 class Ros2Bag:
     name = "ros2"
     help = "import a ROS 2 bag (sqlite3 or MCAP storage)"
@@ -265,21 +238,14 @@ class Ros2Bag:
                                  "(e.g. map)")
         parser.add_argument("--typestore", choices=("humble", "jazzy"), default="humble",
                             help="message definitions for bags that store none (default: humble)")
-        for f in dataclasses.fields(PoleConfig):
-            kind = int if f.type in ("int", int) else (_flag if f.type in ("bool", bool) else float)
-            parser.add_argument(f"--pole-{f.name.replace('_', '-')}", dest=f"pole_{f.name}", default=None, type=kind,
-                                help=f"pole extractor (recorder/importers/poles.py): {f.name} (default: {f.default})")
+        add_dataclass_options(parser, PoleConfig, prefix="pole_", option_prefix="pole-",
+                              help_prefix="pole extractor (recorder/importers/poles.py): ")
 
     def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str:
         from slamreplay.recorder.importers.poles import PoleConfig
         from slamreplay.recorder.importers.ros2bag import import_ros2_bag
 
-        values = {f.name: options[f"pole_{f.name}"] for f in dataclasses.fields(PoleConfig)
-                  if options.get(f"pole_{f.name}") is not None}
-        try:
-            poles = PoleConfig(**values)
-        except ValueError as err:
-            raise RecorderError(str(err)) from err
+        poles = dataclass_from_options(options, PoleConfig, prefix="pole_", what="pole extractor option")
         s = import_ros2_bag(Path(options["bag"]), Path(options["out"]), topic_map=_pairs(options["topic_map"]),
                             base_frame=options["base_frame"], odom_frame=options["odom_frame"],
                             ground_truth_frame=options["ground_truth_frame"], typestore=options["typestore"],

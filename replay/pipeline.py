@@ -22,6 +22,7 @@ import rerun.blueprint as rrb
 
 from slamreplay.algorithms.observe import Observation
 from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.options import parse_value, type_name
 from slamreplay.recorder.plugins import Plugin, discover, missing_builtins_hint
 from slamreplay.recorder.sensor_model import SensorModel
 from slamreplay.recorder.writer import METADATA_NAME
@@ -232,45 +233,17 @@ def config_schema(config_cls: type) -> list[dict[str, Any]]:
     rows = []
     for f in dataclasses.fields(config_cls):
         default = f.default if f.default is not dataclasses.MISSING else None
-        rows.append({"key": f.name, "type": _type_name(hints[f.name]), "default": default,
+        rows.append({"key": f.name, "type": type_name(hints[f.name]), "default": default,
                      "help": f.metadata.get("help", "")})
     return rows
 
 
-def _type_name(tp: Any) -> str:
-    if typing.get_origin(tp) is Literal:
-        return "|".join(str(a) for a in typing.get_args(tp))
-    return getattr(tp, "__name__", str(tp))
-
-
 def _parse(key: str, tp: Any, value: Any) -> Any:
-    """Convert a CLI string or JSON value to the field's type."""
-    origin = typing.get_origin(tp)
-    if origin is Literal:
-        allowed = typing.get_args(tp)
-        if value not in allowed:
-            raise ReplayError(f"config key {key!r} must be one of {', '.join(map(str, allowed))}, got {value!r}")
-        return value
+    """Convert a CLI string or JSON value to the field's type (:func:`slamreplay.recorder.options.parse_value`)."""
     try:
-        if tp is bool:
-            if isinstance(value, bool):
-                return value
-            if str(value).lower() in ("1", "true", "yes", "on"):
-                return True
-            if str(value).lower() in ("0", "false", "no", "off"):
-                return False
-            raise ValueError(value)
-        if tp is int:
-            if isinstance(value, float) and not value.is_integer():
-                raise ValueError(value)
-            return int(value)
-        if tp is float:
-            return float(value)
-        if tp is str:
-            return str(value)
-    except (TypeError, ValueError):
-        raise ReplayError(f"config key {key!r} must be a {_type_name(tp)}, got {value!r}") from None
-    raise ReplayError(f"config key {key!r} has an unsupported type {tp!r}")
+        return parse_value(tp, value)
+    except ValueError as err:
+        raise ReplayError(f"config key {key!r} {err}") from None
 
 
 def parse_assignments(items: list[str]) -> dict[str, str]:

@@ -37,6 +37,7 @@ if sys.version_info >= (3, 11):
 else:  # Python 3.10: the same parser, as the tomli package
     import tomli as tomllib
 
+from slamreplay.recorder.options import typed_fields
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.pipeline import get_pipeline, resolve_config
 
@@ -213,9 +214,9 @@ def sim_config_class(sim: str) -> type:
 
 
 def sim_kwargs(sim: str, args: Mapping[str, Any]) -> dict[str, Any]:
-    """CLI option names (``duration-s``) -> config field names (``duration_s``)."""
-    del sim
-    return {k.replace("-", "_"): v for k, v in args.items()}
+    """CLI option names (``duration-s``) -> config field names (``duration_s``), each value converted to its
+    field's type as ``slamreplay record`` converts it (``slamreplay.recorder.options``); ValueError if one is not."""
+    return typed_fields(sim_config_class(sim), {k.replace("-", "_"): v for k, v in args.items()})
 
 
 def _recording_by_id(chk: _Checker, name: str, doc: dict[str, Any], ids: Callable[[str], Path]) -> RecordingSpec:

@@ -127,3 +127,19 @@ def test_no_import_circles() -> None:
                 seen.add(node)
                 stack += [(n, [*trail, n]) for n in sorted(edges[node])]
     assert not loops, loops
+
+
+def test_the_two_wrap_angles_agree() -> None:
+    """recorder and algorithms may not share code, so each has a wrap_angle: the same values, [-pi, pi), on
+    ordinary angles, multiples of pi and the values just below -pi where a bare modulo gives +pi."""
+    import numpy as np
+
+    from slamreplay.algorithms.common.se2 import wrap_angle as algorithms_wrap
+    from slamreplay.recorder.sim.unicycle import wrap_angle as recorder_wrap
+
+    rng = np.random.default_rng(0)
+    edge = -np.pi - np.array([0.0, 1e-17, 1e-16, 4e-16, 1e-15])
+    theta = np.concatenate([rng.uniform(-50, 50, 10_000), np.arange(-9, 10) * np.pi, edge, -edge])
+    a, r = algorithms_wrap(theta), recorder_wrap(theta)
+    assert np.array_equal(a, r)
+    assert np.all((r >= -np.pi) & (r < np.pi))

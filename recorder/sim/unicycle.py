@@ -11,9 +11,15 @@ F64 = NDArray[np.float64]
 
 
 def wrap_angle(theta: ArrayLike) -> F64:
-    """Wrap angles to [-pi, pi)."""
+    """Wrap angles to [-pi, pi).
+
+    The same function as ``slamreplay.algorithms.common.se2.wrap_angle``, written twice on purpose: recorder and
+    algorithms never import each other (docs/design.md, Layers); tests/test_layers.py checks that the two agree.
+    """
     t = np.asarray(theta, dtype=np.float64)
-    return (t + np.pi) % (2.0 * np.pi) - np.pi
+    w = (t + np.pi) % (2.0 * np.pi) - np.pi
+    # just below -pi, the modulo rounds up to 2 pi and gives +pi: fold it back into the half-open range
+    return np.where(w >= np.pi, w - 2.0 * np.pi, w)
 
 
 def arc_step(yaw_rad: ArrayLike, speed_mps: ArrayLike, turn_radps: ArrayLike, dt_s: ArrayLike) -> F64:
