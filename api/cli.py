@@ -90,7 +90,7 @@ def _add_record_parsers(rsub: Any, quiet: argparse.ArgumentParser) -> None:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    from slamreplay.recorder.importers.ros2bag import is_ros2_bag, iter_plan_lines, plan_bag
+    from slamreplay.recorder.importers.ros2bag import is_ros2_bag, iter_plan_lines
     from slamreplay.replay.inspect import inspect_recording
 
     path = Path(args.file)
@@ -98,7 +98,19 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         return _inspect_bag(args)  # sqlite3 storage: only rosbags reads it
 
     report = inspect_recording(args.file, _parse_pairs(args.topic_map, "--topic-map"))
+    bag = is_ros2_bag(path) or any(t["encoding"] == "cdr" for t in report.get("topics", []))
+    if not bag and (given := _bag_options_given(args)):
+        raise CliError(f"{', '.join(given)} apply to ROS 2 bags, and {path.name} is a slamreplay recording: drop "
+                       f"{'them' if len(given) > 1 else 'it'}")
+    plan: Any = None
+    if bag:  # an MCAP-storage ROS 2 bag: also what `record ros2` would make of it
+        try:
+            plan = _plan(args)
+        except RecorderError as err:
+            plan = err
     if args.json:
+        if bag:
+            report["ros2_import"] = plan.as_dict() if not isinstance(plan, RecorderError) else {"error": str(plan)}
         print(json.dumps(report, indent=2, sort_keys=True))
     else:
         print(f"{report['path']}  ({report['size_bytes']:,} bytes)")
@@ -126,20 +138,34 @@ def cmd_inspect(args: argparse.Namespace) -> int:
                 print(f"{whose} ({model['source'] or 'source not stated'}); pipelines use it where you set nothing:")
                 for line in model["lines"]:
                     print(f"  {line}")
-        if is_ros2_bag(path) or any(t["encoding"] == "cdr" for t in report["topics"]):
-            try:
-                print("\n`slamreplay record ros2` would import it as:\n" + "\n".join(
-                    iter_plan_lines(plan_bag(path, _parse_pairs(args.topic_map, "--topic-map")))))
-            except RecorderError as err:
-                print(f"\n`slamreplay record ros2` cannot import it: {err}")
+    if isinstance(plan, RecorderError) and not args.json:
+        print(f"\n`slamreplay record ros2` cannot import it: {plan}")
+    elif plan is not None and not args.json:
+        print("\n`slamreplay record ros2` would import it as:\n" + "\n".join(iter_plan_lines(plan)))
     return EXIT_OK if report["health"] == "ok" else EXIT_CHECK_FAILED
+
+
+BAG_OPTION_DEFAULTS = {"base_frame": "base_link", "odom_frame": "odom", "ground_truth_frame": None,
+                       "typestore": "humble"}
+
+
+def _bag_options_given(args: argparse.Namespace) -> list[str]:
+    """The ROS 2 bag options of ``inspect`` set to something else than their defaults."""
+    return [f"--{k.replace('_', '-')}" for k, v in BAG_OPTION_DEFAULTS.items() if getattr(args, k) != v]
+
+
+def _plan(args: argparse.Namespace) -> Any:
+    from slamreplay.recorder.importers.ros2bag import plan_bag
+
+    return plan_bag(Path(args.file), _parse_pairs(args.topic_map, "--topic-map"), base_frame=args.base_frame,
+                    odom_frame=args.odom_frame, ground_truth_frame=args.ground_truth_frame, typestore=args.typestore)
 
 
 def _inspect_bag(args: argparse.Namespace) -> int:
     """A ROS 2 bag (folder or .db3): each topic, its type and what `record ros2` makes of it."""
-    from slamreplay.recorder.importers.ros2bag import iter_plan_lines, plan_bag
+    from slamreplay.recorder.importers.ros2bag import iter_plan_lines
 
-    plan = plan_bag(Path(args.file), _parse_pairs(args.topic_map, "--topic-map"))
+    plan = _plan(args)
     if args.json:
         print(json.dumps(plan.as_dict(), indent=2, sort_keys=True))
     else:
@@ -343,6 +369,14 @@ def build_parser() -> argparse.ArgumentParser:
     ins.add_argument("--json", action="store_true", help="machine-readable output")
     ins.add_argument("--topic-map", action="append", default=[], metavar="FILE_TOPIC=TOPIC",
                      help="read FILE_TOPIC as a slamreplay topic (repeatable)")
+    bag = ins.add_argument_group("ROS 2 bags", "what `record ros2` would make of the bag with these options: the tf "
+                                 "frames it would compose, each checked against the bag's tf tree")
+    bag.add_argument("--base-frame", default="base_link", help="the robot's tf frame (default: base_link)")
+    bag.add_argument("--odom-frame", default="odom", help="tf frame of odometry (default: odom)")
+    bag.add_argument("--ground-truth-frame", default=None, metavar="FRAME",
+                     help="the frame ground truth would be taken in (e.g. map)")
+    bag.add_argument("--typestore", choices=("humble", "jazzy"), default="humble",
+                     help="message definitions for bags that store none (default: humble)")
     ins.set_defaults(func=cmd_inspect)
 
     rcv = sub.add_parser("recover", help="salvage a truncated or damaged recording into a valid one")

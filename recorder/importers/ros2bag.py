@@ -24,6 +24,7 @@ written in stamp order, so the whole bag is held in memory while importing.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Callable, Iterator, Mapping
@@ -97,10 +98,15 @@ class BagPlan:
     topics: tuple[TopicPlan, ...]
     tf_odometry: bool  # /odom comes from the tf tree
     tf_ground_truth: bool  # /ground_truth/pose comes from the tf tree
+    # (parent, child) of every transform seen (plan_bag reads /tf_static and the start of /tf), and what each
+    # frame option finds there: {"--base-frame": "base_link: found", ...}; empty when the bag has no tf
+    tf_edges: tuple[tuple[str, str], ...] = ()
+    frame_checks: dict[str, str] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         return {"path": str(self.path), "storage": self.storage, "tf_odometry": self.tf_odometry,
                 "tf_ground_truth": self.tf_ground_truth,
+                "tf_edges": [list(e) for e in self.tf_edges], "frame_checks": dict(self.frame_checks),
                 "topics": [{"topic": t.topic, "type": t.msgtype, "messages": t.messages, "maps_to": t.maps_to,
                             "note": t.note} for t in self.topics]}
 
@@ -192,9 +198,41 @@ def plan_bag(path: str | Path, topic_map: Mapping[str, str] | None = None, *, ba
     """Map each topic of the bag onto a logical topic, or say why it is ignored (the bag stays unread)."""
     bag = _open(Path(path), typestore)
     try:
-        return _plan(bag, Path(path), dict(topic_map or {}), ground_truth_frame)
+        plan = _plan(bag, Path(path), dict(topic_map or {}), ground_truth_frame)
+        edges = _tf_edges(bag)
     finally:
         bag.reader.close()
+    if not edges:
+        return plan
+    frames = {f for e in edges for f in e}
+    wanted = {"--base-frame": base_frame} if plan.tf_odometry or plan.tf_ground_truth else {}
+    if plan.tf_odometry:
+        wanted["--odom-frame"] = odom_frame
+    if ground_truth_frame is not None:
+        wanted["--ground-truth-frame"] = ground_truth_frame
+    checks = {option: f"{frame}: " + ("found" if frame in frames else f"not in the tf tree read (frames: "
+                                      f"{', '.join(sorted(frames))}): pass {option} with one of them")
+              for option, frame in wanted.items()}
+    return dataclasses.replace(plan, tf_edges=tuple(sorted(edges)), frame_checks=checks)
+
+
+TF_SAMPLE = 2000  # /tf messages plan_bag reads for the frame names (all of /tf_static)
+
+
+def _tf_edges(bag: _Bag) -> set[tuple[str, str]]:
+    """(parent, child) of the transforms in /tf_static and the first TF_SAMPLE messages of /tf."""
+    edges: set[tuple[str, str]] = set()
+    for topic in TF_TOPICS:
+        conns = [c for c in bag.reader.connections if c.topic == topic and c.msgtype == TF_TYPE]
+        for n, (conn, _, raw) in enumerate(bag.reader.messages(connections=conns)):
+            if topic == "/tf" and n >= TF_SAMPLE:
+                break
+            try:
+                msg = bag.reader.deserialize(raw, conn.msgtype)
+            except Exception:  # noqa: BLE001  # a damaged message: the import names it; the plan reads on
+                continue
+            edges |= {(t.header.frame_id.lstrip("/"), t.child_frame_id.lstrip("/")) for t in msg.transforms}
+    return edges
 
 
 def _plan(bag: _Bag, path: Path, topic_map: dict[str, str], ground_truth_frame: str | None) -> BagPlan:
@@ -404,3 +442,7 @@ def iter_plan_lines(plan: BagPlan) -> Iterator[str]:
     for t in plan.topics:
         target = t.maps_to or "ignored"
         yield f"{t.topic:<28} {t.msgtype:<44} {t.messages:>9}  {target} ({t.note})"
+    if plan.tf_edges:
+        yield "tf: " + ", ".join(f"{parent} -> {child}" for parent, child in plan.tf_edges)
+    for option, check in plan.frame_checks.items():
+        yield f"{option} {check}"

@@ -203,3 +203,28 @@ def test_missing_bag(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None
     """A path that does not exist: one line, exit 2."""
     _one_line_exit_2(["record", "ros2", str(tmp_path / "nope"), "--out", str(tmp_path / "r.mcap")], capsys,
                      "does not exist")
+
+
+def test_inspect_bag_checks_the_frames_record_would_compose(imported: tuple[str, Path, Path, BagTruth, ImportSummary],
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """`inspect BAG` lists the tf tree and checks each frame option against it, as `record ros2` would use them."""
+    _, bag, _, _, _ = imported
+    assert main(["inspect", str(bag), "--ground-truth-frame", "map"]) == 0
+    out = capsys.readouterr().out
+    assert "map -> odom" in out and "odom -> base_link" in out and "base_link -> laser" in out
+    assert "--ground-truth-frame map: found" in out and "--base-frame base_link: found" in out
+    assert main(["inspect", str(bag), "--ground-truth-frame", "world", "--base-frame", "chassis", "--json"]) == 0
+    doc = __import__("json").loads(capsys.readouterr().out)
+    plan = doc.get("ros2_import", doc)  # an MCAP-storage bag is also inspected as MCAP: the plan is a part
+    assert ["map", "odom"] in plan["tf_edges"]
+    assert plan["frame_checks"]["--ground-truth-frame"].startswith("world: not in the tf tree read (frames: "
+                                                                     "base_link, laser, map, odom)")
+    assert plan["frame_checks"]["--base-frame"].startswith("chassis: not in the tf tree")
+
+
+def test_inspect_recording_refuses_bag_options(imported: tuple[str, Path, Path, BagTruth, ImportSummary],
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """A frame option given for a slamreplay recording cannot apply: one line, exit 2 (not silently ignored)."""
+    _, _, rec, _, _ = imported
+    _one_line_exit_2(["inspect", str(rec), "--base-frame", "chassis"], capsys,
+                     "--base-frame apply to ROS 2 bags, and rec.mcap is a slamreplay recording")
