@@ -34,6 +34,7 @@ from slamreplay.api.models import (
 )
 from slamreplay.api.monitoring import CONTENT_TYPE, prometheus_text
 from slamreplay.api.multipart import FILE_FIELD, form_file, is_form
+from slamreplay.api.record_routes import install_record_routes
 from slamreplay.api.recordings import RecordingService
 from slamreplay.api.settings import Settings
 from slamreplay.api.store import Store
@@ -252,6 +253,7 @@ def create_app(settings: Settings | None = None, executor: Executor | None = Non
         app.add_exception_handler(exc, handle_error)
     app.include_router(public)
     app.include_router(router)
+    install_record_routes(app)  # POST /recordings/record/NAME per importer the server may run
     install_web(app)  # suites, compare, the web page at / (api/suites_routes.py, api/web.py)
     if not docs:
         @app.get("/openapi.json", include_in_schema=False, dependencies=[Depends(require_token)])

@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import shutil
 import time
 import uuid
 from collections.abc import AsyncIterator
@@ -93,7 +94,10 @@ class RecordingService:
                 *self.settings.recordings_dir.glob(".recover-*.mcap")]
         for p in left:
             p.unlink(missing_ok=True)
-        return sorted(p.name for p in left)
+        made = [p for p in self.settings.recordings_dir.glob(".record-*") if p.is_dir()]  # record routes' folders
+        for p in made:
+            shutil.rmtree(p, ignore_errors=True)
+        return sorted(p.name for p in [*left, *made])
 
     def path(self, recording_id: str) -> Path:
         return self.settings.recordings_dir / f"{recording_id}.mcap"
@@ -150,6 +154,14 @@ class RecordingService:
                     raise disk_full_error(f"storing the upload {label} ({size:,} bytes received)") from err
                 raise
             return await run_in_threadpool(self._accept, tmp, digest.hexdigest(), size, label, recover_damaged)
+        finally:
+            tmp.unlink(missing_ok=True)
+
+    def accept_local(self, tmp: Path, sha: str, label: str) -> Stored:
+        """Store a file made on the server (``POST /recordings/record/NAME``) as an upload is stored; ``tmp`` is
+        moved into the store or removed."""
+        try:
+            return self._accept(tmp, sha, tmp.stat().st_size, clean_filename(label), False)
         finally:
             tmp.unlink(missing_ok=True)
 

@@ -37,6 +37,10 @@ class Importer(Protocol):
       (argument dest -> value), calling ``progress(done, total)`` now and then and ``log(text)`` for
       a note to the user; it returns the one-line summary printed after ``wrote FILE:``. Bad input
       raises ``RecorderError`` (one line for the user, exit 2); nothing that looks whole is left behind.
+
+    Optional: ``service = True`` offers it over HTTP too (``POST /recordings/record/NAME``, api/record_routes.py):
+    only an importer that needs no input from the machine it runs on (no positional argument) may say so, and
+    ``file_options`` lists the dests of its options that name a file or folder there (the service refuses them).
     """
 
     name: str
@@ -95,6 +99,7 @@ def _out_and_seed(parser: argparse.ArgumentParser) -> None:
 
 class SimLandmarks:
     name = "sim-landmarks"
+    service = True
     help = "D-SLAM paper scenario: point landmarks, range-bearing sensor, odometry"
     description = ("Simulate a robot among point landmarks (default: the D-SLAM paper's section 4.2 scenario) and "
                    "record odometry, scans and ground truth.")
@@ -118,6 +123,8 @@ class SimLandmarks:
 
 class SimSeabed:
     name = "sim-seabed"
+    service = True
+    file_options = ("cfg_texture",)
     help = "downward camera over a seabed texture: lawn-mower survey with revisits"
     description = ("Simulate a downward camera flying a lawn-mower survey over a seabed texture (procedural, an image "
                    "file, or a folder of frames given with --texture) and record images, odometry and ground truth.")
@@ -140,6 +147,8 @@ class SimSeabed:
 
 class SimCorridor:
     name = "sim-corridor"
+    service = True
+    file_options = ("cfg_texture",)
     help = "forward camera driven round an indoor floor plan with loops: images, odometry"
     description = ("Simulate a wheeled robot teleoperated round corridors and rooms whose walls carry photo textures, "
                    "and record forward-camera images, drifting wheel odometry and ground truth.")
