@@ -160,6 +160,12 @@ def _route(name: str, importer: Importer) -> Any:
     return record
 
 
+STORED: dict[int | str, dict[str, Any]] = {
+    201: {"description": "recorded and stored as a new recording"},
+    200: {"model": RecordingOut, "description": "the same file (same sha256) was stored before: its recording; "
+                                                 "nothing new is stored"}}
+
+
 def install_record_routes(app: FastAPI) -> None:
     """``GET /importers`` and one ``POST /recordings/record/NAME`` per importer the service may run."""
     router = APIRouter(dependencies=[Depends(require_token)], responses=ERRORS, tags=["recordings"])
@@ -176,6 +182,6 @@ def install_record_routes(app: FastAPI) -> None:
         if why_not_offered(importer) is None:
             router.add_api_route(f"/recordings/record/{name}", _route(name, importer), methods=["POST"],
                                  status_code=201, response_model=RecordingOut, name=f"record_{name}",
-                                 summary=f"Record {name} on the server")
+                                 summary=f"Record {name} on the server", responses=STORED)
     app.include_router(router)
 

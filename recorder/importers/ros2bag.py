@@ -224,6 +224,8 @@ def _tf_edges(bag: _Bag) -> set[tuple[str, str]]:
     edges: set[tuple[str, str]] = set()
     for topic in TF_TOPICS:
         conns = [c for c in bag.reader.connections if c.topic == topic and c.msgtype == TF_TYPE]
+        if not conns:  # rosbags reads every connection when given none
+            continue
         for n, (conn, _, raw) in enumerate(bag.reader.messages(connections=conns)):
             if topic == "/tf" and n >= TF_SAMPLE:
                 break
@@ -329,7 +331,7 @@ def import_ros2_bag(bag_path: str | Path, out: str | Path, *, topic_map: Mapping
         scans: list[tuple[int, str, Any]] = []
         total = sum(c.msgcount for c in conns)
         every = max(1, total // 200)
-        for done, (conn, bag_ns, raw) in enumerate(reader.messages(connections=conns), start=1):
+        for done, (conn, bag_ns, raw) in enumerate(reader.messages(connections=conns) if conns else (), start=1):
             try:
                 obj = reader.deserialize(raw, conn.msgtype)
                 item = _convert(conn.topic, conn.msgtype, by_topic[conn.topic].maps_to, obj, bag_ns, tree, scans)
