@@ -301,6 +301,20 @@ def cmd_diff(args: argparse.Namespace) -> int:
     return EXIT_CHECK_FAILED if diff.worse else EXIT_OK
 
 
+def cmd_trajectory(args: argparse.Namespace) -> int:
+    from slamreplay.replay.trajectory_eval import evaluate_run, export_kitti
+
+    run_dir = Path(args.run)
+    if args.kitti:
+        for path in export_kitti(run_dir, Path(args.kitti)):
+            _eprint(f"wrote {path}")
+        if not args.json and not args.stats:
+            return EXIT_OK
+    report = evaluate_run(run_dir, args.align, args.delta, args.delta_unit)
+    print(json.dumps(report.to_json(), indent=2) if args.json else report.table())
+    return EXIT_OK
+
+
 def cmd_snapshot(args: argparse.Namespace) -> int:
     from slamreplay.replay.snapshot import parse_at, parse_size, snapshot
 
@@ -462,6 +476,24 @@ def build_parser() -> argparse.ArgumentParser:
     df.add_argument("--rrd", metavar="OUT.rrd", help="write one recording with both runs under runs/A and runs/B")
     df.add_argument("--json", action="store_true", help="machine-readable output")
     df.set_defaults(func=cmd_diff)
+
+    tr = sub.add_parser("trajectory", help="a run's absolute and relative pose error (evo's APE/RPE), KITTI export",
+                        description="APE (absolute pose error) of RUN's trajectory.tum against its truth.tum with "
+                                    "the chosen alignment, and RPE (relative pose error) over pose pairs DELTA steps "
+                                    "or metres apart, defined as evo defines them (planar); --kitti writes both "
+                                    "trajectories as KITTI pose files. Exit 2 when the run has no trajectory or no "
+                                    "ground truth.")
+    tr.add_argument("run", help="a finished run directory")
+    tr.add_argument("--align", choices=["none", "origin", "se2"], default="none",
+                    help="none: as estimated (runs start at the true pose; default); origin: first poses aligned "
+                         "(evo --align_origin); se2: best rigid motion of the positions (evo --align)")
+    tr.add_argument("--delta", type=float, default=1.0, help="RPE pair distance (default 1)")
+    tr.add_argument("--delta-unit", choices=["step", "m"], default="step",
+                    help="step: DELTA poses apart; m: at least DELTA metres of true path apart (default step)")
+    tr.add_argument("--kitti", metavar="DIR", help="write estimate.kitti and truth.kitti (line for line) into DIR")
+    tr.add_argument("--stats", action="store_true", help="with --kitti: print the errors too")
+    tr.add_argument("--json", action="store_true", help="machine-readable output")
+    tr.set_defaults(func=cmd_trajectory)
 
     snap = sub.add_parser("snapshot", help="render a run's tabs in the real Rerun viewer to PNG files (headless)",
                           description="Open a run (or a diff's .rrd) in a headless Rerun viewer and save one PNG per "

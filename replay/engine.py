@@ -19,9 +19,10 @@ from slamreplay.algorithms.common import se2
 from slamreplay.algorithms.observe import Text
 from slamreplay.recorder.messages import TOPIC_GROUND_TRUTH_POSE
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.pipeline import Pipeline, ReplayContext, ReplayObserver
+from slamreplay.replay.evaluate import TRAJECTORY_METRICS, trajectory_metrics, truth_at
+from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext, ReplayObserver
 from slamreplay.replay.reader import Envelope, RecordingReader
-from slamreplay.replay.trajectory import trajectory_artifacts
+from slamreplay.replay.trajectory import TRUTH_TUM_ARTIFACT, to_tum, trajectory_artifacts
 
 Progress = Callable[[int, int], None]
 
@@ -34,6 +35,12 @@ class ReplayStats:
     step_times_ns: np.ndarray | None  # the log_time of each of those messages
     timings: dict[str, float] = field(default_factory=dict)  # the pipeline's own (Pipeline.timings), seconds
     artifacts: dict[str, bytes] = field(default_factory=dict)  # files for the run directory (Pipeline.artifacts)
+
+
+def metric_specs(pipeline: type[Pipeline]) -> dict[str, MetricSpec]:
+    """The pipeline's own metrics and the trajectory metrics the engine adds (`replay.evaluate`) when the
+    pipeline exports a trajectory and reads ground truth; a pipeline's own spec of the same name wins."""
+    return {**TRAJECTORY_METRICS, **pipeline.metrics}
 
 
 def check_topics(reader: RecordingReader, pipeline: type[Pipeline]) -> list[str]:
@@ -134,8 +141,13 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
     times: list[int] = []
     n = 0
     every = max(1, total // 200)
+    t_gt: list[int] = []
+    gt: list[np.ndarray] = []
     for env in itertools.chain(held, stream):
         observer.set_time(env.index, env.log_time_ns)
+        if env.topic == TOPIC_GROUND_TRUTH_POSE:  # kept for the trajectory metrics
+            t_gt.append(env.log_time_ns)
+            gt.append(env.msg.xy_yaw)  # type: ignore[union-attr]
         if log_timings:
             tic = time.perf_counter()
             pipeline.step(env)
@@ -152,9 +164,17 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
     unknown = set(metrics) - set(pipeline_cls.metrics)
     if unknown:
         raise RuntimeError(f"pipeline {pipeline_cls.name} returned metrics without a spec: {sorted(unknown)}")
+    trajectory = pipeline.trajectory()
+    artifacts = trajectory_artifacts(trajectory)
+    if trajectory is not None and len(trajectory[0]) and t_gt:
+        truth = np.asarray(t_gt, np.int64), np.stack(gt).astype(np.float64)
+        metrics = {**trajectory_metrics(*trajectory, *truth), **metrics}
+        mask, ref = truth_at(trajectory[0], *truth)
+        if len(ref):  # the truth at the estimate's times: both files pair line by line (evo, KITTI)
+            artifacts[TRUTH_TUM_ARTIFACT] = to_tum(trajectory[0][mask], ref)
     return ReplayStats(metrics, n, np.asarray(durations) if log_timings else None,
                        np.asarray(times, np.int64) if log_timings else None, pipeline.timings(),
-                       {**trajectory_artifacts(pipeline.trajectory()), **pipeline.artifacts()})
+                       {**artifacts, **pipeline.artifacts()})
 
 
 def text_logger(observer: ReplayObserver, lines: list[str]) -> Callable[[str], None]:

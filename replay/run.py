@@ -33,7 +33,7 @@ from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.files import atomic_write
 from slamreplay.recorder.version import git_commit, version
 from slamreplay.replay import metrics as metrics_mod
-from slamreplay.replay.engine import Progress, replay, text_logger
+from slamreplay.replay.engine import Progress, metric_specs, replay, text_logger
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.observer import RerunObserver
 from slamreplay.replay.pipeline import (
@@ -242,14 +242,15 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
         manifest["messages_replayed"] = stats.messages
         log(f"finished: {stats.messages:,} messages replayed; " + (", ".join(
             f"{k} {v:.4g}" for k, v in sorted(values.items())) or "no metric applies"))
+        specs = metric_specs(pipeline_cls)
         bounds = observer.write_summary(metrics_mod.metrics_markdown(f"{pipeline} on {reader.path.name}", values,
-                                                                     pipeline_cls.metrics), pipeline_cls.summary_skip)
+                                                                     specs), pipeline_cls.summary_skip)
         observer.send_layout(pipeline_cls.blueprint(bounds))
         tic = time.perf_counter()
         observer.close()
         observer = None
         os.replace(rrd_tmp, rrd)
-        doc = metrics_mod.format_metrics(pipeline, values, pipeline_cls.metrics)
+        doc = metrics_mod.format_metrics(pipeline, values, specs)
         manifest["artifacts"] = write_artifacts(out_dir, stats.artifacts)
         atomic_write(out_dir / "metrics.json", metrics_mod.dumps(doc))
         timings["write_s"] = time.perf_counter() - tic

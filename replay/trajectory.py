@@ -64,6 +64,7 @@ class TrajectoryLog:
 
 
 TUM_ARTIFACT = "trajectory.tum"
+TRUTH_TUM_ARTIFACT = "truth.tum"  # the ground truth at the estimate's times (the engine writes it)
 
 
 def to_tum(t_ns: np.ndarray, poses: np.ndarray) -> bytes:

@@ -18,7 +18,7 @@ import pytest
 from conftest import write_tiny_recording
 
 from slamreplay.replay.diff import metric_tolerance
-from slamreplay.replay.engine import replay
+from slamreplay.replay.engine import metric_specs, replay
 from slamreplay.replay.metrics import format_metrics
 from slamreplay.replay.observer import MemoryObserver
 from slamreplay.replay.pipeline import get_pipeline, resolve_config
@@ -93,7 +93,8 @@ def test_odometry_golden(tmp_path: Path, update_golden: bool) -> None:
     cls = get_pipeline("odometry")
     obs = MemoryObserver()
     stats = replay(RecordingReader(recording), cls, resolve_config(cls), obs, seed=0, log=lambda s: None)
-    doc = {"metrics": format_metrics(cls.name, {k: round(v, 9) for k, v in stats.metrics.items()}, cls.metrics),
+    doc = {"metrics": format_metrics(cls.name, {k: round(v, 9) for k, v in stats.metrics.items()},
+                                  metric_specs(cls)),
            "events": obs.to_jsonable(decimals=9)}
     text = json.dumps(doc, sort_keys=True, indent=1) + "\n"
     if update_golden:

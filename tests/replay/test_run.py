@@ -71,10 +71,10 @@ def test_two_runs_are_identical(tiny_recording: Path, tmp_path: Path) -> None:
 
 
 def test_run_directory_contents(tiny_recording: Path, tmp_path: Path) -> None:
-    """A run has run.rrd, metrics.json, manifest.json and log.txt; no temporary files remain."""
+    """A run has run.rrd, metrics.json, manifest.json, log.txt and its trajectories; no temporary files remain."""
     res = run_recording(tiny_recording, "odometry", tmp_path / "run", seed=5, config={})
     names = sorted(p.name for p in res.run_dir.iterdir())
-    assert names == ["log.txt", "manifest.json", "metrics.json", "run.rrd", "trajectory.tum"]
+    assert names == ["log.txt", "manifest.json", "metrics.json", "run.rrd", "trajectory.tum", "truth.tum"]
     man = json.loads((res.run_dir / "manifest.json").read_text())
     assert man["status"] == "succeeded" and man["seed"] == 5 and man["pipeline"] == "odometry"
     assert len(man["recording"]["sha256"]) == 64 and len(man["config_hash"]) == 64
@@ -119,7 +119,8 @@ def test_failed_run_never_blocks_its_retry(tiny_recording: Path, tmp_path: Path)
     assert manifest["status"] == "failed"
     res = run_recording(tiny_recording, "odometry", out)
     assert res.status == "succeeded" and not (out / ".run.rrd.partial").exists()
-    assert {p.name for p in out.iterdir()} == {"run.rrd", "metrics.json", "manifest.json", "log.txt", "trajectory.tum"}
+    assert {p.name for p in out.iterdir()} == {"run.rrd", "metrics.json", "manifest.json", "log.txt", "trajectory.tum",
+                                               "truth.tum"}
     assert "has no /odom topic" not in (out / "log.txt").read_text()
     # a failed run beside a user's file: the file is not the run's to delete
     other = tmp_path / "other"

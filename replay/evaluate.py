@@ -1,0 +1,207 @@
+"""Trajectory error in the vocabulary of evo: absolute pose error with a chosen alignment, relative pose error.
+
+Definitions follow evo (Grupp, https://github.com/MichaelGrupp/evo), planar (SE(2)), so that a run's
+``trajectory.tum`` and ``truth.tum`` give the same figures in ``evo_ape``/``evo_rpe`` (``--align``: ``se2``
+here; ``--align_origin``: ``origin``) as here:
+
+- **APE** (absolute pose error, translation part): ``|t_est,i - t_ref,i|`` after aligning the estimate by
+  ``alignment``: ``none`` (the estimate is already in the reference frame; slamreplay's runs start at the
+  true initial pose, so this counts every error, including the first pose's), ``origin`` (the transform
+  taking the first estimated pose onto the first reference pose), ``se2`` (the rigid motion minimising the
+  squared position errors: Umeyama/Kabsch without scale). The rotation part is ``|wrap(yaw_est - yaw_ref)|``.
+- **RPE** (relative pose error): for pose pairs ``(i, j)``, ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)`` with Q the
+  reference and P the estimate; its translation norm and its rotation angle. Pairs as evo makes them
+  without ``--all_pairs``: consecutive, non-overlapping segments of ``delta`` poses (``unit="step"``), or
+  of at least ``delta`` metres of the reference's path (``unit="m"``; evo's ``--pairs_from_reference``: evo
+  measures the estimate's path by default, which jitter in an estimate lengthens; KITTI's devkit also
+  measures segments on the ground truth).
+
+Both are statistics over poses at the estimate's times; the reference is the ground truth interpolated
+there (``truth_at``), so estimate and reference pair one to one (as in KITTI's files).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slamreplay.algorithms.common import se2
+from slamreplay.replay.metrics import associate
+from slamreplay.replay.pipeline import MetricSpec
+
+F64 = NDArray[np.float64]
+Alignment = Literal["none", "origin", "se2"]
+DeltaUnit = Literal["step", "m"]
+ALIGNMENTS: tuple[Alignment, ...] = ("none", "origin", "se2")
+RPE_METRE_DELTA_M = 1.0  # the per-distance RPE of every run: segments of 1 m of true path
+
+
+@dataclass(frozen=True, slots=True)
+class ErrorStats:
+    """Statistics of one error series (evo's ``rmse``, ``mean``, ``median``, ``max``, and the count)."""
+
+    rmse: float
+    mean: float
+    median: float
+    max: float
+    n: int
+
+    @classmethod
+    def of(cls, e: F64) -> ErrorStats:
+        """Statistics of ``e`` (NaN for an empty series)."""
+        if len(e) == 0:
+            return cls(math.nan, math.nan, math.nan, math.nan, 0)
+        return cls(float(np.sqrt(np.mean(e * e))), float(np.mean(e)), float(np.median(e)), float(np.max(e)), len(e))
+
+
+def truth_at(t_est_ns: NDArray[np.int64], t_gt_ns: NDArray[np.int64], gt: F64) -> tuple[NDArray[np.bool_], F64]:
+    """(mask of estimate times inside the ground truth's span, ground-truth poses (k, 3) at those times)."""
+    t_gt_ns = np.asarray(t_gt_ns, np.int64)
+    mask = associate(np.asarray(t_est_ns, np.int64), t_gt_ns)
+    if not mask.any():
+        return mask, np.zeros((0, 3))
+    t0 = t_gt_ns[0]  # relative times keep float64 interpolation exact to the ns
+    ref = se2.interpolate((np.asarray(t_est_ns)[mask] - t0).astype(np.float64), (t_gt_ns - t0).astype(np.float64),
+                          np.asarray(gt, np.float64))
+    return mask, np.asarray(ref, np.float64)
+
+
+def _check(est: F64, ref: F64) -> tuple[F64, F64]:
+    est, ref = np.asarray(est, np.float64), np.asarray(ref, np.float64)
+    if est.ndim != 2 or est.shape[1] != 3 or est.shape != ref.shape:
+        raise ValueError(f"est and ref must be (n, 3) x, y, yaw of the same length, got {est.shape} and {ref.shape}")
+    return est, ref
+
+
+def alignment_transform(est: F64, ref: F64, alignment: Alignment) -> F64:
+    """The pose ``T`` (x, y, yaw) such that ``T (+) est`` is the aligned estimate.
+
+    ``se2``: the closed-form least-squares rigid motion of the positions (Umeyama 1991 without scale, in 2D:
+    the rotation angle is ``atan2`` of the cross-covariance's antisymmetric and symmetric parts).
+    """
+    est, ref = _check(est, ref)
+    if alignment == "none" or len(est) == 0:
+        return np.zeros(3)
+    if alignment == "origin":
+        return se2.compose(ref[0], se2.inverse(est[0]))
+    if alignment != "se2":
+        raise ValueError(f"alignment must be one of {', '.join(ALIGNMENTS)}, got {alignment!r}")
+    pe, pr = est[:, :2], ref[:, :2]
+    ce, cr = pe.mean(axis=0), pr.mean(axis=0)
+    a, b = pe - ce, pr - cr
+    theta = math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])), float(np.sum(a[:, 0] * b[:, 0] +
+                                                                                       a[:, 1] * b[:, 1])))
+    t = cr - se2.rot(theta) @ ce
+    return np.array([t[0], t[1], theta])
+
+
+def ape(est: F64, ref: F64, alignment: Alignment = "none") -> tuple[ErrorStats, ErrorStats]:
+    """(translation error stats in the estimate's unit, rotation error stats in degrees) after ``alignment``."""
+    est, ref = _check(est, ref)
+    aligned = se2.compose(alignment_transform(est, ref, alignment), est) if len(est) else est
+    d = aligned - ref
+    return ErrorStats.of(np.hypot(d[:, 0], d[:, 1])), ErrorStats.of(np.degrees(np.abs(se2.wrap_angle(d[:, 2]))))
+
+
+def pairs(ref: F64, delta: float, unit: DeltaUnit) -> list[tuple[int, int]]:
+    """evo's consecutive pose pairs: every ``delta`` poses, or at least ``delta`` metres of ``ref``'s path."""
+    n = len(ref)
+    if unit == "step":
+        if delta < 1 or delta != int(delta):
+            raise ValueError(f"delta in steps must be a whole number >= 1, got {delta}")
+        ids = list(range(0, n, int(delta)))
+    elif unit == "m":
+        if not delta > 0:
+            raise ValueError(f"delta in metres must be > 0, got {delta}")
+        ids = [0] if n else []
+        path = 0.0
+        steps = np.hypot(*np.diff(np.asarray(ref)[:, :2], axis=0).T) if n > 1 else np.zeros(0)
+        for i, s in enumerate(steps.tolist(), start=1):
+            path += s
+            if path >= delta:
+                ids.append(i)
+                path = 0.0
+    else:
+        raise ValueError(f"delta unit must be 'step' or 'm', got {unit!r}")
+    return list(itertools.pairwise(ids))
+
+
+def rpe(est: F64, ref: F64, delta: float = 1, unit: DeltaUnit = "step") -> tuple[ErrorStats, ErrorStats]:
+    """(translation stats, rotation stats in degrees) of the relative pose error over :func:`pairs`."""
+    est, ref = _check(est, ref)
+    ij = pairs(ref, delta, unit)
+    if not ij:
+        return ErrorStats.of(np.zeros(0)), ErrorStats.of(np.zeros(0))
+    i, j = np.array(ij).T
+    e = se2.between(se2.between(ref[i], ref[j]), se2.between(est[i], est[j]))
+    return ErrorStats.of(np.hypot(e[:, 0], e[:, 1])), ErrorStats.of(np.degrees(np.abs(se2.wrap_angle(e[:, 2]))))
+
+
+def _spec(what: str, unit: str = "m") -> MetricSpec:
+    return MetricSpec.measured("lower", unit, what)
+
+
+# The trajectory metrics every pipeline with an estimated trajectory and ground truth reports, one name each
+TRAJECTORY_METRICS: dict[str, MetricSpec] = {
+    "ape_rmse_m": _spec("absolute position error RMSE, no alignment (the estimate starts at the true pose)"),
+    "ape_origin_rmse_m": _spec("absolute position error RMSE, first poses aligned (evo --align_origin)"),
+    "ape_se2_rmse_m": _spec("absolute position error RMSE after the best rigid alignment (evo --align)"),
+    "ape_rot_rmse_deg": _spec("absolute heading error RMSE, no alignment", "deg"),
+    "rpe_step_trans_rmse_m": _spec("relative pose error between consecutive poses, translation RMSE"),
+    "rpe_step_rot_rmse_deg": _spec("relative pose error between consecutive poses, rotation RMSE", "deg"),
+    "rpe_m_trans_rmse_m": _spec(f"relative pose error over {RPE_METRE_DELTA_M:g} m of true path, translation RMSE"),
+    "rpe_m_rot_rmse_deg": _spec(f"relative pose error over {RPE_METRE_DELTA_M:g} m of true path, rotation RMSE",
+                                "deg"),
+}
+
+
+def trajectory_metrics(t_est_ns: NDArray[np.int64], est: F64, t_gt_ns: NDArray[np.int64], gt: F64
+                       ) -> dict[str, float]:
+    """The :data:`TRAJECTORY_METRICS` of an estimate against ground truth (those that apply: none without
+    overlap in time; the RPE per metre only once the robot has moved that far)."""
+    mask, ref = truth_at(t_est_ns, t_gt_ns, gt)
+    if len(ref) == 0:
+        return {}
+    e = np.asarray(est, np.float64)[mask]
+    out: dict[str, float] = {}
+    for alignment in ALIGNMENTS:
+        trans, rot = ape(e, ref, alignment)
+        out["ape_rmse_m" if alignment == "none" else f"ape_{alignment}_rmse_m"] = trans.rmse
+        if alignment == "none":
+            out["ape_rot_rmse_deg"] = rot.rmse
+    for key, delta, unit in (("step", 1.0, "step"), ("m", RPE_METRE_DELTA_M, "m")):
+        trans, rot = rpe(e, ref, delta, unit)  # type: ignore[arg-type]
+        if trans.n:
+            out[f"rpe_{key}_trans_rmse_m"], out[f"rpe_{key}_rot_rmse_deg"] = trans.rmse, rot.rmse
+    return out
+
+
+def to_kitti(poses: F64) -> bytes:
+    """Planar poses (n, 3) as KITTI odometry text: the top 3x4 of each SE(3) pose matrix, row-major, a line each
+    (z = 0, rotation about +z). KITTI files carry no time: write estimate and truth at the same times."""
+    lines = []
+    for x, y, th in np.asarray(poses, np.float64).reshape(-1, 3).tolist():
+        c, s = math.cos(th), math.sin(th)
+        lines.append(" ".join(f"{v:.9g}" for v in (c, -s, 0.0, x, s, c, 0.0, y, 0.0, 0.0, 1.0, 0.0)))
+    return ("\n".join(lines) + ("\n" if lines else "")).encode()
+
+
+def read_kitti(text: str) -> F64:
+    """Planar poses (n, 3) of KITTI text; ValueError on a malformed line or a pose that is not planar."""
+    rows = []
+    for i, line in enumerate(text.splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            m = np.array([float(v) for v in line.split()], np.float64)
+        except ValueError as err:
+            raise ValueError(f"line {i}: not 12 numbers ({err})") from err
+        if m.shape != (12,):
+            raise ValueError(f"line {i}: expected 12 numbers (a 3x4 pose matrix), got {m.size}")
+        rows.append((m[3], m[7], math.atan2(m[4], m[0])))
+    return np.array(rows, np.float64).reshape(-1, 3)
