@@ -66,8 +66,9 @@ class TrajectoryReport:
 
 
 def read_run_trajectories(run_dir: Path) -> tuple[str, np.ndarray, np.ndarray, np.ndarray | None]:
-    """(pipeline, times s, estimate (n, 3), truth (n, 3) or None) of a finished run; ReplayError saying what
-    is missing."""
+    """(pipeline, times s, estimate (n, 3), truth (n, 3) or None) of a finished run, the estimate cut to the
+    truth's times when there is one (estimates outside the ground truth's time span have no truth); ReplayError
+    saying what is missing."""
     manifest, _ = load_run(run_dir)
     pipeline = str(manifest.get("pipeline"))
     est_file, truth_file = run_dir / TUM_ARTIFACT, run_dir / TRUTH_TUM_ARTIFACT
@@ -78,8 +79,11 @@ def read_run_trajectories(run_dir: Path) -> tuple[str, np.ndarray, np.ndarray, n
         truth = None
         if truth_file.is_file():
             t_truth, truth = read_tum(truth_file.read_text())
-            if len(t_truth) != len(t) or not np.allclose(t_truth, t, rtol=0.0, atol=1e-6):
-                raise ReplayError(f"{truth_file} does not pair line by line with {est_file} (another run's file?)")
+            # the truth covers the estimate's times inside the ground truth's span: the same time stamps
+            idx = np.clip(np.searchsorted(t, t_truth), 0, max(len(t) - 1, 0))
+            if len(t_truth) and (len(t) == 0 or not np.allclose(t[idx], t_truth, rtol=0.0, atol=1e-6)):
+                raise ReplayError(f"{truth_file} holds times that {est_file} does not (another run's file?)")
+            t, est = t[idx], est[idx]
     except ValueError as err:
         raise ReplayError(f"{run_dir}: a trajectory file is malformed: {err}") from err
     return pipeline, t, est, truth
@@ -102,7 +106,8 @@ def evaluate_run(run_dir: Path, alignment: Alignment = "none", delta: float = 1.
 
 def export_kitti(run_dir: Path, out_dir: Path) -> list[Path]:
     """Write ``estimate.kitti`` (and ``truth.kitti``, line for line at the same times, when the run has ground
-    truth) into ``out_dir``; the paths written. Each file is written whole or not at all."""
+    truth: the estimate is then cut to the truth's time span) into ``out_dir``; the paths written. Each file is
+    written whole or not at all."""
     _, _, est, truth = read_run_trajectories(run_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = [out_dir / KITTI_ESTIMATE]
