@@ -184,7 +184,7 @@ def test_trajectory_command_errors(odometry_run: Path, tmp_path: Path, capsys: p
     _bad(["trajectory", str(odometry_run), "--delta", "1.5"], capsys, "whole number")
     (odometry_run / "truth.tum").write_text("1 2 3\n")
     _bad(["trajectory", str(odometry_run)], capsys, r"malformed: line 1: expected 8 fields")
-    (odometry_run / "truth.tum").write_text("# timestamp x y z qx qy qz qw\n1.0 0 0 0 0 0 0 1\n")
+    (odometry_run / "truth.tum").write_text("# timestamp x y z qx qy qz qw\n0.5 0 0 0 0 0 0 1\n")
     _bad(["trajectory", str(odometry_run)], capsys, "holds times that .* does not")
     (odometry_run / "truth.tum").unlink()
     _bad(["trajectory", str(odometry_run)], capsys, "no truth.tum: its recording has no /ground_truth/pose")
