@@ -21,7 +21,7 @@ import numpy as np
 
 from slamreplay.replay.compare import Comparison, MetricResult, fmt, fmt_ms
 from slamreplay.replay.run import atomic_write
-from slamreplay.replay.trajectory import TUM_ARTIFACT, read_tum
+from slamreplay.replay.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, read_tum
 
 COLOURS = {"regression": "#c62828", "failed": "#c62828", "improvement": "#2e7d32"}
 A_COLOUR, B_COLOUR = "#7f7f7f", "#1f77b4"  # A grey (the baseline), B blue (the estimate under test)
@@ -94,8 +94,49 @@ def _trajectory_plot(a: np.ndarray, b: np.ndarray, title: str, size: int = 260) 
             f"<figcaption>{html.escape(title)} ({span:.3g} m across)</figcaption></figure>")
 
 
+def _errors(path: str | None) -> np.ndarray | None:
+    """(n, 2): seconds since the first pose with truth, position error (m), from a run's trajectory.tum and
+    truth.tum, thinned to at most 400 points; None without both."""
+    if not path:
+        return None
+    try:
+        t, est = read_tum((Path(path) / TUM_ARTIFACT).read_text())
+        t_truth, truth = read_tum((Path(path) / TRUTH_TUM_ARTIFACT).read_text())
+    except (OSError, ValueError):
+        return None
+    idx = np.clip(np.searchsorted(t, t_truth), 0, max(len(t) - 1, 0))
+    if not len(t_truth) or not len(t) or not np.allclose(t[idx], t_truth, rtol=0.0, atol=1e-6):
+        return None
+    err = np.hypot(*(est[idx, :2] - truth[:, :2]).T)
+    out = np.column_stack([t_truth - t_truth[0], err])
+    step = max(1, len(out) // 400)
+    return np.vstack([out[::step], out[-1:]])
+
+
+def _error_plot(a: np.ndarray, b: np.ndarray, title: str, width: int = 360, height: int = 260) -> str:
+    """A's and B's position error against time, on shared axes from 0."""
+    t_max = float(max(a[-1, 0], b[-1, 0])) or 1.0
+    e_max = float(max(a[:, 1].max(), b[:, 1].max())) or 1.0
+
+    def pts(te: np.ndarray) -> str:
+        return " ".join(f"{40 + t / t_max * (width - 50):.1f},{height - 25 - e / e_max * (height - 40):.1f}"
+                        for t, e in te)
+
+    axes = (f'<line x1="40" y1="{height - 25}" x2="{width - 10}" y2="{height - 25}" stroke="#999"/>'
+            f'<line x1="40" y1="15" x2="40" y2="{height - 25}" stroke="#999"/>'
+            f'<text x="36" y="19" font-size="10" text-anchor="end">{e_max:.3g}</text>'
+            f'<text x="36" y="{height - 25}" font-size="10" text-anchor="end">0</text>'
+            f'<text x="{width - 10}" y="{height - 10}" font-size="10" text-anchor="end">{t_max:.4g} s</text>')
+    return (f'<figure style="display:inline-block;margin:4px"><svg xmlns="http://www.w3.org/2000/svg" '
+            f'width="{width}" height="{height}" style="border:1px solid #ddd"><title>{html.escape(title)}</title>'
+            f'{axes}<polyline points="{pts(a)}" fill="none" stroke="{A_COLOUR}" stroke-width="1.5"/>'
+            f'<polyline points="{pts(b)}" fill="none" stroke="{B_COLOUR}" stroke-width="1.2"/></svg>'
+            f"<figcaption>{html.escape(title)}: position error (m) over time</figcaption></figure>")
+
+
 def _trajectories(c: Comparison) -> list[str]:
-    """One overlay per cell and seed pair where both runs exported trajectory.tum."""
+    """One overlay per cell and seed pair where both runs exported trajectory.tum, and their position error over
+    time where both have truth.tum."""
     out = []
     index = {s: {(r["recording"], r["pipeline"], r["variant"], r.get("recording_seed"), r.get("seed")): r
                  for r in side.rows} for s, side in (("A", c.a), ("B", c.b))}
@@ -107,6 +148,9 @@ def _trajectories(c: Comparison) -> list[str]:
         if ta is not None and tb is not None:
             rs = "" if key[3] is None else f" recording seed {key[3]},"
             out.append(_trajectory_plot(ta, tb, f"{key[0]}/{key[1]}/{key[2]}{rs} seed {key[4]}"))
+            ea, eb = _errors(ra.get("run_dir")), _errors(rb.get("run_dir"))
+            if ea is not None and eb is not None:
+                out.append(_error_plot(ea, eb, f"{key[0]}/{key[1]}/{key[2]}{rs} seed {key[4]}"))
     return out
 
 
@@ -256,7 +300,8 @@ def render_html(c: Comparison, base: Path, links: Links | None = None) -> str:
     out.append("</table>")
     plots = _trajectories(c)
     if plots:
-        out.append("<h2>Estimated trajectories</h2><p>Each run's trajectory.tum: "
+        out.append("<h2>Estimated trajectories and their error over time</h2><p>Each run's trajectory.tum, and "
+                   "its distance to truth.tum (the ground truth at the same times) where the run has one: "
                    f"<span style='color:{A_COLOUR}'>A</span>, <span style='color:{B_COLOUR}'>B</span>.</p>")
         out += plots
     if c.failures:

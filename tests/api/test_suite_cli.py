@@ -61,7 +61,8 @@ def test_suite_run_then_cached(tmp_path: Path, capsys: pytest.CaptureFixture[str
     code, stdout, err = run_cli(["compare", str(out), str(out), "--report", str(report)], capsys)
     assert code == 0 and "0 regression(s)" in stdout, err
     text = report.read_text()
-    assert "Estimated trajectories" in text and text.count("<polyline") == 2 * 12
+    assert "Estimated trajectories" in text and text.count("<polyline") == 4 * 12  # paths, errors: A and B
+    assert text.count("position error (m) over time") == 12
     assert "<tr class='regression'>" not in text and "<tr class='unchanged'>" in text
 
 
