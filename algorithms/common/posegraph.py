@@ -296,7 +296,7 @@ class _Problem:
     """A graph with its fixed structure: the block system, the factorization, the kernel mask."""
 
     def __init__(self, graph: PoseGraph, cfg: OptimizerConfig, order: I64 | None = None,
-                 check_connected: bool = True) -> None:
+                 check_connected: bool = True, robust: NDArray[np.bool_] | None = None) -> None:
         n = graph.n_vertices
         gauge = np.atleast_1d(np.asarray(cfg.gauge, dtype=np.int64))
         if gauge.size == 0 or gauge.min() < 0 or gauge.max() >= n:
@@ -308,7 +308,14 @@ class _Problem:
                 raise ValueError(f"graph has {k} connected components; with one gauge vertex it must be connected")
         self.graph = graph
         self.cfg = cfg
-        self.robust = np.ones(graph.n_edges, dtype=bool) if cfg.robust_all_edges else np.abs(graph.i - graph.j) != 1
+        if robust is not None:
+            self.robust = np.array(robust, dtype=bool).reshape(-1)
+            if self.robust.shape != (graph.n_edges,):
+                raise ValueError(f"robust must have shape ({graph.n_edges},), got {self.robust.shape}")
+        elif cfg.robust_all_edges:
+            self.robust = np.ones(graph.n_edges, dtype=bool)
+        else:
+            self.robust = np.abs(graph.i - graph.j) != 1
         self.kernel = cfg.kernel
         self.kparam = cfg.kernel_parameter or DEFAULT_PARAMETER[cfg.kernel]
         self.info = np.ascontiguousarray(graph.information.transpose(1, 2, 0))  # (3, 3, m)
@@ -365,7 +372,8 @@ class _Problem:
         return out
 
 
-def optimize(graph: PoseGraph, cfg: OptimizerConfig = OptimizerConfig()) -> OptimizationResult:
+def optimize(graph: PoseGraph, cfg: OptimizerConfig = OptimizerConfig(),
+             robust: NDArray[np.bool_] | None = None) -> OptimizationResult:
     """Minimize the (robust) chi2 of a pose graph from its current estimate.
 
     Parameters
@@ -374,6 +382,9 @@ def optimize(graph: PoseGraph, cfg: OptimizerConfig = OptimizerConfig()) -> Opti
         Must be connected. ``graph.poses`` is the initial guess (see
         :mod:`slamreplay.algorithms.common.posegraph_init` for odometry and chordal initializations).
     cfg : OptimizerConfig
+    robust : (m,) bool, optional
+        The edges the kernel (and the inlier gate) applies to; None: the config's rule (loop
+        closures ``|i - j| != 1``, or every edge with ``robust_all_edges``).
 
     Returns
     -------
@@ -386,14 +397,14 @@ def optimize(graph: PoseGraph, cfg: OptimizerConfig = OptimizerConfig()) -> Opti
     ----------
     .. [1] Kümmerle et al., ICRA 2011 (g2o), sec. III; Agarwal et al., ICRA 2013 (DCS).
     """
-    prob = _Problem(graph, cfg)
-    robust = cfg.kernel is not Kernel.NONE and bool(np.any(prob.robust))
+    prob = _Problem(graph, cfg, robust=robust)
+    is_robust = cfg.kernel is not Kernel.NONE and bool(np.any(prob.robust))
     phi0 = None
-    if robust and cfg.graduated and cfg.kernel is Kernel.DCS:
+    if is_robust and cfg.graduated and cfg.kernel is Kernel.DCS:
         c2 = prob.evaluate(graph.poses)[0]
         phi0 = float(c2[prob.robust].max())
     res = _run(prob, graph.poses.copy(), cfg, phi0)
-    if not robust or cfg.inlier_gate is None or res.status is Status.DIVERGED or prob.system is None:
+    if not is_robust or cfg.inlier_gate is None or res.status is Status.DIVERGED or prob.system is None:
         return res
     gate = float(chi2_distribution.ppf(cfg.inlier_gate, 3))
     # family-wise gate (Bonferroni over the tested edges) for edges once rejected

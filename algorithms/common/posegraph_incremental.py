@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from slamreplay.algorithms.common.posegraph import OptimizerConfig, PoseGraph, Status, _Problem, _run
+from slamreplay.algorithms.common.posegraph import OptimizerConfig, PoseGraph, Status, _Problem, _run, chi2
 from slamreplay.algorithms.common.se2 import compose, inverse
 
 F64 = NDArray[np.float64]
@@ -100,6 +100,16 @@ class IncrementalOptimizer:
     def poses(self) -> F64:
         """Current estimate (n, 3), a copy."""
         return self._poses.copy()
+
+    def set_poses(self, poses: ArrayLike) -> None:
+        """Replace the estimate (n, 3) by one solved elsewhere (a robust batch solve); the gauge must not move."""
+        p = np.array(poses, dtype=np.float64)
+        if p.shape != self._poses.shape or not np.all(np.isfinite(p)):
+            raise ValueError(f"poses must be finite with shape {self._poses.shape}, got {p.shape}")
+        if not np.array_equal(p[0], self._poses[0]):
+            raise ValueError("poses: vertex 0 is the gauge and must not move")
+        self._poses = p
+        self._chi2 = chi2(PoseGraph._trusted(self._poses, self._i, self._j, self._z, self._info))
 
     def step(self, i: ArrayLike, j: ArrayLike, measurements: ArrayLike, information: ArrayLike) -> UpdateResult:
         """Add edges (and the new vertices they reach), then re-optimize if they close loops.

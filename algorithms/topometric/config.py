@@ -10,6 +10,8 @@ from slamreplay.algorithms.topometric.features import FeatureConfig
 from slamreplay.algorithms.topometric.validation import ValidationConfig
 from slamreplay.algorithms.topometric.vocabulary import VocabularyConfig
 
+ROBUST_KERNELS = ("none", "dcs")  # MapperConfig.relax_robust
+
 
 @dataclass(frozen=True, slots=True)
 class MapperConfig:
@@ -29,12 +31,21 @@ class MapperConfig:
         without depth), across it, and on the heading (read off the image x-translation).
     hfov_deg : the camera's horizontal field of view; a loop edge's heading is the matched location's
         plus ``tx_px * hfov / width`` (section IV-B's linear rule, the one navigation uses).
-    relax_iterations : Gauss-Newton iterations per relaxation.
+    relax_iterations : Gauss-Newton iterations per relaxation (per stage, doubled, with ``relax_robust``).
     gate_m, gate_m_per_m, gate_deg, gate_deg_per_m : beyond the paper, a location is a hypothesis only
         within ``gate_m + gate_m_per_m * d`` metres and ``gate_deg + gate_deg_per_m * d`` degrees of the
         current odometry estimate, d the distance driven since the last loop closure (a generous bound
         on the drift). Places that look alike (repeated posters, twin corridors) pass the paper's
         geometric test perfectly; odometry can still tell them apart. Inactive without odometry.
+    odometry_gate : False turns the gate above off completely (the paper has none; the ``gate_*``
+        values are then unused).
+    relax_robust : "none" (the paper: every validated loop closure is trusted, plain least squares)
+        or "dcs" (beyond the paper): each relaxation is a batch solve with Dynamic Covariance Scaling
+        on the loop edges, then a chi-square gate at that solution
+        (:func:`slamreplay.algorithms.common.posegraph.optimize`, as ``slamreplay graph optimize``); a
+        loop edge it drops is a *rejected* loop closure. The edges of images after a loop-closing one
+        then start from the last location created (see :mod:`.mapper`).
+    relax_gate_probability : the chi-square (3 dof) probability of that gate.
     """
 
     features: FeatureConfig = field(default_factory=FeatureConfig)
@@ -59,6 +70,9 @@ class MapperConfig:
     gate_m_per_m: float = 0.1
     gate_deg: float = 30.0
     gate_deg_per_m: float = 0.5
+    odometry_gate: bool = True
+    relax_robust: str = "none"
+    relax_gate_probability: float = 0.999
 
     def __post_init__(self) -> None:
         if not (self.sample_distance_m > 0 and self.sample_angle_deg > 0):
@@ -74,6 +88,12 @@ class MapperConfig:
             raise ValueError("odometry and loop sigmas must be >= 0, odometry_sigma_floor > 0")
         if not (self.gate_m > 0 and self.gate_m_per_m >= 0 and self.gate_deg > 0 and self.gate_deg_per_m >= 0):
             raise ValueError("gate_m and gate_deg must be > 0, gate_m_per_m and gate_deg_per_m >= 0")
+        if not isinstance(self.odometry_gate, bool):
+            raise ValueError(f"odometry_gate must be a bool, got {self.odometry_gate!r}")
+        if self.relax_robust not in ROBUST_KERNELS:
+            raise ValueError(f"relax_robust must be one of {', '.join(ROBUST_KERNELS)}, got {self.relax_robust!r}")
+        if not 0.0 < self.relax_gate_probability < 1.0:
+            raise ValueError(f"relax_gate_probability must be in (0, 1), got {self.relax_gate_probability}")
         if not 0.0 < self.hfov_deg < 180.0:
             raise ValueError(f"hfov_deg must be in (0, 180), got {self.hfov_deg}")
 

@@ -20,14 +20,27 @@ heading there (the location's plus that image's deviation) and carries that imag
 in the location's frame: the robot was only near the location.
 
 The relaxation uses the project's pose-graph back end (Gauss-Newton, incremental; [2]_ used TORO)
-without robust kernel: validated loop closures are trusted (the paper's first concern is that none is
-false), and a kernel would also down-weight the odometry edges that leave a re-visited location.
+without robust kernel by default, as the paper: validated loop closures are trusted (its first concern
+is that none is false). Beyond the paper, ``relax_robust="dcs"`` makes each relaxation a batch solve
+(:func:`slamreplay.algorithms.common.posegraph.optimize`) with Dynamic Covariance Scaling [3]_ on the
+loop edges only, then a chi-square gate at its solution. A loop edge the gate drops is *rejected*: the
+mapper reports it (:meth:`TopoMetricMapper.rejected`), the map for navigation leaves it out, and each
+relaxation decides again over every loop edge, so a closure rejected early can come back once later
+ones confirm it. Repeated wall panels make whole runs of consecutive loop closures false (matched
+along a look-alike corridor): the edges between the matched locations agree with the map, only the
+way in and out does not. So with the kernel, an edge for an image after a loop-closing one starts
+from the last location *created* (the anchor), by the odometry since the anchor's image, instead of
+from the previous image's location: every closure of a run is weighed against the odometry on its
+own, and the location created after a rejected run still hangs on the odometry, not on the
+look-alike place.
 
 References
 ----------
 .. [1] E. Battesti, S. Bazeille, D. Filliat, "Qualitative localization using vision and odometry for
    path following in topo-metric maps", ECMR 2011, section III.
 .. [2] S. Bazeille, D. Filliat, "Incremental topo-metric SLAM using vision and robot odometry", ICRA 2011.
+.. [3] P. Agarwal, G. D. Tipaldi, L. Spinello, C. Stachniss, W. Burgard, "Robust map optimization using
+   dynamic covariance scaling", ICRA 2013.
 """
 
 from __future__ import annotations
@@ -41,7 +54,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from slamreplay.algorithms.common import se2
-from slamreplay.algorithms.common.posegraph import OptimizerConfig, chi2
+from slamreplay.algorithms.common.posegraph import OptimizerConfig, PoseGraph, chi2, optimize
 from slamreplay.algorithms.common.posegraph_incremental import IncrementalConfig, IncrementalOptimizer
 from slamreplay.algorithms.common.robust import Kernel
 from slamreplay.algorithms.topometric.bayes import FilterStep, LocationFilter
@@ -75,13 +88,18 @@ class Candidate:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class Relaxation:
-    """The location graph around one relaxation: poses (n, 3) before and after, chi2 before and after."""
+    """The location graph around one relaxation: poses (n, 3) before and after, chi2 before and after.
+
+    ``rejected`` : (m,) bool per edge after it, the edges the robust relaxation dropped (all False
+    without a kernel); ``chi2_after`` is over the kept edges.
+    """
 
     poses_before: F64
     poses_after: F64
     chi2_before: float
     chi2_after: float
     iterations: int
+    rejected: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -98,6 +116,8 @@ class MapperStep:
     candidates : validated candidates, most probable first.
     accepted : the accepted loop closure, if any.
     relaxation : the relaxation it triggered, if any.
+    edge : index of the edge this image added, or for a loop closure with the location the previous
+        image closed with (no new edge), the edge that brought the robot there; -1 when none.
     durations_s : seconds of features, bow, filter, validation, relaxation (only with a clock).
     """
 
@@ -109,6 +129,7 @@ class MapperStep:
     candidates: tuple[Candidate, ...] = ()
     accepted: Candidate | None = None
     relaxation: Relaxation | None = None
+    edge: int = -1
     durations_s: dict[str, float] = field(default_factory=dict)
 
 
@@ -133,12 +154,18 @@ class TopoMetricMapper:
         self.vocabulary = Vocabulary(cfg.vocabulary)
         self.filter = LocationFilter(cfg.filter)
         self._first_pose = np.asarray(first_pose, np.float64).reshape(3)
-        opt = OptimizerConfig(method="gn", max_iterations=cfg.relax_iterations, kernel=Kernel.NONE, rel_tol=1e-6)
+        self._robust_relax = cfg.relax_robust != "none"
+        # robust: the incremental optimizer only places new locations; each relaxation is a batch solve
+        iters = 0 if self._robust_relax else cfg.relax_iterations
+        opt = OptimizerConfig(method="gn", max_iterations=iters, kernel=Kernel.NONE, rel_tol=1e-6)
         self._graph = IncrementalOptimizer(IncrementalConfig(optimizer=opt), self._first_pose)
         self._features: list[Features] = []
         self._n_images: list[int] = []
         self._created: list[int] = []  # taken-image index that created each location
         self._loop: list[bool] = []
+        self._rejected = np.zeros(0, bool)  # per edge: dropped by the last robust relaxation
+        self._prev_edge = -1  # the edge that brought the robot to the previous image's location
+        self._anchor: tuple[int, F64] | None = None  # the last location created, with the odometry at its image
         self._metric: bool | None = None
         self._sampled: F64 | None = None  # odometry at the last image taken
         self._processed: F64 | None = None  # odometry at the last image with features
@@ -162,16 +189,23 @@ class TopoMetricMapper:
         g = self._graph.graph
         return g.i.copy(), g.j.copy(), np.array(self._loop, bool)
 
+    def rejected(self) -> NDArray[np.bool_]:
+        """(m,) bool per edge: dropped by the latest robust relaxation (all False with ``relax_robust="none"``)."""
+        out = np.zeros(len(self._loop), bool)
+        out[: self._rejected.size] = self._rejected
+        return out
+
     def topomap_features(self, location: int) -> Features:
         """Keypoints of a location's reference image (the one candidates are validated against)."""
         return self._features[location]
 
     def topomap(self) -> TopoMap:
-        """The map for navigation (a snapshot; the mapper may go on)."""
+        """The map for navigation (a snapshot; the mapper may go on); rejected edges are left out."""
         g = self._graph.graph
+        keep = ~self.rejected()
         hists = [self.vocabulary.location_histogram(k) for k in range(self.n_locations)]
-        return TopoMap.build(self.cfg, self.poses, g.i, g.j, g.measurements, g.information,
-                             np.array(self._loop, bool), self._features, hists, self.vocabulary.words,
+        return TopoMap.build(self.cfg, self.poses, g.i[keep], g.j[keep], g.measurements[keep], g.information[keep],
+                             np.array(self._loop, bool)[keep], self._features, hists, self.vocabulary.words,
                              np.array(self._n_images, np.int64))
 
     # -- one step ---------------------------------------------------------------------
@@ -211,7 +245,7 @@ class TopoMetricMapper:
             motion = se2.between(self._processed, odom)
         elif odom is not None:
             motion = np.zeros(3)
-        if motion is not None and n:
+        if motion is not None and n and self.cfg.odometry_gate:
             eligible &= self._gate(motion)
         g = self._graph.graph
         fstep = self.filter.step(self.poses, motion, scores, eligible.reshape(n), (g.i, g.j))
@@ -226,7 +260,9 @@ class TopoMetricMapper:
             self._n_images[loc] += 1
             post[loc] += post[n]
             post[n] = 0.0
-            relax = self._add_edge(loc, motion, self._deviation(best))
+            edge, relax = self._add_edge(loc, motion, self._deviation(best))
+            if edge < 0 and loc == self._prev_location:
+                edge = self._prev_edge  # still at the location the previous image closed with
             status = StepStatus.LOOP_CLOSURE
         else:
             loc = self.vocabulary.add_location(words, counts)
@@ -234,19 +270,21 @@ class TopoMetricMapper:
             self._n_images.append(1)
             self._created.append(k)
             post = np.r_[post[:n], post[n], 0.0]
-            if loc > 0:
-                self._add_edge(loc, motion, None)
+            edge, relax = self._add_edge(loc, motion, None) if loc > 0 else (-1, None)
+            if odom is not None:
+                self._anchor = (loc, odom)
             status = StepStatus.NEW_LOCATION
         self._toc(dur, "relaxation", tic)
         self.filter.commit(post)
         self._prev_location = loc
+        self._prev_edge = edge
         self._prev_deviation = None if best is None else self._deviation(best)
         self._processed = odom
         if best is not None:
             self._since_loop = 0.0
         elif motion is not None:
             self._since_loop += math.hypot(motion[0], motion[1])
-        return MapperStep(status, k, loc, feats, fstep, cands, best, relax, dur)
+        return MapperStep(status, k, loc, feats, fstep, cands, best, relax, edge, dur)
 
     def _gate(self, motion: F64) -> NDArray[np.bool_]:
         """Locations within the drift bound of the current odometry estimate (MapperConfig gate_*)."""
@@ -295,40 +333,72 @@ class TopoMetricMapper:
         cov[2, 2] = math.radians(c.loop_sigma_theta_deg) ** 2
         return cov
 
-    def _add_edge(self, loc: int, motion: F64 | None, deviation: float | None) -> Relaxation | None:
-        """Edge from the previous location to ``loc``; ``deviation`` (rad) when the image closed a loop with it.
+    def _add_edge(self, loc: int, motion: F64 | None, deviation: float | None) -> tuple[int, Relaxation | None]:
+        """Edge to ``loc`` for the current image; ``deviation`` (rad) when the image closed a loop with it.
 
-        The robot was at the previous location only as closely as its image said when that image closed
-        a loop (``self._prev_deviation`` not None): the edge then starts from the robot's heading there and
-        carries that image's uncertainty too.
+        Returns the new edge's index (-1: none added) and the relaxation it triggered.
+
+        The paper's structure: from the previous location by the odometry since the previous image. The
+        robot was at the previous location only as closely as its image said when that image closed a
+        loop (``self._prev_deviation`` not None): the edge then starts from the robot's heading there and
+        carries that image's uncertainty too. With the robust relaxation, an edge for an image after a
+        loop-closing one starts instead from the last location created (the anchor) by the odometry since
+        its image, so every loop closure of a run is weighed on its own against the odometry.
         """
         prev = self._prev_location
+        anchored = (self._robust_relax and self._metric and self._prev_deviation is not None
+                    and self._anchor is not None and self._processed is not None and motion is not None)
+        if anchored:
+            assert self._anchor is not None and self._processed is not None and motion is not None
+            prev, odom0 = self._anchor
+            z = se2.between(odom0, se2.compose(self._processed, motion))
+            cov = self._odometry_covariance(z)
+        else:
+            z = np.zeros(3) if motion is None else motion
+            cov = self._odometry_covariance(z)
+            if self._metric and motion is not None and self._prev_deviation is not None:
+                z = se2.compose(np.array([0.0, 0.0, self._prev_deviation]), z)
+                cov += self._image_covariance(0.0)
         if prev < 0 or prev == loc:
-            return None
+            return -1, None
         loop = deviation is not None
-        z = np.zeros(3) if motion is None else motion
+        if not (self._metric and motion is not None):
+            cov = np.diag(np.full(3, 1e6))  # no odometry: the edge only records adjacency
+        elif deviation is not None:
+            z = se2.compose(z, np.array([0.0, 0.0, -deviation]))  # the location's heading: the robot's - delta
+            cov += self._image_covariance(float(z[2]))
+        before = self.poses
+        res = self._graph.step([prev], [loc], z[None, :], np.linalg.inv(cov)[None])
+        self._loop.append(loop)
+        edge = len(self._loop) - 1
+        if not loop or not self._metric:
+            return edge, None
+        g_before = self._graph.graph.with_poses(before)
+        if not self._robust_relax:
+            return edge, Relaxation(before, self.poses, chi2(g_before), res.chi2, res.iterations,
+                                    np.zeros(edge + 1, bool))
+        return edge, self._relax_robust(g_before)
+
+    def _odometry_covariance(self, z: F64) -> F64:
+        """(3, 3) covariance of an odometry displacement ``z``, growing with its length and turn."""
         c = self.cfg
         dist, turn = math.hypot(z[0], z[1]), abs(float(z[2]))
         sxy = c.odometry_sigma_floor + c.odometry_sigma_xy_m_per_m * dist
         sth = (c.odometry_sigma_floor + c.odometry_sigma_theta_rad_per_m * dist
                + c.odometry_sigma_theta_rad_per_rad * turn)
-        cov = np.diag([sxy**2, sxy**2, sth**2])
-        if self._metric and motion is not None:
-            if self._prev_deviation is not None:
-                z = se2.compose(np.array([0.0, 0.0, self._prev_deviation]), z)
-                cov += self._image_covariance(0.0)
-            if deviation is not None:
-                z = se2.compose(z, np.array([0.0, 0.0, -deviation]))  # the location's heading: the robot's - delta
-                cov += self._image_covariance(float(z[2]))
-        else:
-            cov = np.diag(np.full(3, 1e6))  # no odometry: the edge only records adjacency
-        before = self.poses
-        res = self._graph.step([prev], [loc], z[None, :], np.linalg.inv(cov)[None])
-        self._loop.append(loop)
-        if not loop or not self._metric:
-            return None
-        g_before = self._graph.graph.with_poses(before)
-        return Relaxation(before, self.poses, chi2(g_before), res.chi2, res.iterations)
+        return np.diag([sxy**2, sxy**2, sth**2])
+
+    def _relax_robust(self, g_before: PoseGraph) -> Relaxation:
+        """Batch DCS solve and chi-square gate over the loop edges, from the current estimate (2x the iterations:
+        the kernel parameter is graduated first)."""
+        c = self.cfg
+        opt = OptimizerConfig(method="gn", max_iterations=2 * c.relax_iterations, kernel=Kernel.DCS, rel_tol=1e-6,
+                              inlier_gate=c.relax_gate_probability)
+        out = optimize(self._graph.graph, opt, robust=np.array(self._loop, bool))
+        self._graph.set_poses(out.poses)
+        self._rejected = ~out.inliers if out.inliers.size else np.zeros(g_before.n_edges, bool)
+        return Relaxation(g_before.poses, self.poses, chi2(g_before), out.chi2_final, out.iterations,
+                          self._rejected.copy())
 
     def _tic(self) -> float:
         return self.clock() if self.clock is not None else 0.0

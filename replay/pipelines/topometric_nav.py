@@ -33,14 +33,14 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import rerun.blueprint as rrb
 
 from slamreplay.algorithms.common import se2
 from slamreplay.algorithms.observe import Image, LineStrips, Points, Pose, Scalar, Segments, Text
-from slamreplay.algorithms.topometric.guidance import Navigator, NavUpdate
+from slamreplay.algorithms.topometric.guidance import GuidanceConfig, Navigator, NavUpdate
 from slamreplay.algorithms.topometric.pathfollow import distance_to_polyline
 from slamreplay.recorder.messages import (
     TOPIC_CAMERA_IMAGE,
@@ -70,6 +70,8 @@ from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext
 from slamreplay.replay.reader import Envelope
 from slamreplay.replay.trajectory import TrajectoryLog
 
+AS_RECORDED = -1.0  # a guidance key of TopometricNavConfig left at the recording's value
+
 
 @dataclass(frozen=True, slots=True)
 class TopometricNavConfig:
@@ -79,10 +81,32 @@ class TopometricNavConfig:
                                                         "path recorded by `slamreplay navigate`"})
     goal_radius_m: float = field(default=0.5, metadata={"help": "goal_reached needs the true final position "
                                                                 "this close to the goal node"})
+    keep_along_m: float = field(default=AS_RECORDED, metadata={"help": (
+        "localization rule: 0 resets the position to the matched node (the paper, IV-B); > 0 (beyond the paper) "
+        "keeps the estimate's offset along the node's heading, clamped to +-keep_along_m; negative: as recorded. "
+        "A value other than the recording's replays the recorded drive with that rule: replay_mismatches then "
+        "count what it changes")})
+    image_every_m: float = field(default=AS_RECORDED, metadata={"help": (
+        "an image is processed each time odometry moved this far (the paper, section V: 0.5 m); negative: as "
+        "recorded; larger than the recording's skips recorded images")})
+    image_every_deg: float = field(default=AS_RECORDED, metadata={"help": (
+        "... or turned this much (the paper: 10 degrees); negative: as recorded")})
 
     def __post_init__(self) -> None:
         if not self.goal_radius_m > 0:
             raise ValueError(f"goal_radius_m must be > 0, got {self.goal_radius_m}")
+        for name in ("keep_along_m", "image_every_m", "image_every_deg"):
+            value = getattr(self, name)
+            if not math.isfinite(value):
+                raise ValueError(f"{name} must be finite (negative: as recorded), got {value}")
+        for name in ("image_every_m", "image_every_deg"):
+            if getattr(self, name) == 0:
+                raise ValueError(f"{name} must be > 0 (or negative: as recorded), got 0")
+
+    def guidance(self, recorded: GuidanceConfig) -> GuidanceConfig:
+        """The recorded guidance with this config's keys that are set (>= 0) in place of the recorded values."""
+        keys = ("keep_along_m", "image_every_m", "image_every_deg")
+        return dataclasses.replace(recorded, **{k: getattr(self, k) for k in keys if getattr(self, k) >= 0})
 
 
 class TopometricNavPipeline(Pipeline):
@@ -92,6 +116,21 @@ class TopometricNavPipeline(Pipeline):
     optional_topics = (TOPIC_GROUND_TRUTH_POSE, TOPIC_NAV_LOCALIZATION)
     start_topic = TOPIC_ODOM
     Config = TopometricNavConfig
+    # "paper": the navigation rules of [Battesti, Bazeille, Filliat 2011, IV-V] in place of the recorded ones;
+    # a replay cannot change where the recorded robot drove, only what the navigator makes of its images
+    # (estimate_error_m_mean, visual_corrections, replay_mismatches): `slamreplay navigate` drives with them.
+    presets: ClassVar[dict[str, dict[str, Any]]] = {
+        "paper": {"keep_along_m": 0.0, "image_every_m": 0.5, "image_every_deg": 10.0},
+    }
+    preset_notes: ClassVar[dict[str, str]] = {
+        "keep_along_m": "the paper sets the position to the loop-closure node's (IV-B), as `slamreplay navigate` "
+                        "does by default since measured (docs/topometric.md); the extra (> 0) keeps the estimate's "
+                        "along-track offset from the node, since the detector often matches a node 0.5-0.8 m ahead",
+        "image_every_m": "the paper processes an image every 50 cm or 10 degrees (section V; 40 cm in Fig. 6); "
+                         "`slamreplay navigate` takes one every 0.3 m (GuidanceConfig.image_every_m): measured "
+                         "closer to the path (docs/topometric.md)",
+        "image_every_deg": "the paper: 10 degrees (section V); the same as the default",
+    }
     metrics = {
         "goal_reached": MetricSpec("higher", "", "1 when the navigator stopped at the goal and the true position "
                                    "is within goal_radius_m of the goal node"),
@@ -145,9 +184,19 @@ class TopometricNavPipeline(Pipeline):
         self.map = nav_map
         self.start, self.goal = int(rec["start"]), int(rec["goal"])
         try:
-            guidance = guidance_from_dict(rec["guidance"])
+            recorded = guidance_from_dict(rec["guidance"])
+            guidance = config.guidance(recorded)
         except (TypeError, ValueError) as err:
             raise ReplayError(f"the recording's guidance configuration is unreadable: {err}") from err
+        # With the recorded spacing every recorded image is processed (the runner took it when due).
+        self.check_due = (guidance.image_every_m, guidance.image_every_deg) != (recorded.image_every_m,
+                                                                              recorded.image_every_deg)
+        changed = {k: (getattr(recorded, k), getattr(guidance, k)) for k in ("keep_along_m", "image_every_m",
+                                                                            "image_every_deg")
+                   if getattr(recorded, k) != getattr(guidance, k)}
+        for k, (was, now) in changed.items():
+            ctx.log(f"guidance {k} {now} instead of the recorded {was}: the recorded drive replayed with another "
+                    f"rule; replay_mismatches count what it changes")
         self.dt = float(rec["control_period_s"])
         # The navigate runner's generators: odometry, localizer, image noise (replay/navigate.py).
         rng_loc = np.random.default_rng(int(rec["seed"])).spawn(3)[1]
@@ -202,6 +251,8 @@ class TopometricNavPipeline(Pipeline):
             self.estimate.append(float(est[0]), float(est[1]))
             obs.log("world/robot", Pose(est))
         elif isinstance(msg, CameraImage):
+            if self.check_due and not self.nav.image_due():
+                return  # a sparser image spacing than the recording's: this image is not processed
             gray = msg.pixels if msg.pixels.ndim == 2 else msg.pixels.mean(axis=2).astype(np.uint8)
             obs.log("camera/image", Image(gray))
             update = self.nav.on_image(gray)

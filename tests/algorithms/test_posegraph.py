@@ -450,3 +450,34 @@ def test_cvxopt_cholmod_reuses_the_analysis(monkeypatch: pytest.MonkeyPatch) -> 
     np.testing.assert_allclose(r.poses, ref.poses, atol=1e-9)
     h = sp.csc_matrix(-np.eye(6))
     assert not sc.SparseCholesky("cholmod").factor(h)  # not positive definite: False, not an exception
+
+
+def test_robust_mask_chooses_the_edges_the_kernel_applies_to() -> None:
+    """optimize(robust=...) overrides the |i - j| != 1 rule: a false sequential edge is rejected only when masked."""
+    n = 6
+    poses = np.array([[float(k), 0.0, 0.0] for k in range(n)])
+    i = np.r_[np.arange(n - 1), 0, 4]
+    j = np.r_[np.arange(1, n), 3, 5]
+    z = np.vstack([np.tile([1.0, 0.0, 0.0], (n - 1, 1)), [3.0, 0.0, 0.0], [5.0, 0.0, 0.0]])  # 4 -> 5: false, 5 m
+    info = np.tile(np.eye(3) * 100.0, (len(i), 1, 1))
+    g = PoseGraph(poses, i, j, z, info)
+    robust = np.zeros(len(i), bool)
+    robust[[5, 6]] = True
+    res = optimize(g, OptimizerConfig(kernel=Kernel.DCS), robust=robust)
+    assert list(np.flatnonzero(~res.inliers)) == [6]
+    np.testing.assert_allclose(res.poses[:5, 0], np.arange(5.0), atol=1e-6)
+    assert optimize(g, OptimizerConfig(kernel=Kernel.DCS)).edges_rejected == 0  # default rule: 4 -> 5 is odometry
+    with pytest.raises(ValueError, match=r"robust must have shape \(7,\), got \(3,\)"):
+        optimize(g, OptimizerConfig(kernel=Kernel.DCS), robust=np.ones(3, bool))
+
+
+def test_incremental_set_poses_replaces_the_estimate() -> None:
+    """set_poses takes an estimate solved elsewhere; a wrong shape or a moved gauge is refused."""
+    inc = IncrementalOptimizer(IncrementalConfig(OptimizerConfig(kernel=Kernel.NONE, max_iterations=3)))
+    inc.step([0], [1], [[1.0, 0.0, 0.0]], [np.eye(3)])
+    inc.set_poses([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0]])
+    np.testing.assert_allclose(inc.poses[1], [1.5, 0.0, 0.0])
+    with pytest.raises(ValueError, match=r"poses must be finite with shape \(2, 3\)"):
+        inc.set_poses(np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="vertex 0 is the gauge"):
+        inc.set_poses([[0.1, 0.0, 0.0], [1.0, 0.0, 0.0]])

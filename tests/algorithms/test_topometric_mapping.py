@@ -163,3 +163,80 @@ def test_rtabmap_samples_precision_recall(shared_data: Path) -> None:
           f"recall {recall:.3f}")
     assert wrong == 0 and correct > 0
     assert recall >= 0.6
+
+
+def test_odometry_gate_switch_turns_the_gate_off() -> None:
+    """The second lap is 6 m ahead in odometry: the gate (2 m + 10 % of 6 m) drops every revisit; switched off,
+    the mapper closes the same loops as with an unbounded gate."""
+    images = route_images()
+
+    def closures(cfg: MapperConfig) -> list[tuple[int, int]]:
+        m = TopoMetricMapper(cfg, np.random.default_rng(0))
+        steps = [m.step(img, odom) for img, odom in images]
+        return [(s.image_index, s.location) for s in steps if s.status is StepStatus.LOOP_CLOSURE]
+
+    assert closures(MapperConfig()) == []
+    off = closures(MapperConfig(odometry_gate=False))
+    assert len(off) >= 6 and off == closures(MapperConfig(gate_m=100.0))
+
+
+TWIN_M = 9.0  # places 20..25 repeat places 2..7, 18 places (9 m) further down the corridor
+
+
+def twin_corridor() -> tuple[list[np.ndarray], list[int]]:
+    """30 places 0.5 m apart along x, places 20..25 a copy of 2..7 (repeated wall panels); driven forward to 29,
+    then in reverse (same heading, same views) back to 10: the reverse closes true loops."""
+    places = [texture(300 + k) for k in range(30)]
+    for d in range(6):
+        places[20 + d] = places[2 + d]
+    return places, list(range(30)) + list(range(28, 9, -1))
+
+
+def run_twin(robust: str) -> tuple[TopoMetricMapper, list, np.ndarray]:
+    """Map the twin corridor with exact odometry and no gate; also the true pose of each location."""
+    places, route = twin_corridor()
+    m = TopoMetricMapper(MapperConfig(odometry_gate=False, relax_robust=robust, recent_images=0),
+                         np.random.default_rng(0))
+    steps = [(k, m.step(places[k], [0.5 * k, 0.0, 0.0])) for k in route]
+    created = {s.location: k for k, s in steps if s.status is StepStatus.NEW_LOCATION}
+    truth = np.array([[0.5 * created[loc], 0.0, 0.0] for loc in range(m.n_locations)])
+    return m, steps, truth
+
+
+def test_robust_relaxation_rejects_false_closures_and_keeps_true_ones() -> None:
+    """Repeated panels give a run of geometrically perfect false closures 9 m away. Plain relaxation (the paper)
+    puts the locations created after the run about 9 m off; with DCS every false closure is rejected, every
+    true one (the reverse drive) is kept, and the map is the exact odometry's."""
+    m0, steps0, truth0 = run_twin("none")
+    m1, steps1, truth1 = run_twin("dcs")
+    for steps in (steps0, steps1):
+        false = [(k, s) for k, s in steps if s.status is StepStatus.LOOP_CLOSURE and 20 <= k <= 25]
+        assert len(false) >= 5  # the run is detected either way: the kernel acts afterwards
+    err0 = np.hypot(*(m0.poses[:, :2] - truth0[:, :2]).T)
+    assert TWIN_M - 1.0 < err0.max() < TWIN_M + 1.0  # 9.26 m measured
+    assert not m0.rejected().any()
+    err1 = np.hypot(*(m1.poses[:, :2] - truth1[:, :2]).T)
+    assert err1.max() < 1e-6
+    rejected = m1.rejected()
+    for k, s in steps1:
+        if s.status is not StepStatus.LOOP_CLOSURE:
+            continue
+        same_place = abs(truth1[s.location, 0] - 0.5 * k) < 0.25
+        assert s.edge >= 0 and rejected[s.edge] == (not same_place), (k, s.location)
+    i, _, loop = m1.edges()
+    assert rejected.sum() >= 5 and np.all(loop[rejected])
+    topo = m1.topomap()  # navigation's map leaves the rejected closures out: every edge it keeps is true
+    assert len(topo.edge_i) == len(i) - rejected.sum()
+    true_dx = truth1[topo.edge_j, 0] - truth1[topo.edge_i, 0]
+    np.testing.assert_allclose(topo.edge_measurements[:, 0], true_dx, atol=0.05)
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [
+    ({"relax_robust": "huber"}, r"relax_robust must be one of none, dcs, got 'huber'"),
+    ({"relax_gate_probability": 1.0}, r"relax_gate_probability must be in \(0, 1\), got 1.0"),
+    ({"odometry_gate": "no"}, r"odometry_gate must be a bool, got 'no'"),
+])
+def test_mapper_config_rejects_bad_robust_settings(kwargs: dict, match: str) -> None:
+    """Bad odometry_gate / relax_robust / relax_gate_probability values raise a ValueError naming the key."""
+    with pytest.raises(ValueError, match=match):
+        MapperConfig(**kwargs)

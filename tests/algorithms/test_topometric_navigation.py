@@ -219,3 +219,28 @@ def test_vision_keeps_a_drifting_robot_on_the_path_and_odometry_alone_does_not()
     assert xt_on.max() < 0.15 and xt_on.mean() < 0.05
     assert nav_off.corrections == 0 and nav_off.matches > 0
     assert xt_off.max() > 1.0
+
+
+def test_correct_resets_the_position_to_the_node_with_the_papers_rule() -> None:
+    """keep_along_m 0 (the paper, the default): the position becomes the node's, whatever the estimate was; the
+    heading the node's plus the deviation. keep_along_m 1: the offset along the node's heading stays, clamped."""
+    assert GuidanceConfig().keep_along_m == 0.0
+    node = [2.0, 3.0, NORTH]
+    for estimate in ([2.4, 3.7, 0.2], [1.0, 1.0, -2.0]):
+        q = QualitativePose(estimate, [0.0, 0.0, 0.0])
+        np.testing.assert_allclose(q.correct(node, 0.1, [5.0, 0.0, 0.0], keep_along_m=0.0),
+                                   [2.0, 3.0, NORTH + 0.1], atol=1e-12)
+        np.testing.assert_allclose(q.anchor_odom, [5.0, 0.0, 0.0])
+    q = QualitativePose([2.4, 3.7, 0.2], [0.0, 0.0, 0.0])  # 0.7 m along the node's heading (north), 0.4 m across
+    np.testing.assert_allclose(q.correct(node, 0.0, [0.0, 0.0, 0.0], keep_along_m=1.0), [2.0, 3.7, NORTH],
+                               atol=1e-12)
+    q = QualitativePose([2.0, 1.0, 0.0], [0.0, 0.0, 0.0])  # 2 m behind: clamped to 1 m
+    np.testing.assert_allclose(q.correct(node, 0.0, [0.0, 0.0, 0.0], keep_along_m=1.0)[:2], [2.0, 2.0],
+                               atol=1e-12)
+
+
+@pytest.mark.parametrize("value", [-0.5, math.inf, math.nan])
+def test_guidance_rejects_a_bad_keep_along(value: float) -> None:
+    """keep_along_m must be finite and >= 0."""
+    with pytest.raises(ValueError, match=r"keep_along_m must be finite and >= 0"):
+        GuidanceConfig(keep_along_m=value)

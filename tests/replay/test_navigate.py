@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import subprocess
 import sys
@@ -289,3 +290,35 @@ def test_navigate_help_explains_the_workflow(capsys: pytest.CaptureFixture[str])
     for needed in ("--map RUN_DIR", "--world WORLD", "--goal NODE", "--no-visual-correction", "topometric-nav",
                    "slamreplay run corridor.mcap --pipeline topometric", "Exit 0", "2 on bad"):
         assert needed in text, needed
+
+
+def test_paper_preset_replays_the_drive_with_the_papers_rules(world: dict[str, Path], short: Path) -> None:
+    """--preset paper resolves to the paper's rules (reset to the node, an image every 50 cm / 10 deg); on a drive
+    recorded with 0.3 m spacing it processes fewer of the recorded images, and the mismatches count the change."""
+    from slamreplay.replay.pipeline import get_pipeline, resolve_layers
+
+    cls = get_pipeline("topometric-nav")
+    cfg = resolve_layers(cls, preset="paper").config
+    assert (cfg.keep_along_m, cfg.image_every_m, cfg.image_every_deg) == (0.0, 0.5, 10.0)
+    assert set(cls.presets["paper"]) <= set(cls.preset_notes)
+    same = run_recording(short, "topometric-nav", world["dir"] / "short_default")
+    assert same.metrics["replay_mismatches"] == 0  # default: the recorded guidance
+    paper = run_recording(short, "topometric-nav", world["dir"] / "short_paper", preset="paper")
+    manifest = json.loads((world["dir"] / "short_paper" / "manifest.json").read_text())
+    assert manifest["config_sources"]["image_every_m"] == "preset paper"
+    assert paper.metrics["images"] < same.metrics["images"]
+    assert paper.metrics["replay_mismatches"] > 0
+    log = (world["dir"] / "short_paper" / "log.txt").read_text()
+    assert "guidance image_every_m 0.5 instead of the recorded 0.3" in log
+
+
+@pytest.mark.parametrize(("values", "match"), [
+    ({"image_every_m": 0.0}, r"image_every_m must be > 0 \(or negative: as recorded\)"),
+    ({"keep_along_m": math.inf}, r"keep_along_m must be finite"),
+])
+def test_bad_guidance_keys_are_refused(values: dict, match: str) -> None:
+    """A zero image spacing or a non-finite keep_along_m is refused, naming the key."""
+    from slamreplay.replay.pipelines.topometric_nav import TopometricNavConfig
+
+    with pytest.raises(ValueError, match=match):
+        TopometricNavConfig(**values)

@@ -134,3 +134,41 @@ def test_bad_map_files(runs: tuple[Path, Path], tmp_path: Path) -> None:
         load_map(write({**good, "keypoint_offsets": good["keypoint_offsets"][:-1]}, "cut.npz"))
     with pytest.raises(ReplayError, match="lacks the arrays words"):
         load_map(write({k: v for k, v in good.items() if k != "words"}, "nowords.npz"))
+
+
+def test_paper_preset_resolves_and_the_manifest_records_it(corridor: Path, runs: tuple[Path, Path],
+                                                           tmp_path: Path) -> None:
+    """--preset paper: no odometry gate, plain relaxation, an image every 50 cm / 10 deg, recorded as the preset's
+    in the manifest; a key the user sets on top (the robust kernel) wins and is counted apart."""
+    from slamreplay.replay.pipeline import get_pipeline, resolve_layers
+
+    cls = get_pipeline("topometric")
+    resolved = resolve_layers(cls, preset="paper")
+    cfg = resolved.config
+    assert (cfg.odometry_gate, cfg.relax_robust, cfg.sample_distance_m, cfg.sample_angle_deg) == (False, "none",
+                                                                                                  0.5, 10.0)
+    assert set(cls.presets["paper"]) <= set(cls.preset_notes)  # every extra says what it adds
+    assert resolve_layers(cls).config.odometry_gate is True  # the default keeps the gate
+    run_recording(corridor, "topometric", tmp_path / "p", seed=0, preset="paper", config={"relax_robust": "dcs"})
+    manifest = json.loads((tmp_path / "p" / "manifest.json").read_text())
+    assert manifest["preset"] == "paper"
+    src = manifest["config_sources"]
+    assert (src["odometry_gate"], src["sample_distance_m"], src["relax_robust"]) == ("preset paper", "preset paper",
+                                                                                    "user")
+    assert manifest["config"]["odometry_gate"] is False and manifest["config"]["relax_robust"] == "dcs"
+    m = {k: v["value"] for k, v in json.loads((tmp_path / "p" / "metrics.json").read_text())["metrics"].items()}
+    assert "loop_closures_rejected" in m and m["loop_closure_precision"] == 1.0
+    default = json.loads((runs[0] / "metrics.json").read_text())["metrics"]
+    assert "loop_closures_rejected" not in default  # only with the kernel
+
+
+@pytest.mark.parametrize(("values", "match"), [
+    ({"relax_robust": "huber"}, r"relax_robust"),
+    ({"odometry_gate": "maybe"}, r"odometry_gate"),
+])
+def test_bad_robust_settings_are_refused_naming_the_key(values: dict, match: str) -> None:
+    """A bad relax_robust or odometry_gate is a ReplayError naming the key, before anything runs."""
+    from slamreplay.replay.pipeline import get_pipeline, resolve_layers
+
+    with pytest.raises(ReplayError, match=match):
+        resolve_layers(get_pipeline("topometric"), values)
