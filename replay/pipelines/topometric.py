@@ -258,6 +258,15 @@ class TopometricPipeline(Pipeline):
         dropped[edge >= 0] = rej[edge[edge >= 0]]
         return loop & ~dropped
 
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The relaxed locations, each at the time of the image that created it (what ``trajectory_ate_rmse_m``
+        scores); None before the first location."""
+        created = np.flatnonzero(~np.asarray(self.taken_loop, bool))
+        if not len(created):
+            return None
+        locs = np.asarray(self.taken_loc, np.int64)[created]
+        return np.asarray(self.taken_t, np.int64)[created], np.asarray(self.mapper.poses, np.float64)[locs]
+
     def finish(self) -> dict[str, float]:
         n_img = len(self.durations["image"])
         kept = self.kept_loops()

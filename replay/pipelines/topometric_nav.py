@@ -232,6 +232,8 @@ class TopometricNavPipeline(Pipeline):
         self.gt: list[np.ndarray] = []
         self.est_t: list[int] = []
         self.est: list[np.ndarray] = []
+        self.path_t: list[int] = []  # the estimate at every odometry message: the run's trajectory.tum
+        self.path: list[np.ndarray] = []
 
     def step(self, env: Envelope) -> None:
         msg, obs = env.msg, self.ctx.observer
@@ -249,6 +251,8 @@ class TopometricNavPipeline(Pipeline):
             dead = se2.compose(self.map.graph.poses[self.start], se2.between(self.odom0, odom))
             self.odometry.append(float(dead[0]), float(dead[1]))
             self.estimate.append(float(est[0]), float(est[1]))
+            self.path_t.append(env.log_time_ns)
+            self.path.append(est)
             obs.log("world/robot", Pose(est))
         elif isinstance(msg, CameraImage):
             if self.check_due and not self.nav.image_due():
@@ -294,6 +298,12 @@ class TopometricNavPipeline(Pipeline):
             self.mismatches += 1
             if self.mismatches <= 5:
                 self.ctx.log(f"replay differs from the recording: {why}")
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The navigator's position estimate at every odometry message (world frame)."""
+        if not self.path:
+            return None
+        return np.asarray(self.path_t, np.int64), np.asarray(self.path, np.float64).reshape(-1, 3)
 
     def finish(self) -> dict[str, float]:
         for t in (self.truth, self.odometry, self.estimate):
