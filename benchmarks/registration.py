@@ -27,8 +27,9 @@ wall clock and process CPU time (the steadier figure when other work shares the 
 order of the methods rotates from pair to pair (``--fixed-order``: always ours first), so that
 none of them always pays for the caches the previous method flushed.
 
-``--nees`` runs the calibration study of the translation covariance (eq. 10) instead: the NEES
-of the translation error against the covariance on pairs perturbed by sensor noise and blur.
+``--nees`` runs the calibration study of the paper's translation covariance (eq. 10) instead: the
+NEES of the translation error against it on pairs perturbed by sensor noise and blur (paper
+against calibrated: benchmarks/ifmi_calibration.py).
 
 Run: ``.venv/bin/python benchmarks/registration.py [--pairs 40] [--sizes 256 512] [--data ../shared/data] [--nees]``.
 Peer: ``pip install imreg_dft`` (skipped with a note when missing).
@@ -292,7 +293,7 @@ def nees_table(sources: dict[str, list[np.ndarray]], n: int, count: int, seed: i
             nees, err, sigma, accepted = [], [], [], 0
             for p in pairs:
                 ref, mov = perturb(p, noise, blur, rng)
-                r = register(ref, mov)
+                r = register(ref, mov, IfmiConfig(covariance="paper"))
                 if r.status is not Status.OK:
                     continue
                 accepted += 1

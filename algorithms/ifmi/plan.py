@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamreplay.algorithms.ifmi import spectral
+from slamreplay.algorithms.ifmi.covariance import COVARIANCES
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -45,6 +46,9 @@ class IfmiConfig:
     peak_neighbourhood : K of eq. (10), odd.
     min_pnr : PNR threshold of eq. (13) deciding ``status`` (the paper's 0.2).
     max_scale : largest scale change searched (and its inverse).
+    covariance : ``"calibrated"`` (the default, chosen by measurement) or ``"paper"``: eq. (10) on the POMF
+        peaks, 10 to 200 times too large; ``calibrated`` divides the translation's by PNR sqrt(H W) and
+        takes the rotation/scale's from the phase residuals (:mod:`slamreplay.algorithms.ifmi.covariance`).
     refine_translation : after the coarse pass of steps 7-9, warp the reference by the whole estimate,
         shift included, before the full-resolution POMF; else that POMF uses the reference re-rotated
         and re-scaled only (:mod:`slamreplay.algorithms.ifmi.registration`).
@@ -58,6 +62,7 @@ class IfmiConfig:
     min_pnr: float = 0.2
     max_scale: float = 2.0
     refine_translation: bool = True
+    covariance: str = "calibrated"
 
     def __post_init__(self) -> None:
         for name in ("n_angle", "n_radius"):
@@ -71,6 +76,8 @@ class IfmiConfig:
             raise ValueError(f"peak_neighbourhood must be odd and >= 3, got {self.peak_neighbourhood}")
         if not self.min_pnr >= 0.0:
             raise ValueError(f"min_pnr must be >= 0, got {self.min_pnr}")
+        if self.covariance not in COVARIANCES:
+            raise ValueError(f"covariance must be one of {', '.join(COVARIANCES)}, got {self.covariance!r}")
         if not self.max_scale > 1.0:
             raise ValueError(f"max_scale must be > 1, got {self.max_scale}")
 

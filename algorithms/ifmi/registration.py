@@ -17,6 +17,9 @@ reference, (8) a POMF against ``moving``, (9) the translation from its Dirac pea
 magnitude spectrum cannot tell ``angle`` from ``angle + 180``: step (8) runs for both and the
 stronger peak wins. Section II-B gives each POMF peak a covariance (eq. 10) and a
 peak-to-noise ratio (eqs. 11-13); the translation PNR decides ``status`` (threshold 0.2).
+Eq. (10) measures the peak's width, not the error of its location, and is 10 to 200 times too
+large; ``IfmiConfig.covariance`` (default ``"calibrated"``) replaces it by the calibrated form of
+:mod:`slamreplay.algorithms.ifmi.covariance` (``"paper"`` keeps eq. 10).
 
 Beyond the paper, each for a measured failure: steps 7-9 run coarse first (half resolution,
 both half turns) and then at full resolution with the reference warped by the whole estimate;
@@ -44,7 +47,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from slamreplay.algorithms.ifmi import spectral
+from slamreplay.algorithms.ifmi import covariance, spectral
 from slamreplay.algorithms.ifmi.plan import DEFAULT_CONFIG, IfmiConfig, Plan, Prepared, affine, plan, prepare
 from slamreplay.algorithms.observe import NULL_OBSERVER, Image, Observer, Points, Scalar
 
@@ -69,8 +72,11 @@ class Registration:
     angle_deg : rotation about the image centre, degrees, counter-clockwise as displayed, in [-180, 180).
     scale : scale factor (moving / reference).
     shift_px : (dx, dy), pixels.
-    covariance : (3, 3) over (dx, dy, angle_deg), px^2 and deg^2 (eq. 10, both POMF stages).
-    scale_var : variance of ``scale`` (eq. 10 on the rotation/scale POMF).
+    covariance : (3, 3) over (dx, dy, angle_deg), px^2 and deg^2: eq. (10) of both POMF stages
+        (``covariance="paper"``) or its calibrated form (:mod:`slamreplay.algorithms.ifmi.covariance`:
+        eq. 10 / (PNR sqrt(H W)) for the shift, the phase-residual sandwich for the angle, and the
+        angle's and scale's lever on the shift, with its cross-covariance).
+    scale_var : variance of ``scale`` (eq. 10 on the rotation/scale POMF, or its calibrated form).
     pnr : PNR of the translation POMF (eq. 13); decides ``status``.
     pnr_rotation_scale : PNR of the rotation/scale POMF (eq. 13).
     status : OK, AMBIGUOUS (pnr < min_pnr) or FLAT.
@@ -134,6 +140,7 @@ class _Candidate:
 
     rs: spectral.Peak  # its rotation/scale peak (eq. 10 covariance in bins)
     rs_surface: F32
+    rs_cross: NDArray[np.complex64]  # the normalized cross spectrum of that POMF (the calibrated covariance reads it)
     angle: float  # degrees, the 180-degree decision included
     scale: float
     coarse_shift: tuple[float, float]  # (dx, dy) from the coarse pass, pixels
@@ -172,15 +179,15 @@ def register_prepared(ref: Prepared, mov: Prepared, config: IfmiConfig = DEFAULT
     lp = p.log_polar
     k = config.peak_neighbourhood
     n_radius = p.taper.weight.shape[1]
-    rs, rs_surface, angle, scale = _rotation_scale(ref, mov, p, k, n_radius)
-    first, *others = _coarse_translation(ref, mov, p, config, rs, rs_surface, angle, scale)
+    rs, rs_surface, rs_cross, angle, scale = _rotation_scale(ref, mov, p, k, n_radius)
+    first, *others = _coarse_translation(ref, mov, p, config, rs, rs_surface, rs_cross, angle, scale)
     best = _translation_pass(ref, mov, p, config, first)
     if best.peak.pnr < config.min_pnr or others:
         pending = list(others)
         if best.peak.pnr < config.min_pnr:
             low = _rotation_scale(ref, mov, p, k, p.low_taper.weight.shape[1])
-            d_angle = (low[2] - angle + 90.0) % 180.0 - 90.0
-            if abs(d_angle) > lp.deg_per_bin or abs(math.log(low[3] / scale)) > lp.log_step:
+            d_angle = (low[3] - angle + 90.0) % 180.0 - 90.0
+            if abs(d_angle) > lp.deg_per_bin or abs(math.log(low[4] / scale)) > lp.log_step:
                 pending += _coarse_translation(ref, mov, p, config, *low)
         for cand in pending:
             result = _translation_pass(ref, mov, p, config, cand)
@@ -189,16 +196,25 @@ def register_prepared(ref: Prepared, mov: Prepared, config: IfmiConfig = DEFAULT
     c, t = best.candidate, best.peak
     shift = (best.whole[0] + t.col, best.whole[1] + t.row)
     angle = (c.angle + 180.0) % 360.0 - 180.0
-    angle_var = c.rs.cov[0][0] * lp.deg_per_bin**2
-    scale_var = c.rs.cov[1][1] * (c.scale * lp.log_step) ** 2
-    if best.band > 1:
+    rs_cov, t_cov, floor = c.rs.cov, t.cov, best.band > 1
+    if config.covariance == "calibrated":  # docs/ifmi.md, "Calibrated covariance"
+        t_cov = covariance.translation(t.cov, t.pnr, p.shape)
+        rs_cal = covariance.rotation_scale(c.rs_cross, (c.rs_surface.shape[0], c.rs_surface.shape[1]), c.rs.row,
+                                           c.rs.col)
+        if math.isfinite(rs_cal[0][0]) and math.isfinite(rs_cal[1][1]):
+            rs_cov, floor = rs_cal, False
+    angle_var = rs_cov[0][0] * lp.deg_per_bin**2
+    scale_var = rs_cov[1][1] * (c.scale * lp.log_step) ** 2
+    if floor:
         # The translation Dirac of band b confirms the rotation and scale only as far as they move the
         # image's edge (half the smaller side, r) by less than b pixels: b / r radians, b / r in scale.
         tol = best.band / (0.5 * min(p.shape))
         angle_var = max(angle_var, math.degrees(tol) ** 2)
         scale_var = max(scale_var, (c.scale * tol) ** 2)
-    (t_yy, t_yx), (_, t_xx) = t.cov  # (row, col) = (y, x) bins -> (dx, dy)
+    (t_yy, t_yx), (_, t_xx) = t_cov  # (row, col) = (y, x) bins -> (dx, dy)
     cov = np.array([[t_xx, t_yx, 0.0], [t_yx, t_yy, 0.0], [0.0, 0.0, angle_var]])
+    if config.covariance == "calibrated":
+        cov = covariance.with_overlap_lever(cov, scale_var, c.scale, shift)
     status = Status.OK if t.pnr >= config.min_pnr else Status.AMBIGUOUS
     if observer is not NULL_OBSERVER:
         _log_surface(observer, "ifmi/pomf/rotation_scale", c.rs_surface, c.rs)
@@ -213,8 +229,9 @@ GRID_OFFSET_DEG = 20.0  # 15, 20 and 30 did alike; 22.5, half way to the diagona
 
 
 def _rotation_scale(ref: Prepared, mov: Prepared, p: Plan, k: int, n_cols: int
-                    ) -> tuple[spectral.Peak, F32, float, float]:
-    """Steps 5-6 on the descriptors of the first ``n_cols`` radius columns: peak, POMF, angle (mod 180), scale.
+                    ) -> tuple[spectral.Peak, F32, NDArray[np.complex64], float, float]:
+    """Steps 5-6 on the descriptors of the first ``n_cols`` radius columns: peak, POMF, cross spectrum, angle
+    (mod 180), scale.
 
     Both magnitude spectra are sampled on the same pixel grid, and its imprint on the
     descriptors (the bilinear resampling of the finely speckled magnitude) matches itself when
@@ -248,8 +265,9 @@ def _rotation_scale(ref: Prepared, mov: Prepared, p: Plan, k: int, n_cols: int
         peak2 = spectral.find_peak(surface2, k, col_limit, cross2)
         angle2 = angle + (GRID_OFFSET_DEG - peak2.row * lp.deg_per_bin - angle + 90.0) % 180.0 - 90.0
         if abs(angle2 - angle) < GRID_BIAS_DEG:  # the same peak, seen away from the imprint
-            peak, surface, angle, scale = peak2, surface2, angle2, math.exp(-peak2.col * lp.log_step)
-    return peak, surface, angle, scale
+            peak, surface, cross = peak2, surface2, cross2
+            angle, scale = angle2, math.exp(-peak2.col * lp.log_step)
+    return peak, surface, cross, angle, scale
 
 
 def _warped_spectrum(ref: Prepared, p: Plan, angle: float, scale: float,
@@ -280,7 +298,8 @@ def _coarse_affine(p: Plan, angle: float, scale: float) -> F64:
 
 
 def _coarse_translation(ref: Prepared, mov: Prepared, p: Plan, config: IfmiConfig, rs: spectral.Peak,
-                        rs_surface: F32, angle: float, scale: float) -> list[_Candidate]:
+                        rs_surface: F32, rs_cross: NDArray[np.complex64], angle: float, scale: float
+                        ) -> list[_Candidate]:
     """Steps 7-9 on the coarse images for the rotation/scale estimate at ``angle`` and ``angle + 180``.
 
     Both half turns share one warp and one FFT (a half turn conjugates the spectrum and shifts
@@ -309,7 +328,7 @@ def _coarse_translation(ref: Prepared, mov: Prepared, p: Plan, config: IfmiConfi
     out = []
     for flipped, peak in zip((False, True), peaks, strict=True):
         shift = (peak.col / p.coarse_grid[0], peak.row / p.coarse_grid[1])
-        out.append((peak.pnr, _Candidate(rs, rs_surface, angle + 180.0 if flipped else angle, scale, shift)))
+        out.append((peak.pnr, _Candidate(rs, rs_surface, rs_cross, angle + 180.0 if flipped else angle, scale, shift)))
     out.sort(key=lambda pc: -pc[0])
     (p0, c0), (p1, c1) = out
     return [c0, c1] if p1 * FLIP_AMBIGUITY > p0 else [c0]

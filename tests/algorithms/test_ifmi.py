@@ -255,19 +255,19 @@ def perturbed(texture: np.ndarray, rng: np.random.Generator, noise: float, blur:
     return ref, mov, (dx, dy)
 
 
-def test_translation_covariance_is_conservative(texture: np.ndarray) -> None:
-    """NEES of the translation against the eq. (10) covariance on noisy, blurred pairs: far below 2.
+def test_paper_translation_covariance_is_conservative(texture: np.ndarray) -> None:
+    """NEES of the translation against the paper's eq. (10) covariance on noisy, blurred pairs: far below 2.
 
     The paper's heuristic measures the width of the POMF peak (about half a pixel), not the
     error of its subpixel location (a few hundredths): it is not calibrated but conservative,
-    by one to two orders of magnitude (benchmarks/registration.py --nees). The bounds are loose
+    by one to two orders of magnitude (benchmarks/ifmi_calibration.py). The bounds are loose
     on purpose: all within the chi2(2) 95 % bound, mean NEES between 1e-4 and 0.5.
     """
     rng = np.random.default_rng(11)
     nees = []
     for noise, blur in [(0.0, 0.0), (3.0, 0.0), (0.0, 1.0), (3.0, 1.0)] * 3:
         ref, mov, (dx, dy) = perturbed(texture, rng, noise, blur)
-        r = register(ref, mov)
+        r = register(ref, mov, IfmiConfig(covariance="paper"))
         assert r.status is Status.OK
         e = np.array([r.shift_px[0] - dx, r.shift_px[1] - dy])
         nees.append(float(e @ np.linalg.solve(r.covariance[:2, :2], e)))
