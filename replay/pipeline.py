@@ -28,7 +28,7 @@ from slamreplay.recorder.sensor_model import SensorModel
 from slamreplay.recorder.writer import METADATA_NAME
 from slamreplay.replay import views
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.reader import Envelope, RecordingInfo
+from slamreplay.replay.reader import ROBOT_NAMESPACE, Envelope, RecordingInfo, topic_type
 
 
 class ReplayObserver(Protocol):
@@ -115,6 +115,9 @@ class Pipeline(ABC):
     # Named sets of config values (`--preset NAME`). ``paper`` turns off every extra over the paper the
     # pipeline implements (each such key's help says what it adds); empty when the defaults are the paper's.
     presets: ClassVar[Mapping[str, Mapping[str, Any]]] = {"paper": {}}
+    # True: the pipeline replays every robot of a multi-robot recording at once, each robot's topics read under
+    # its namespace (``/robot2/odom``: `all_robots_topic_map`), all in one replay order; its topics name them so.
+    multi_robot: ClassVar[bool] = False
 
     @classmethod
     def config_from_sensor_model(cls, model: SensorModel) -> dict[str, Any]:
@@ -304,6 +307,16 @@ def robot_topic_map(info: RecordingInfo, robot: str) -> dict[str, str]:
         raise ReplayError(f"{info.path.name} has no robot {robot!r} (no topics under /robot{robot}/); {have}")
     prefix = f"/robot{robot}"
     return {t.file_topic: t.file_topic[len(prefix):] for t in info.topics if t.file_topic.startswith(prefix + "/")}
+
+
+def all_robots_topic_map(info: RecordingInfo) -> dict[str, str]:
+    """Topic map replaying every robot of a multi-robot recording at once: each robot's topics read under its
+    namespace (``/robot2/odom`` as ``/robot2/odom``, a robot's odometry); ReplayError when there is no robot."""
+    if not robots_in(info):
+        raise ReplayError(f"{info.path.name} holds no multi-robot topics (none under /robotN/); record one with "
+                          f"e.g. `slamreplay record mrclam DATASET --robot all`")
+    return {t.file_topic: t.file_topic for t in info.topics
+            if ROBOT_NAMESPACE.match(t.file_topic) and topic_type(t.file_topic) is not None}
 
 
 @dataclass(frozen=True, slots=True)

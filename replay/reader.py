@@ -10,6 +10,7 @@ ROS 2 bag a message type that appears on exactly one topic is mapped automatical
 from __future__ import annotations
 
 import heapq
+import re
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from operator import itemgetter
@@ -113,6 +114,16 @@ def check_framing(path: Path) -> None:
                               f"Salvage its messages with `slamreplay recover {path} --out FIXED.mcap`")
 
 
+ROBOT_NAMESPACE = re.compile(r"/robot\d+(?=/)")  # a robot of a multi-robot recording: /robot2/odom
+
+
+def topic_type(logical: str) -> type | None:
+    """The message type of a logical topic: a slamreplay topic (``/odom``), or one under a robot's namespace
+    (``/robot2/odom``, read by multi-robot pipelines); None for anything else."""
+    ns = ROBOT_NAMESPACE.match(logical)
+    return TOPIC_TYPES.get(logical[ns.end():] if ns else logical)
+
+
 def resolve_topic_map(channels: Iterable[tuple[str, str]], explicit: Mapping[str, str] | None) -> dict[str, str]:
     """Map file topics onto logical topics.
 
@@ -122,7 +133,7 @@ def resolve_topic_map(channels: Iterable[tuple[str, str]], explicit: Mapping[str
     chans = dict(channels)
     result: dict[str, str] = {}
     for file_topic, logical in (explicit or {}).items():
-        if logical not in TOPIC_TYPES:
+        if topic_type(logical) is None:
             known = ", ".join(TOPIC_TYPES)
             raise ReplayError(f"topic map target {logical} is not a slamreplay topic; use one of {known}")
         if file_topic not in chans:
@@ -259,12 +270,14 @@ class RecordingReader:
                               f"If the data is there under another name, map it with "
                               f"--topic-map FILE_TOPIC={logical_topic}")
         channel = next(c for c in self._channels.values() if c.topic == info.file_topic)
+        kind = topic_type(logical_topic)
+        assert kind is not None  # the topic map only maps onto typed topics
         if channel.schema_id and channel.schema_id not in self._schemas:
             err = DamageError(f"the Channel record of {channel.topic} refers to schema {channel.schema_id}, which "
                               f"no Schema record defines")
             raise self._damaged(err, f"topic {logical_topic}")
         try:
-            return TopicDecoder(logical_topic, TOPIC_TYPES[logical_topic], self._schemas.get(channel.schema_id),
+            return TopicDecoder(logical_topic, kind, self._schemas.get(channel.schema_id),
                                 channel.message_encoding)
         except CodecError as err:
             # a schema that does not parse is damage (recover drops its channel); a schema of the wrong type is not

@@ -38,6 +38,7 @@ from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.observer import RerunObserver
 from slamreplay.replay.pipeline import (
     Pipeline,
+    all_robots_topic_map,
     config_dict,
     config_hash,
     get_pipeline,
@@ -161,7 +162,8 @@ def _check_robot_chosen(reader: RecordingReader, pipeline_cls: type[Pipeline], r
     """A multi-robot recording replayed without --robot: say which robots there are instead of "no /odom"."""
     present = reader.info.logical_topics()
     robots = robots_in(reader.info)
-    if robot is None and robots and any(t not in present for t in pipeline_cls.required_topics):
+    if (robot is None and robots and not pipeline_cls.multi_robot
+            and any(t not in present for t in pipeline_cls.required_topics)):
         raise ReplayError(f"{reader.path.name} holds {len(robots)} robots (topics under /robotN/: "
                           f"{', '.join(robots)}); pipeline {pipeline_cls.name} replays one: choose it with --robot N")
 
@@ -209,7 +211,12 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
     values: dict[str, float] = {}
     try:
         tic = time.perf_counter()
-        if robot is not None:
+        if pipeline_cls.multi_robot:
+            if robot is not None:
+                raise ReplayError(f"pipeline {pipeline} replays every robot of the recording at once: drop --robot")
+            topic_map = {**all_robots_topic_map(RecordingReader(recording).info), **(topic_map or {})}
+            manifest["recording"].update(topic_map=dict(topic_map), robot="all")
+        elif robot is not None:
             topic_map = {**robot_topic_map(RecordingReader(recording).info, str(robot)), **(topic_map or {})}
             manifest["recording"].update(topic_map=dict(topic_map), robot=str(robot))
         reader = RecordingReader(recording, topic_map)

@@ -422,7 +422,7 @@ class DSlam:
                     self.map_log.phase_one(f, np.array([r[j], b[j]]), r_blocks[j])
                 jacs.append(h)
             self._phase_one_covariance(touched, jacs, r_blocks[old + new])
-        elif new and self.n < 2:
+        elif new and self._may_bootstrap(len(old)):
             status = ScanStatus.BOOTSTRAP
             lm, d_matrix, d_vector = mapping.bootstrap_increment(self.pose, self.pose_cov, r[new], b[new],
                                                                  r_old[np.ix_(dofs(new), dofs(new))])
@@ -476,6 +476,11 @@ class DSlam:
             self.observer.log("dslam/log", Text(note))
         return self._result(status, pred, pred_cov, features, tentative, measurement, omega, anchors,
                             tuple(created), loop, report, note=note)
+
+    def _may_bootstrap(self, seen_mapped: int) -> bool:
+        """Whether a moving robot's new features may start from its odometry pose (its scan sees ``seen_mapped``
+        mapped features): while fewer than two are mapped (multi.py widens it to each robot's first features)."""
+        return self.n < 2
 
     def _phase_one_covariance(self, features: list[int], jacs: list[F64], r_blocks: F64) -> None:
         """Phase I in covariance form: Kalman update of the features in V, the others join with ``H^-1 R H^-T``.

@@ -131,7 +131,7 @@ def test_same_name_from_two_distributions(plugins: Path, tmp_path: Path) -> None
 
 def test_unknown_pipeline_names_the_known_ones() -> None:
     """An unknown name lists the known pipelines."""
-    with pytest.raises(ReplayError, match=r"unknown pipeline 'nope'; known pipelines: dslam, ekfslam"):
+    with pytest.raises(ReplayError, match=r"unknown pipeline 'nope'; known pipelines: dslam, dslam-multi, ekfslam"):
         get_pipeline("nope")
 
 
