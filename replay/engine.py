@@ -134,7 +134,7 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
     ctx = ReplayContext(reader.info, seed, np.random.default_rng(seed), observer, T_world_start, t0, log,
                         dict(config_sources or {}))
     observer.set_time(0, t0)
-    if T_world_start is None:
+    if T_world_start is None and not pipeline_cls.multi_robot:  # a multi-robot pipeline finds each robot's start
         log("no ground truth at the start: the estimate starts at the origin")
     pipeline = pipeline_cls(config, ctx)
     durations: list[float] = []
