@@ -35,7 +35,7 @@ from slamreplay.algorithms.common import se2
 from slamreplay.algorithms.common.motion import between1, compose1
 from slamreplay.algorithms.dslam import ScanStatus
 from slamreplay.algorithms.dslam.multi import MultiDSlam
-from slamreplay.algorithms.observe import CovarianceEllipses, Image, Points, Pose, Segments
+from slamreplay.algorithms.observe import CovarianceEllipses, Image, Points, Pose, Scalar, Segments
 from slamreplay.recorder.messages import (
     TOPIC_GROUND_TRUTH_LANDMARKS,
     TOPIC_GROUND_TRUTH_POSE,
@@ -292,6 +292,10 @@ class DSlamMultiPipeline(Pipeline):
         obs.log(f"world/robots/robot{robot.name}", Pose(pose_w, label=f"robot {robot.name}"))
         obs.log(f"world/robots/robot{robot.name}/covariance",
                 CovarianceEllipses(pose_w[None, :2], self._world_cov(res.pose_cov[:2, :2])[None]))
+        if robot.t_gt and robot.t_gt[0] <= t:  # against the latest ground truth (the replay has not read on)
+            truth = _truth_at(t, robot.t_gt, robot.gt)
+            obs.log(f"metrics/robot{robot.name}_position_error_m",
+                    Scalar(float(np.hypot(pose_w[0] - truth[0], pose_w[1] - truth[1]))))
         world_xy = self._world_xy(self.slam.estimates())
         seen = [f for f in res.features.tolist() if f >= 0]
         obs.log(f"world/associations/robot{robot.name}", Segments(np.repeat(pose_w[None, :2], len(seen), 0),
@@ -400,7 +404,7 @@ class DSlamMultiPipeline(Pipeline):
     @classmethod
     def blueprint(cls, bounds: views.Bounds | None = None) -> rrb.Blueprint:
         return views.layout(
-            views.summary_tab(bounds, ("metrics/**",), "Metrics over time"),
+            views.summary_tab(bounds, ("metrics/**",), "Each robot's position error (m) at its scans"),
             views.tab("Map over time", views.map_view("Map: shared estimate, truth; every robot", "world", bounds),
                       views.log_view(), columns=[3, 2]),
             views.tab("Filter internals",
