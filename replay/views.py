@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import re
 import zlib
 from collections.abc import Iterable, Sequence
 
@@ -81,8 +82,17 @@ def role_color(path: str) -> Color | None:
     return next((c for key, c in _ROLES if key in padded), None)
 
 
+_ROBOT_SERIES = re.compile(r"^metrics/robot(\d+)_")  # one series per robot of a multi-robot run
+# robot 1 the estimate's blue, then colours that no role of the map uses (no orange, grey, red or green)
+ROBOT_COLORS: tuple[Color, ...] = (ESTIMATE, (150, 60, 200), (0, 180, 200), (140, 86, 75), (230, 90, 180),
+                                   (188, 189, 34))
+
+
 def series_color(path: str) -> Color:
-    """A scalar series' colour: its role's, else a fixed colour picked by the path (stable across runs)."""
+    """A scalar series' colour: one per robot for a multi-robot run's per-robot series (robot N: the cycle's Nth
+    colour of ROBOT_COLORS), else its role's, else a fixed colour picked by the path (stable across runs)."""
+    if m := _ROBOT_SERIES.match(path):
+        return ROBOT_COLORS[(int(m.group(1)) - 1) % len(ROBOT_COLORS)]
     return role_color(path) or SERIES_CYCLE[zlib.crc32(path.encode()) % len(SERIES_CYCLE)]
 
 
