@@ -266,13 +266,20 @@ def cmd_run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# `navigate --preset paper`: section IV-B resets the position to the matched node; section V takes an image
+# every 50 cm or 10 degrees (the topometric-nav pipeline's paper preset holds the same values)
+PAPER_NAVIGATION = {"keep_along_m": 0.0, "image_every_m": 0.5, "image_every_deg": 10.0}
+
+
 def cmd_navigate(args: argparse.Namespace) -> int:
     from slamreplay.replay.navigate import navigate
 
+    overrides = dict(PAPER_NAVIGATION) if args.preset == "paper" else {}
+    overrides.update({k: v for k in PAPER_NAVIGATION if (v := getattr(args, k)) is not None})
     with progress_bar("navigating", args.quiet) as update:
         s = navigate(args.map, args.world, args.goal, Path(args.out), start=args.start, seed=args.seed,
                      visual_correction=not args.no_visual_correction, through_walls=args.through_walls,
-                     progress=update)
+                     progress=update, overrides=overrides)
     if not args.quiet:
         how = "at the goal by its own estimate" if s.reached else (
             "stopped at a wall" if s.collided and not args.through_walls else "time limit, goal not reached")
@@ -464,6 +471,15 @@ def build_parser() -> argparse.ArgumentParser:
                          "Fig. 4 comparison")
     nv.add_argument("--through-walls", action="store_true",
                     help="keep driving through walls instead of stopping at the first contact")
+    nv.add_argument("--preset", choices=["paper"],
+                    help="paper: the paper's rules (reset the position to the matched node, an image every 0.5 m "
+                         "or 10 degrees); the options below override it")
+    nv.add_argument("--keep-along-m", type=float, metavar="M",
+                    help="beyond the paper: keep the estimate's offset along the matched node's heading, clamped "
+                         "to +-M (default 0: the paper's reset to the node)")
+    nv.add_argument("--image-every-m", type=float, metavar="M", help="take an image every M metres (default 0.3)")
+    nv.add_argument("--image-every-deg", type=float, metavar="DEG",
+                    help="... or every DEG degrees of turn (default 10)")
     nv.set_defaults(func=cmd_navigate)
 
     df = sub.add_parser("diff", help="compare two runs: what changed, and which metrics got worse",

@@ -262,7 +262,7 @@ class NavigateSummary:
 def navigate(map_path: str | Path, world: str | Path, goal: int, out: str | Path, *, start: int = 0, seed: int = 0,
              visual_correction: bool = True, guidance: GuidanceConfig | None = None, control_period_s: float = 0.1,
              through_walls: bool = False, clearance_m: float = 0.1, max_duration_s: float = 0.0,
-             progress: Progress | None = None) -> NavigateSummary:
+             progress: Progress | None = None, overrides: Mapping[str, Any] | None = None) -> NavigateSummary:
     """Drive from map node ``start`` to ``goal`` in the simulated world and record everything to ``out``.
 
     Parameters
@@ -273,6 +273,8 @@ def navigate(map_path: str | Path, world: str | Path, goal: int, out: str | Path
         pipeline starts its map at the ground-truth start pose). The robot starts where the start
         node's image was taken (its true pose) when the map has ground truth, else at its map pose.
     visual_correction : False drives on odometry only (loop closures are still detected and recorded).
+    overrides : GuidanceConfig fields set over ``guidance`` (the CLI's ``--preset paper``, ``--keep-along-m``...);
+        a bad name or value is a ReplayError.
     guidance : navigation parameters (default :class:`GuidanceConfig`); its ``visual_correction`` is
         overridden by the argument.
     control_period_s : the fixed control period; odometry and ground truth are recorded at each tick.
@@ -304,8 +306,11 @@ def navigate(map_path: str | Path, world: str | Path, goal: int, out: str | Path
                           f"or delete it")
     if not control_period_s > 0 or round(control_period_s * 1e9) <= 0:
         raise ReplayError(f"control_period_s must be > 0, got {control_period_s}")
-    cfg = dataclasses.replace(guidance or GuidanceConfig(hfov_deg=world_cfg.hfov_deg),
-                              visual_correction=visual_correction)
+    try:
+        cfg = dataclasses.replace(guidance or GuidanceConfig(hfov_deg=world_cfg.hfov_deg),
+                                  visual_correction=visual_correction, **dict(overrides or {}))
+    except (TypeError, ValueError) as err:
+        raise ReplayError(f"navigation settings: {err}") from err
     rng_odom, rng_loc, rng_noise = np.random.default_rng(seed).spawn(3)
     localizer = MapLocalizer(nav_map.topomap, start, rng_loc)
     try:

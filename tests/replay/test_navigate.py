@@ -261,6 +261,9 @@ def error_cases(world: dict[str, Path], d: Path) -> list[tuple[list[str], str]]:
         ([*m, *w, "--goal", "9999"], r"--goal 9999 is not a node of map .* \(it has nodes 0\.\.\d+\)"),
         ([*m, *w, "--goal", "-1"], "--goal -1 is not a node"),
         ([*m, *w, "--goal", "3", "--start", "3"], "--start and --goal are both node 3: nothing to navigate"),
+        ([*m, *w, "--goal", "3", "--keep-along-m", "-1"], r"navigation settings: keep_along_m must be finite and >= 0"),
+        ([*m, *w, "--goal", "3", "--preset", "paper", "--image-every-m", "0"],
+         r"navigation settings: image_every_m and image_every_deg must be > 0"),
     ]
 
 
@@ -322,3 +325,17 @@ def test_bad_guidance_keys_are_refused(values: dict, match: str) -> None:
 
     with pytest.raises(ValueError, match=match):
         TopometricNavConfig(**values)
+
+
+def test_navigate_preset_paper_drives_with_the_papers_rules(world: dict[str, Path], tmp_path: Path) -> None:
+    """`navigate --preset paper` records the paper's guidance (0.5 m, 10 deg, reset to the node), an option given
+    beside it wins, and the replay reproduces the drive with the guidance it was recorded with."""
+    args = ["navigate", "--map", str(world["map"]), "--world", str(world["world"]), "--goal", "3", "-q"]
+    out = tmp_path / "paper.mcap"
+    assert cli([*args, "--preset", "paper", "--image-every-deg", "15", "--out", str(out)]) == 0
+    from slamreplay.recorder.writer import METADATA_NAME
+
+    guidance = json.loads(RecordingReader(out).info.metadata[METADATA_NAME]["parameters"])["guidance"]
+    assert (guidance["keep_along_m"], guidance["image_every_m"], guidance["image_every_deg"]) == (0.0, 0.5, 15.0)
+    res = run_recording(out, "topometric-nav", tmp_path / "run")
+    assert res.metrics["replay_mismatches"] == 0
