@@ -9,7 +9,9 @@ chi2 is always re-evaluated with the g2o EDGE_SE2 convention on each solver's re
 GTSAM, whose BetweenFactor residual is the SE(2) logarithm, its own objective is printed too.
 
 Also measured: the chordal start, MIT's local minima per start and solver, incremental M3500
-(cost per loop closure), and M3500 with 10 % false loop closures (RMSE vs ground truth).
+(CPU time per update with loop closures, with ``--skip-chi2`` and in exact mode, the largest pose
+difference between the two after each such update, and GTSAM iSAM2's time on the same updates),
+and M3500 with 10 % false loop closures (RMSE vs ground truth).
 
 Run: ``.venv/bin/python benchmarks/posegraph.py [--data ../shared/data] [--repeat 3] [--quick]``.
 Peers: ``pip install g2opy gtsam`` (each is skipped with a note when missing).
@@ -33,6 +35,7 @@ from slamreplay.algorithms.common.posegraph_analysis import aligned_position_rms
 from slamreplay.algorithms.common.posegraph_incremental import IncrementalConfig, IncrementalOptimizer
 from slamreplay.algorithms.common.posegraph_init import init_chordal, init_odometry
 from slamreplay.algorithms.common.robust import Kernel
+from slamreplay.algorithms.common.se2 import wrap_angle
 from slamreplay.algorithms.common.sparse_cholesky import SparseCholesky
 from slamreplay.replay.graph_io import read_graph
 
@@ -288,16 +291,22 @@ def isam2_updates(g: PoseGraph, order: np.ndarray, bounds: np.ndarray) -> tuple[
     return np.array(costs), np.asarray(gtsam.utilities.extractPose2(est))
 
 
-def incremental_m3500(data: Path, every: int, iterations: int) -> dict[str, float]:
-    """Replay M3500 vertex by vertex; time the updates that carry loop closures, ours and iSAM2's."""
+def incremental_m3500(data: Path, every: int, iterations: int, skip_chi2: float) -> dict[str, float]:
+    """Replay M3500 vertex by vertex; time the updates that carry loop closures, ours and iSAM2's.
+
+    Ours runs twice in lockstep, each update timed on its own: with ``skip_chi2`` (the measured
+    configuration) and exact (``skip_chi2 = 0``: one Gauss-Newton step after every update with loop
+    closures); after every such update the largest position and heading difference between the two
+    is recorded (the per-update accuracy of skipping)."""
     g = read_graph(data / "posegraph-m3500/manhattanOlson3500.g2o").graph
-    inc = IncrementalOptimizer(IncrementalConfig(OptimizerConfig(kernel=Kernel.NONE, max_iterations=iterations,
-                                                                 rel_tol=1e-5)))
+    opt = OptimizerConfig(kernel=Kernel.NONE, max_iterations=iterations, rel_tol=1e-5)
+    inc = IncrementalOptimizer(IncrementalConfig(opt, skip_chi2=skip_chi2))
+    exact = IncrementalOptimizer(IncrementalConfig(opt, skip_chi2=0.0)) if skip_chi2 > 0.0 else None
     newest = np.maximum(g.i, g.j)
     order = np.argsort(newest, kind="stable")
     bounds = np.searchsorted(newest[order], np.arange(1, g.n_vertices + 1, every))
-    costs, closures, iters = [], 0, 0
-    t_all = clock()
+    costs, exact_costs, closures, iters, solved, dpos, dth = [], [], 0, 0, 0, [], []
+    total = 0.0
     for a, b in itertools.pairwise(bounds):
         k = order[a:b]
         if k.size == 0:
@@ -305,33 +314,57 @@ def incremental_m3500(data: Path, every: int, iterations: int) -> dict[str, floa
         t = clock()
         res = inc.step(g.i[k], g.j[k], g.measurements[k], g.information[k])
         dt = clock() - t
+        total += dt
+        if exact is not None:
+            t = clock()
+            exact.step(g.i[k], g.j[k], g.measurements[k], g.information[k])
+            if res.loop_closures:
+                exact_costs.append(clock() - t)
+                d = inc.poses - exact.poses
+                dpos.append(float(np.hypot(d[:, 0], d[:, 1]).max()))
+                dth.append(float(np.abs(wrap_angle(d[:, 2])).max()))
         if res.loop_closures:
             costs.append(dt)
             closures += res.loop_closures
             iters += res.iterations
-    total = clock() - t_all
+            solved += res.iterations > 0
     k = order[bounds[-1]:]
     if k.size:
         inc.step(g.i[k], g.j[k], g.measurements[k], g.information[k])
+        if exact is not None:
+            exact.step(g.i[k], g.j[k], g.measurements[k], g.information[k])
     c = np.array(costs)
     final = chi2(g, inc.poses)
-    print(f"\nincremental M3500 ({every} vertex/update; GN <= {iterations} it/update, no kernel), CPU time:")
-    print(f"  {c.size} updates with loop closures ({closures} closures), total {total:.1f} s")
-    print(f"  per loop-closure update: median {np.median(c) * 1e3:.1f} ms, mean {c.mean() * 1e3:.1f} ms, "
+    print(f"\nincremental M3500 ({every} vertex/update; GN <= {iterations} it/update, no kernel, "
+          f"skip_chi2 {skip_chi2:g}), CPU time:")
+    print(f"  {c.size} updates with loop closures ({closures} closures), {solved} re-optimized, total {total:.1f} s")
+    print(f"  per loop-closure update: median {np.median(c) * 1e3:.2f} ms, mean {c.mean() * 1e3:.2f} ms, "
           f"max {c.max() * 1e3:.1f} ms, last 100 mean {c[-100:].mean() * 1e3:.1f} ms; "
-          f"per loop closure {c.sum() / closures * 1e3:.1f} ms; {iters / c.size:.2f} GN it/update")
+          f"per loop closure {c.sum() / closures * 1e3:.2f} ms; {iters / c.size:.2f} GN it/update")
     print(f"  final chi2 {final:.3f} (batch optimum 146.077)")
     figures = {"ours_update_median_ms": float(np.median(c) * 1e3), "ours_update_mean_ms": float(c.mean() * 1e3),
-               "ours_final_chi2": final, "closure_updates": int(c.size)}
+               "ours_final_chi2": final, "closure_updates": int(c.size), "skip_chi2": skip_chi2,
+               "updates_reoptimized": int(solved)}
+    if exact is not None:
+        ec = np.array(exact_costs)
+        print(f"  exact (skip_chi2 0), same updates: median {np.median(ec) * 1e3:.2f} ms, "
+              f"mean {ec.mean() * 1e3:.2f} ms; final chi2 {chi2(g, exact.poses):.3f}")
+        print(f"  skipping vs exact after each closure update: largest position difference max {max(dpos):.3f} m, "
+              f"median {np.median(dpos):.4f} m; heading max {max(dth):.3f} rad, median {np.median(dth):.4f} rad")
+        figures.update({"exact_update_median_ms": float(np.median(ec) * 1e3),
+                        "exact_update_mean_ms": float(ec.mean() * 1e3), "exact_final_chi2": chi2(g, exact.poses),
+                        "vs_exact_max_position_m": max(dpos), "vs_exact_median_position_m": float(np.median(dpos)),
+                        "vs_exact_max_heading_rad": max(dth), "vs_exact_median_heading_rad": float(np.median(dth))})
     peer = isam2_updates(g, order, bounds) if every == 1 else None
     if peer is not None:
         pc, poses = peer
-        print(f"  GTSAM iSAM2 (default parameters), same updates: median {np.median(pc) * 1e3:.1f} ms, "
-              f"mean {pc.mean() * 1e3:.1f} ms per loop-closure update ({pc.size}); final chi2 {chi2(g, poses):.3f}; "
-              f"ours / iSAM2 (median) {np.median(c) / np.median(pc):.2f}x")
+        print(f"  GTSAM iSAM2 (default parameters), same updates: median {np.median(pc) * 1e3:.2f} ms, "
+              f"mean {pc.mean() * 1e3:.2f} ms per loop-closure update ({pc.size}); final chi2 {chi2(g, poses):.3f}; "
+              f"ours / iSAM2: median {np.median(c) / np.median(pc):.2f}x, mean {c.mean() / pc.mean():.2f}x")
         figures.update({"isam2_update_median_ms": float(np.median(pc) * 1e3),
                         "isam2_update_mean_ms": float(pc.mean() * 1e3), "isam2_final_chi2": chi2(g, poses),
-                        "ours_over_isam2": float(np.median(c) / np.median(pc))})
+                        "ours_over_isam2": float(np.median(c) / np.median(pc)),
+                        "ours_over_isam2_mean": float(c.mean() / pc.mean())})
     return figures
 
 
@@ -375,9 +408,13 @@ def main() -> None:
     parser.add_argument("--skip", nargs="*", default=[], choices=["batch", "mit", "incremental", "robust"])
     parser.add_argument("--every", type=int, default=1, help="vertices per incremental update")
     parser.add_argument("--inc-iterations", type=int, default=1, help="GN iterations per incremental update")
+    parser.add_argument("--skip-chi2", type=float, default=IncrementalConfig().skip_chi2,
+                        help="incremental: IncrementalConfig.skip_chi2 (default: its default; 0: exact mode)")
     args = parser.parse_args()
     if args.repeat < 1 or args.every < 1 or args.inc_iterations < 1:
         parser.error("--repeat, --every and --inc-iterations must be >= 1")
+    if not (args.skip_chi2 >= 0.0 and np.isfinite(args.skip_chi2)):
+        parser.error("--skip-chi2 must be finite and >= 0")
     if not args.data.is_dir():
         parser.error(f"--data {args.data} is not a directory (the shared data sets: ../shared/data)")
     names = ["m3500 (Vertigo)", "intel", "city10000"] if args.quick else [d[0] for d in DATASETS]
@@ -390,7 +427,7 @@ def main() -> None:
     if "mit" not in args.skip:
         mit_minima(args.data)
     if "incremental" not in args.skip:
-        figures["incremental_m3500"] = incremental_m3500(args.data, args.every, args.inc_iterations)
+        figures["incremental_m3500"] = incremental_m3500(args.data, args.every, args.inc_iterations, args.skip_chi2)
     if "robust" not in args.skip:
         robustness_m3500(args.data)
     if args.json:

@@ -49,6 +49,13 @@ except ImportError:  # the install keeps working on SciPy alone
 HAVE_CVXOPT = _cvx_cholmod is not None
 HAVE_CHOLMOD = _cholmod_analyze is not None or HAVE_CVXOPT
 _cholmod_order = _cholmod_analyze  # the ordering's own handle (tests fake the factorization's)
+# CVXOPT's CHOLMOD: supernodal (BLAS) factorization from this many unknowns, simplicial below.
+# Measured (CPU ms, numeric factorization / symbolic analysis / solve, the pose-block AMD order):
+# intel (5,181 unknowns) simplicial 1.05 / 1.16 / 0.07, supernodal 1.07 / 1.52 / 0.23;
+# M3500 (10,497) simplicial 4.0 / 3.0 / 0.2, supernodal 3.2 / 3.5 / 0.5; city10000 (29,997)
+# simplicial 45 / 15 / 3, supernodal 15 / 24 / 3. CHOLMOD's own choice (flops / nnz(L) >= 40)
+# picks simplicial for M3500 too.
+SUPERNODAL_MIN_SIZE = 8000
 
 
 def _cvx_lower(h: sp.csc_matrix) -> tuple[Any, I64]:
@@ -111,59 +118,92 @@ class BlockSystem:
     order : (n_vertices - n_fixed,) int64, optional
         Block position of each free vertex (in vertex order), e.g. a previous system's ``pos``
         extended by new vertices; computed (minimum degree) when None.
+    lower : bool
+        Store only the lower triangle (what CHOLMOD reads of a symmetric matrix): about half the
+        entries to fill and copy per iteration; ``matrix`` then returns that triangle.
     """
 
     def __init__(self, n_vertices: int, i: I64, j: I64, fixed: int | tuple[int, ...], dim: int = 3,
-                 order: I64 | None = None) -> None:
+                 order: I64 | None = None, lower: bool = False) -> None:
         d = dim
         free = np.ones(n_vertices, dtype=bool)
         free[np.asarray(fixed, dtype=np.int64)] = False
         n_free = int(free.sum())
-        idx = np.cumsum(free) - 1
-        ends = [(i, i), (i, j), (j, i), (j, j)]
-        rb0 = np.stack([np.where(free[a], idx[a], -1) for a, _ in ends], 1)  # (m, 4) unordered
-        cb0 = np.stack([np.where(free[b], idx[b], -1) for _, b in ends], 1)
-        valid = (rb0 >= 0) & (cb0 >= 0)
         if order is None:
-            order = _block_ordering(n_free, rb0[valid], cb0[valid])
+            idx = np.cumsum(free) - 1
+            both = free[i] & free[j]
+            a, b = idx[i[both]], idx[j[both]]
+            order = _block_ordering(n_free, np.r_[a, b], np.r_[b, a])
         elif order.shape != (n_free,):
             raise ValueError(f"order must have shape ({n_free},), got {order.shape}")
         pos = np.full(n_vertices, -1, dtype=np.int64)
         pos[free] = order
-        rb = np.stack([pos[a] for a, _ in ends], 1)
-        cb = np.stack([pos[b] for _, b in ends], 1)
-        keys = cb[valid] * n_free + rb[valid]  # column-major block keys: CSC order after sorting
+        p, q = pos[i], pos[j]
+        off = (p >= 0) & (q >= 0)
+        hi, lo = np.maximum(p[off], q[off]), np.minimum(p[off], q[off])
+        # column-major block keys (col * n + row), CSC order after sorting: every diagonal block,
+        # then the off-diagonal blocks of the edges (below the diagonal; above too unless lower)
+        diag_keys = np.arange(n_free, dtype=np.int64) * (n_free + 1)
+        keys = np.r_[diag_keys, lo * n_free + hi] if lower else np.r_[diag_keys, lo * n_free + hi, hi * n_free + lo]
         ukeys, inv = np.unique(keys, return_inverse=True)
         ucol, urow = ukeys // n_free, ukeys % n_free
         cnt = np.bincount(ucol, minlength=n_free)
         bstart = np.r_[0, np.cumsum(cnt)]
         rank = np.arange(ukeys.size) - bstart[ucol]
-        rr, cc = np.arange(d)[:, None], np.arange(d)[None, :]
-        # data position of entry (r, c) of unique block t
-        colstart = (d * d * bstart[ucol])[:, None, None] + cc * d * cnt[ucol][:, None, None]
-        slot_of = colstart + d * rank[:, None, None] + rr
-        nnz = d * d * ukeys.size
-        indices = np.empty(nnz, dtype=np.int32)
-        indices[slot_of.ravel()] = np.broadcast_to(d * urow[:, None, None] + rr, slot_of.shape).ravel()
-        colptr = np.r_[0, np.cumsum(np.repeat(d * cnt, d))].astype(np.int32)
-        slot_h = np.full((i.size, 4, d, d), nnz, dtype=np.int64)
-        slot_h[valid] = slot_of[inv]
-        diag_t = np.searchsorted(ukeys, np.arange(n_free) * n_free + np.arange(n_free))
-        bpos = np.stack([pos[i], pos[j]], 1)  # (m, 2)
-        slot_b = np.where(bpos[:, :, None] >= 0, d * bpos[:, :, None] + np.arange(d), d * n_free)
+        n_u = ukeys.size
+        rr, cc = np.arange(d)[:, None, None], np.arange(d)[None, :, None]
+        # sl[r, c, t]: data position of entry (r, c) of unique block t (entry-major, so per-edge
+        # gathers come out edge-last); column t = n_u is a sentinel for absent blocks (nnz: dropped).
+        # lower: a diagonal block keeps r >= c only and is the first of its block column, so scalar
+        # column c of block column k holds d * cnt[k] - c entries
+        tri = d * (d - 1) // 2 if lower else 0
+        cstart = np.r_[0, np.cumsum(d * d * cnt - tri)]
+        nnz = int(cstart[-1])
+        drop = cc * (cc - 1) // 2 + cc if lower else 0 * cc
+        sl = np.empty((d, d, n_u + 1), dtype=np.int64)
+        sl[:, :, :n_u] = (cstart[ucol] + d * rank) + cc * d * cnt[ucol] + rr - drop
+        sl[:, :, n_u] = nnz
+        if lower:
+            isdiag = np.flatnonzero(urow == ucol)
+            for r, c in zip(*np.triu_indices(d, 1), strict=True):
+                sl[r, c, isdiag] = nnz  # the upper half of a diagonal block
+        indices = np.empty(nnz + 1, dtype=np.int32)  # [nnz]: where the dropped entries land
+        indices[sl[:, :, :n_u].ravel()] = np.broadcast_to(d * urow + rr, (d, d, n_u)).ravel()
+        indices = indices[:nnz]
+        per_col = np.repeat(d * cnt, d) - (np.tile(np.arange(d), n_free) if lower else 0)
+        colptr = np.r_[0, np.cumsum(per_col)].astype(np.int32)
+        # per edge (edge last): blocks (p, p), (p, q), (q, q); (p, q) is stored transposed where p is above q
+        m = i.size
+        tdiag = np.r_[inv[:n_free], n_u]  # [-1] (a fixed endpoint) is the sentinel
+        toff = np.full(m, n_u, dtype=np.int64)
+        toff[off] = inv[n_free : n_free + lo.size]  # block (hi, lo)
+        below = p > q
+        slot_h = np.empty((3 if lower else 4, d, d, m), dtype=np.int64)
+        sl.take(tdiag[p], axis=2, out=slot_h[0])
+        sl.take(toff, axis=2, out=slot_h[1])
+        np.copyto(slot_h[1], slot_h[1].transpose(1, 0, 2).copy(), where=~below)
+        sl.take(tdiag[q], axis=2, out=slot_h[2])
+        if not lower:  # the mirror block (lo, hi) of the full matrix gets H_pq^T: a 4th group
+            toff[off] = inv[n_free + lo.size :]
+            sl.take(toff, axis=2, out=slot_h[3])
+            np.copyto(slot_h[3], slot_h[3].transpose(1, 0, 2).copy(), where=below)
+        slot_b = np.stack([np.where(p >= 0, d * p, d * n_free), np.where(q >= 0, d * q, d * n_free)])
         self.dim = d
         self.size = d * n_free
         self.nnz = nnz
+        self.lower = lower
         self.pos: I64 = pos
         self._indices = indices
         self._indptr = colptr
-        self._slot_h = np.ascontiguousarray(slot_h.transpose(1, 2, 3, 0)).ravel()  # edge-last layout
-        self._slot_b = np.ascontiguousarray(slot_b.transpose(1, 2, 0)).ravel()
-        self.diag_slots: I64 = slot_of[diag_t][:, np.arange(d), np.arange(d)].ravel()
-        self.n_edges = int(i.size)
+        self._slot_h = slot_h.ravel()  # (group, d, d, edge)
+        self._slot_b = (slot_b[:, None, :] + rr[:, :, 0][None]).ravel()  # (2, d, edge)
+        ar = np.arange(d)
+        self.diag_slots: I64 = sl[ar, ar][:, tdiag[:-1]].T.ravel()
+        self.n_edges = int(m)
 
     def matrix(self, data: F64) -> sp.csc_matrix:
-        """CSC matrix with this structure and the given data (shares the index arrays)."""
+        """CSC matrix with this structure and the given data (shares the index arrays); the lower
+        triangle only when built with ``lower``."""
         m = sp.csc_matrix((self.size, self.size))
         m.data, m.indices, m.indptr = data, self._indices, self._indptr
         return m
@@ -173,14 +213,23 @@ class BlockSystem:
 
         Parameters
         ----------
-        blocks : (4, d, d, m) float64
-            Per edge ``J_i^T W J_i``, ``J_i^T W J_j``, ``J_j^T W J_i``, ``J_j^T W J_j`` (edge last).
+        blocks : (3, d, d, m) or (4, d, d, m) float64
+            Per edge ``J_i^T W J_i``, ``J_i^T W J_j``, ``J_j^T W J_j`` (edge last); a 4-group array
+            holds ``J_j^T W J_i`` third, which is not read (it is the transpose of the second).
         grad : (2, d, m) float64
             Per edge ``J_i^T W e`` and ``J_j^T W e``.
         """
-        data = np.bincount(self._slot_h, weights=blocks.ravel(), minlength=self.nnz + 1)[: self.nnz]
+        if blocks.shape[0] == 4:
+            blocks = blocks[[0, 1, 3]]
+        w = blocks.ravel() if self.lower else np.concatenate([blocks.ravel(), blocks[1].ravel()])
+        data = np.bincount(self._slot_h, weights=w, minlength=self.nnz + 1)[: self.nnz]
         b = np.bincount(self._slot_b, weights=grad.ravel(), minlength=self.size + 1)[: self.size]
         return data.astype(np.float64, copy=False), b.astype(np.float64, copy=False)
+
+    def assemble_gradient(self, grad: F64) -> F64:
+        """The vector b alone (see :meth:`assemble`)."""
+        b = np.bincount(self._slot_b, weights=grad.ravel(), minlength=self.size + 1)[: self.size]
+        return b.astype(np.float64, copy=False)
 
     def scatter(self, x: F64, n_vertices: int) -> F64:
         """Map a permuted solution vector (size,) back to per-vertex blocks (n, d), 0 at the gauge."""
@@ -214,9 +263,17 @@ class SparseCholesky:
         self._a: Any = None  # CVXOPT: the matrix whose values are replaced before each numeric factorization
         self._low: I64 = np.zeros(0, np.int64)  # CVXOPT: positions of the lower triangle in the CSC data
         self._nnz = -1
+        self._all = False
+        # whether BlockSystem should hand over the lower triangle only (all CVXOPT's CHOLMOD reads)
+        self.wants_lower = self.provider == "cvxopt"
 
     def factor(self, h: sp.csc_matrix) -> bool:
-        """Factor ``h`` (symmetric, already fill-reduced); False when it is singular / not PD."""
+        """Factor ``h`` (symmetric, already fill-reduced); False when it is singular / not PD.
+
+        CVXOPT below ``SUPERNODAL_MIN_SIZE`` factors LDL' (simplicial), which reports a singular
+        matrix but factors an indefinite one; the optimizer's matrices (J^T W J plus a positive
+        damping, W >= 0) are positive semi-definite by construction, so singular is the case to catch.
+        """
         if self.provider == "scikit-sparse":
             assert _cholmod_analyze is not None
             try:
@@ -232,11 +289,24 @@ class SparseCholesky:
             if self._a is None or self._a.size != h.shape or self._nnz != h.nnz:
                 self._a, self._low = _cvx_lower(h)
                 self._nnz = h.nnz
+                self._all = self._low.size == h.nnz  # h is the lower triangle already (BlockSystem(lower=True))
                 # h is already fill-reduced: the identity permutation keeps that order; the analysis is
                 # done here once and reused (cholmod.numeric) for every matrix with this pattern
-                self._symbolic = _cvx_cholmod.symbolic(self._a, p=_cvx_matrix(np.arange(h.shape[0], dtype=np.int64)))
+                saved = dict(_cvx_cholmod.options)
+                _cvx_cholmod.options["supernodal"] = 2 if h.shape[0] >= SUPERNODAL_MIN_SIZE else 0
+                # the given order only: by default CHOLMOD also tries its own AMD and keeps the better,
+                # which doubled the analysis time (intel 1.75 -> 0.50 ms, M3500 3.7 -> 1.8 ms, city10000
+                # 13 -> 9 ms) for the same numeric factorization time
+                _cvx_cholmod.options["nmethods"] = 1
+                try:
+                    identity = _cvx_matrix(np.arange(h.shape[0], dtype=np.int64))
+                    self._symbolic = _cvx_cholmod.symbolic(self._a, p=identity)
+                finally:  # CVXOPT's options are module state: leave them as found
+                    _cvx_cholmod.options.clear()
+                    _cvx_cholmod.options.update(saved)
             else:
-                self._a.V = _cvx_matrix(np.asarray(h.data, np.float64)[self._low])
+                v = np.asarray(h.data, np.float64)
+                self._a.V = _cvx_matrix(v if self._all else v[self._low])
             try:
                 _cvx_cholmod.numeric(self._a, self._symbolic)
             except ArithmeticError:  # not positive definite

@@ -158,7 +158,8 @@ class TopoMetricMapper:
         # robust: the incremental optimizer only places new locations; each relaxation is a batch solve
         iters = 0 if self._robust_relax else cfg.relax_iterations
         opt = OptimizerConfig(method="gn", max_iterations=iters, kernel=Kernel.NONE, rel_tol=1e-6)
-        self._graph = IncrementalOptimizer(IncrementalConfig(optimizer=opt), self._first_pose)
+        # skip_chi2 0: relax at every loop closure (section III), not only once the closures' chi2 debt mounts
+        self._graph = IncrementalOptimizer(IncrementalConfig(optimizer=opt, skip_chi2=0.0), self._first_pose)
         self._features: list[Features] = []
         self._n_images: list[int] = []
         self._created: list[int] = []  # taken-image index that created each location

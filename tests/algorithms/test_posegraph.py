@@ -448,8 +448,10 @@ def test_cvxopt_cholmod_reuses_the_analysis(monkeypatch: pytest.MonkeyPatch) -> 
     assert r.linear_solver == "cholmod" and r.n_factorizations >= 2
     assert calls == {"symbolic": 1, "numeric": r.n_factorizations}
     np.testing.assert_allclose(r.poses, ref.poses, atol=1e-9)
-    h = sp.csc_matrix(-np.eye(6))
-    assert not sc.SparseCholesky("cholmod").factor(h)  # not positive definite: False, not an exception
+    h = sp.csc_matrix(np.diag([1.0, 2.0, 0.0, 1.0, 1.0, 1.0]))
+    assert not sc.SparseCholesky("cholmod").factor(h)  # singular: False, not an exception
+    big = sp.csc_matrix(-np.eye(sc.SUPERNODAL_MIN_SIZE))  # the supernodal LL' also catches indefinite
+    assert not sc.SparseCholesky("cholmod").factor(big)
 
 
 def test_robust_mask_chooses_the_edges_the_kernel_applies_to() -> None:
