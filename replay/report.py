@@ -21,7 +21,7 @@ import numpy as np
 
 from slamreplay.replay.compare import Comparison, MetricResult, fmt, fmt_ms
 from slamreplay.replay.run import atomic_write
-from slamreplay.replay.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, read_tum
+from slamreplay.replay.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, paired_with_truth, read_tum
 
 COLOURS = {"regression": "#c62828", "failed": "#c62828", "improvement": "#2e7d32"}
 A_COLOUR, B_COLOUR = "#7f7f7f", "#1f77b4"  # A grey (the baseline), B blue (the estimate under test)
@@ -104,10 +104,10 @@ def _errors(path: str | None) -> np.ndarray | None:
         t_truth, truth = read_tum((Path(path) / TRUTH_TUM_ARTIFACT).read_text())
     except (OSError, ValueError):
         return None
-    idx = np.clip(np.searchsorted(t, t_truth), 0, max(len(t) - 1, 0))
-    if not len(t_truth) or not len(t) or not np.allclose(t[idx], t_truth, rtol=0.0, atol=1e-6):
+    paired = paired_with_truth(t, est, t_truth)
+    if paired is None or not len(t_truth):
         return None
-    err = np.hypot(*(est[idx, :2] - truth[:, :2]).T)
+    err = np.hypot(*(paired[:, :2] - truth[:, :2]).T)
     out = np.column_stack([t_truth - t_truth[0], err])
     step = max(1, len(out) // 400)
     return np.vstack([out[::step], out[-1:]])

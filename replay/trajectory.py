@@ -105,3 +105,12 @@ def trajectory_artifacts(trajectory: tuple[np.ndarray, np.ndarray] | None) -> di
     if trajectory is None or len(trajectory[0]) == 0:
         return {}
     return {TUM_ARTIFACT: to_tum(*trajectory)}
+
+
+def paired_with_truth(t_s: np.ndarray, est: np.ndarray, t_truth_s: np.ndarray) -> np.ndarray | None:
+    """Rows of ``est`` (times ``t_s``) at the times of a run's ``truth.tum`` (``t_truth_s``, a subset of them:
+    the estimate's times inside the ground truth's span); None when some truth time is not an estimate's."""
+    idx = np.clip(np.searchsorted(t_s, t_truth_s), 0, max(len(t_s) - 1, 0))
+    if len(t_truth_s) and (len(t_s) == 0 or not np.allclose(t_s[idx], t_truth_s, rtol=0.0, atol=1e-6)):
+        return None
+    return np.asarray(est)[idx] if len(t_truth_s) else np.zeros((0, 3))

@@ -17,7 +17,7 @@ from slamreplay.recorder.files import atomic_write
 from slamreplay.replay.diff import load_run
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.evaluate import Alignment, DeltaUnit, ErrorStats, ape, rpe, to_kitti
-from slamreplay.replay.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, read_tum
+from slamreplay.replay.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, paired_with_truth, read_tum
 
 KITTI_ESTIMATE, KITTI_TRUTH = "estimate.kitti", "truth.kitti"
 
@@ -79,11 +79,10 @@ def read_run_trajectories(run_dir: Path) -> tuple[str, np.ndarray, np.ndarray, n
         truth = None
         if truth_file.is_file():
             t_truth, truth = read_tum(truth_file.read_text())
-            # the truth covers the estimate's times inside the ground truth's span: the same time stamps
-            idx = np.clip(np.searchsorted(t, t_truth), 0, max(len(t) - 1, 0))
-            if len(t_truth) and (len(t) == 0 or not np.allclose(t[idx], t_truth, rtol=0.0, atol=1e-6)):
+            paired = paired_with_truth(t, est, t_truth)
+            if paired is None:
                 raise ReplayError(f"{truth_file} holds times that {est_file} does not (another run's file?)")
-            t, est = t[idx], est[idx]
+            t, est = t_truth, paired
     except ValueError as err:
         raise ReplayError(f"{run_dir}: a trajectory file is malformed: {err}") from err
     return pipeline, t, est, truth
