@@ -67,8 +67,8 @@ def test_paper_switch_gives_the_previous_covariance(texture: np.ndarray) -> None
     p = register(ref, mov, IfmiConfig(covariance="paper"))
     np.testing.assert_allclose(p.covariance, [[0.08340470782052702, 3.7863093105270746e-05, 0.0],
                                               [3.7863093105270746e-05, 0.0834581952083801, 0.0],
-                                              [0.0, 0.0, 0.11274355281089062]], rtol=1e-9)
-    assert p.scale_var == pytest.approx(6.961853452681873e-05, rel=1e-9)
+                                              [0.0, 0.0, 0.11274355281089062]], rtol=1e-6)  # numpy/FFT builds
+    assert p.scale_var == pytest.approx(6.961853452681873e-05, rel=1e-6)
     c = register(ref, mov, IfmiConfig(covariance="calibrated"))
     assert c.shift_px == p.shift_px and c.angle_deg == p.angle_deg and c.pnr == p.pnr
     (cyy, cyx), (_, cxx) = ifmi_cov.translation(((p.covariance[1, 1], p.covariance[0, 1]),
