@@ -238,8 +238,9 @@ def test_prepared_keeps_the_image(texture: np.ndarray) -> None:
 
 
 def perturbed(texture: np.ndarray, rng: np.random.Generator, noise: float, blur: float
-              ) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
-    """A random similarity pair with sensor noise on both images and a blur on the moving one; the true shift."""
+              ) -> tuple[np.ndarray, np.ndarray, tuple[float, float], float]:
+    """A random similarity pair (docs/ifmi.md convention) rendered from the texture, sensor noise of sigma ``noise``
+    on both images and a blur on the moving one; the true shift and angle (degrees)."""
     y, x = (int(v) for v in rng.integers(0, 1024 - N, 2))
     angle, scale = rng.uniform(-180, 180), math.exp(rng.uniform(math.log(0.8), math.log(1.25)))
     dx, dy = rng.uniform(-0.2, 0.2, 2) * N
@@ -252,7 +253,7 @@ def perturbed(texture: np.ndarray, rng: np.random.Generator, noise: float, blur:
     ref = texture[y:y + N, x:x + N].astype(np.float32)
     ref += rng.normal(0, noise, ref.shape).astype(np.float32)
     mov += rng.normal(0, noise, mov.shape).astype(np.float32)
-    return ref, mov, (dx, dy)
+    return ref, mov, (dx, dy), float(angle)
 
 
 def test_paper_translation_covariance_is_conservative(texture: np.ndarray) -> None:
@@ -266,7 +267,7 @@ def test_paper_translation_covariance_is_conservative(texture: np.ndarray) -> No
     rng = np.random.default_rng(11)
     nees = []
     for noise, blur in [(0.0, 0.0), (3.0, 0.0), (0.0, 1.0), (3.0, 1.0)] * 3:
-        ref, mov, (dx, dy) = perturbed(texture, rng, noise, blur)
+        ref, mov, (dx, dy), _ = perturbed(texture, rng, noise, blur)
         r = register(ref, mov, IfmiConfig(covariance="paper"))
         assert r.status is Status.OK
         e = np.array([r.shift_px[0] - dx, r.shift_px[1] - dy])
@@ -279,7 +280,7 @@ def test_noisy_blurred_pairs_are_accepted_in_a_lower_band(texture: np.ndarray) -
     rng = np.random.default_rng(12)
     bands = []
     for _ in range(4):
-        ref, mov, (dx, dy) = perturbed(texture, rng, 4.0, 1.0)
+        ref, mov, (dx, dy), _ = perturbed(texture, rng, 4.0, 1.0)
         r = register(ref, mov)
         assert r.status is Status.OK and math.hypot(r.shift_px[0] - dx, r.shift_px[1] - dy) < 0.5
         bands.append(r.band)

@@ -11,8 +11,8 @@ import pytest
 from slamreplay.algorithms.ifmi import IfmiConfig, Status, register
 from slamreplay.algorithms.ifmi import covariance as ifmi_cov
 from slamreplay.recorder.sim.seabed import procedural_texture
+from tests.algorithms.test_ifmi import N, perturbed
 
-N = 256
 CHI2_2_95, CHI2_1_95 = 5.991, 3.841
 
 
@@ -20,22 +20,6 @@ CHI2_2_95, CHI2_1_95 = 5.991, 3.841
 def texture() -> np.ndarray:
     """A deterministic 1024x1024 procedural seabed texture."""
     return procedural_texture(1024, 1024, np.random.default_rng(7))
-
-
-def noisy_pair(texture: np.ndarray, rng: np.random.Generator, noise: float
-               ) -> tuple[np.ndarray, np.ndarray, float, float, float]:
-    """A random similarity (docs/ifmi.md convention) rendered from the texture, noise of sigma ``noise`` on both."""
-    y, x = (int(v) for v in rng.integers(0, 1024 - N, 2))
-    angle, scale = rng.uniform(-180, 180), math.exp(rng.uniform(math.log(0.8), math.log(1.25)))
-    dx, dy = rng.uniform(-0.2, 0.2, 2) * N
-    a = cv2.getRotationMatrix2D(((N - 1) / 2, (N - 1) / 2), angle, scale)
-    a[:, 2] += (dx, dy)
-    a[:, 2] -= a[:, :2] @ np.array([x, y], float)  # render the moving image from the texture around the crop
-    mov = cv2.warpAffine(texture, a, (N, N)).astype(np.float32)
-    ref = texture[y:y + N, x:x + N].astype(np.float32)
-    ref += rng.normal(0, noise, ref.shape).astype(np.float32)
-    mov += rng.normal(0, noise, mov.shape).astype(np.float32)
-    return ref, mov, float(angle), float(dx), float(dy)
 
 
 def test_calibrated_nees_is_within_two_sided_bounds(texture: np.ndarray) -> None:
@@ -46,7 +30,7 @@ def test_calibrated_nees_is_within_two_sided_bounds(texture: np.ndarray) -> None
     rng = np.random.default_rng(21)
     t_nees, r_nees = [], []
     for k in range(60):
-        ref, mov, angle, dx, dy = noisy_pair(texture, rng, (2.0, 5.0)[k % 2])
+        ref, mov, (dx, dy), angle = perturbed(texture, rng, (2.0, 5.0)[k % 2], 0.0)
         r = register(ref, mov)
         assert r.status is Status.OK
         e = np.array([r.shift_px[0] - dx, r.shift_px[1] - dy])

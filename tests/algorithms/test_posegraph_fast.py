@@ -7,10 +7,10 @@ import pytest
 
 from slamreplay.algorithms.common.posegraph import OptimizerConfig, PoseGraph, _Problem, chi2, optimize
 from slamreplay.algorithms.common.posegraph_incremental import IncrementalConfig, IncrementalOptimizer
-from slamreplay.algorithms.common.posegraph_init import init_odometry
 from slamreplay.algorithms.common.robust import Kernel
-from slamreplay.algorithms.common.se2 import between, compose, wrap_angle
+from slamreplay.algorithms.common.se2 import compose, wrap_angle
 from slamreplay.algorithms.common.sparse_cholesky import BlockSystem
+from tests.algorithms.test_posegraph import random_graph
 
 NONE = OptimizerConfig(kernel=Kernel.NONE)
 STEP = OptimizerConfig(kernel=Kernel.NONE, max_iterations=1, rel_tol=1e-5)  # the incremental default, no kernel
@@ -18,17 +18,7 @@ STEP = OptimizerConfig(kernel=Kernel.NONE, max_iterations=1, rel_tol=1e-5)  # th
 
 def walk(seed: int, n: int = 60, loops: int = 25, noise: float = 0.05) -> PoseGraph:
     """A seeded random walk with noisy odometry and short loop closures, at its odometry estimate."""
-    rng = np.random.default_rng(seed)
-    steps = np.column_stack([rng.uniform(0.5, 1.5, n - 1), rng.normal(0, 0.2, n - 1), rng.normal(0, 0.4, n - 1)])
-    truth = np.zeros((n, 3))
-    for k in range(n - 1):
-        truth[k + 1] = compose(truth[k], steps[k])
-    a = rng.integers(0, n - 3, loops)
-    b = a + rng.integers(2, 8, loops).clip(max=n - 1 - a)
-    i, j = np.r_[np.arange(n - 1), a], np.r_[np.arange(1, n), b]
-    z = between(truth[i], truth[j]) + rng.normal(0, noise, (i.size, 3))
-    g = PoseGraph(np.zeros((n, 3)), i, j, z, np.broadcast_to(np.eye(3) / noise**2, (i.size, 3, 3)))
-    return g.with_poses(init_odometry(g))
+    return random_graph(np.random.default_rng(seed), n, loops, noise)[0]
 
 
 def mahalanobis2(g: PoseGraph, est: np.ndarray, ref: np.ndarray) -> float:
