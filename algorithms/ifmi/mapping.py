@@ -19,6 +19,8 @@ import math
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from slamreplay.algorithms.ifmi.registration import Registration
 
@@ -106,18 +108,9 @@ def gated_log_scales(n: int, i: NDArray[np.int64], j: NDArray[np.int64], log_rat
 
 
 def _connected(n: int, i: NDArray[np.int64], j: NDArray[np.int64]) -> bool:
-    """Whether edges ``i - j`` connect all ``n`` nodes (union-find)."""
-    parent = list(range(n))
-
-    def root(a: int) -> int:
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
-
-    for a, b in zip(i.tolist(), j.tolist(), strict=True):
-        parent[root(a)] = root(b)
-    return len({root(a) for a in range(n)}) == 1
+    """Whether edges ``i - j`` connect all ``n`` nodes."""
+    adj = coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
+    return bool(connected_components(adj, directed=False)[0] == 1)
 
 
 def mosaic_consistency(images: list[NDArray[np.generic]], poses: F64, res: F64, min_overlap: float = 0.3) -> F64:
