@@ -19,7 +19,8 @@ from slamreplay.algorithms.common import se2
 from slamreplay.algorithms.observe import Text
 from slamreplay.recorder.messages import TOPIC_GROUND_TRUTH_POSE
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.evaluate import TRAJECTORY_METRICS, trajectory_metrics, truth_at
+from slamreplay.replay.evaluate import TRAJECTORY_METRICS, trajectory_metrics
+from slamreplay.replay.metrics import truth_at
 from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext, ReplayObserver
 from slamreplay.replay.reader import Envelope, RecordingReader
 from slamreplay.replay.trajectory import TRUTH_TUM_ARTIFACT, to_tum, trajectory_artifacts
@@ -167,10 +168,9 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
     trajectory = pipeline.trajectory()
     artifacts = trajectory_artifacts(trajectory)
     if trajectory is not None and len(trajectory[0]) and t_gt:
-        truth = np.asarray(t_gt, np.int64), np.stack(gt).astype(np.float64)
-        metrics = {**trajectory_metrics(*trajectory, *truth), **metrics}
-        mask, ref = truth_at(trajectory[0], *truth)
+        mask, ref = truth_at(trajectory[0], np.asarray(t_gt, np.int64), np.stack(gt).astype(np.float64))
         if len(ref):  # the truth at the estimate's times: both files pair line by line (evo, KITTI)
+            metrics = {**trajectory_metrics(trajectory[1][mask], ref), **metrics}
             artifacts[TRUTH_TUM_ARTIFACT] = to_tum(trajectory[0][mask], ref)
     return ReplayStats(metrics, n, np.asarray(durations) if log_timings else None,
                        np.asarray(times, np.int64) if log_timings else None, pipeline.timings(),

@@ -31,7 +31,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamreplay.algorithms.common import se2
-from slamreplay.replay.metrics import associate
 from slamreplay.replay.pipeline import MetricSpec
 
 F64 = NDArray[np.float64]
@@ -57,18 +56,6 @@ class ErrorStats:
         if len(e) == 0:
             return cls(math.nan, math.nan, math.nan, math.nan, 0)
         return cls(float(np.sqrt(np.mean(e * e))), float(np.mean(e)), float(np.median(e)), float(np.max(e)), len(e))
-
-
-def truth_at(t_est_ns: NDArray[np.int64], t_gt_ns: NDArray[np.int64], gt: F64) -> tuple[NDArray[np.bool_], F64]:
-    """(mask of estimate times inside the ground truth's span, ground-truth poses (k, 3) at those times)."""
-    t_gt_ns = np.asarray(t_gt_ns, np.int64)
-    mask = associate(np.asarray(t_est_ns, np.int64), t_gt_ns)
-    if not mask.any():
-        return mask, np.zeros((0, 3))
-    t0 = t_gt_ns[0]  # relative times keep float64 interpolation exact to the ns
-    ref = se2.interpolate((np.asarray(t_est_ns)[mask] - t0).astype(np.float64), (t_gt_ns - t0).astype(np.float64),
-                          np.asarray(gt, np.float64))
-    return mask, np.asarray(ref, np.float64)
 
 
 def _check(est: F64, ref: F64) -> tuple[F64, F64]:
@@ -160,22 +147,20 @@ TRAJECTORY_METRICS: dict[str, MetricSpec] = {
 }
 
 
-def trajectory_metrics(t_est_ns: NDArray[np.int64], est: F64, t_gt_ns: NDArray[np.int64], gt: F64
-                       ) -> dict[str, float]:
-    """The :data:`TRAJECTORY_METRICS` of an estimate against ground truth (those that apply: none without
-    overlap in time; the RPE per metre only once the robot has moved that far)."""
-    mask, ref = truth_at(t_est_ns, t_gt_ns, gt)
+def trajectory_metrics(est: F64, ref: F64) -> dict[str, float]:
+    """The :data:`TRAJECTORY_METRICS` of an estimate against the ground truth at its times (``truth_at``), those
+    that apply: none without a pose; the RPE per metre only once the robot has moved that far."""
+    est, ref = _check(est, ref)
     if len(ref) == 0:
         return {}
-    e = np.asarray(est, np.float64)[mask]
     out: dict[str, float] = {}
     for alignment in ALIGNMENTS:
-        trans, rot = ape(e, ref, alignment)
+        trans, rot = ape(est, ref, alignment)
         out["ape_rmse_m" if alignment == "none" else f"ape_{alignment}_rmse_m"] = trans.rmse
         if alignment == "none":
             out["ape_rot_rmse_deg"] = rot.rmse
     for key, delta, unit in (("step", 1.0, "step"), ("m", RPE_METRE_DELTA_M, "m")):
-        trans, rot = rpe(e, ref, delta, unit)  # type: ignore[arg-type]
+        trans, rot = rpe(est, ref, delta, unit)  # type: ignore[arg-type]
         if trans.n:
             out[f"rpe_{key}_trans_rmse_m"], out[f"rpe_{key}_rot_rmse_deg"] = trans.rmse, rot.rmse
     return out

@@ -29,19 +29,26 @@ def associate(t_est_ns: NDArray[np.int64], t_gt_ns: NDArray[np.int64]) -> NDArra
     return cast(NDArray[np.bool_], (t_est_ns >= t_gt_ns[0]) & (t_est_ns <= t_gt_ns[-1]))
 
 
+def truth_at(t_est_ns: NDArray[np.int64], t_gt_ns: NDArray[np.int64], gt: F64) -> tuple[NDArray[np.bool_], F64]:
+    """(mask of estimate times inside the ground truth's span, ground-truth poses (k, 3) at those times)."""
+    t_gt_ns = np.asarray(t_gt_ns, np.int64)
+    mask = associate(np.asarray(t_est_ns, np.int64), t_gt_ns)
+    if not mask.any():
+        return mask, np.zeros((0, 3))
+    t0 = t_gt_ns[0]  # relative times keep float64 interpolation exact to the ns
+    ref = se2.interpolate((np.asarray(t_est_ns)[mask] - t0).astype(np.float64), (t_gt_ns - t0).astype(np.float64),
+                          np.asarray(gt, np.float64))
+    return mask, np.asarray(ref, np.float64)
+
+
 def position_errors(t_est_ns: NDArray[np.int64], est: F64, t_gt_ns: NDArray[np.int64], gt: F64) -> tuple[F64, F64]:
     """Per-estimate position error (m) and heading error (rad) against interpolated ground truth.
 
     Returns errors only for estimates inside the ground truth's time span, and the mask of
     which estimates those are is ``associate(t_est_ns, t_gt_ns)``.
     """
-    mask = associate(t_est_ns, t_gt_ns)
-    if not mask.any():
-        return np.zeros(0), np.zeros(0)
-    # Times relative to the first ground truth keep float64 interpolation exact to the ns.
-    t0 = t_gt_ns[0]
-    ref = se2.interpolate((t_est_ns[mask] - t0).astype(np.float64), (t_gt_ns - t0).astype(np.float64), gt)
-    d = est[mask] - ref
+    mask, ref = truth_at(t_est_ns, t_gt_ns, gt)
+    d = np.asarray(est)[mask] - ref
     return np.hypot(d[:, 0], d[:, 1]), np.abs(se2.wrap_angle(d[:, 2]))
 
 

@@ -24,6 +24,7 @@ from slamreplay.replay.evaluate import (
     to_kitti,
     trajectory_metrics,
 )
+from slamreplay.replay.metrics import truth_at
 from slamreplay.replay.run import run_recording
 from slamreplay.replay.trajectory import read_tum
 
@@ -122,11 +123,14 @@ def test_trajectory_metrics_only_where_they_apply() -> None:
     """Every name is a declared spec; none without overlap in time; no per-metre RPE before a metre is driven."""
     t = np.arange(50, dtype=np.int64) * 100_000_000
     ref = np.column_stack([np.linspace(0, 5, 50), np.zeros(50), np.zeros(50)])
-    out = trajectory_metrics(t, ref + [0.0, 0.1, 0.0], t, ref)
+    mask, at = truth_at(t, t, ref)
+    out = trajectory_metrics((ref + [0.0, 0.1, 0.0])[mask], at)
     assert set(out) == set(TRAJECTORY_METRICS)
     assert out["ape_rmse_m"] == pytest.approx(0.1) and out["ape_se2_rmse_m"] == pytest.approx(0.0, abs=1e-9)
-    assert trajectory_metrics(t + 10**12, ref, t, ref) == {}
-    short = trajectory_metrics(t[:5], ref[:5], t, ref)  # 0.4 m driven
+    mask, at = truth_at(t + 10**12, t, ref)
+    assert not mask.any() and trajectory_metrics(ref[mask], at) == {}
+    mask, at = truth_at(t[:5], t, ref)
+    short = trajectory_metrics(ref[:5][mask], at)  # 0.4 m driven
     assert "rpe_m_trans_rmse_m" not in short and "rpe_step_trans_rmse_m" in short
 
 
