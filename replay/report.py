@@ -63,18 +63,33 @@ def _strip_plot(r: MetricResult, width: int = 220, height: int = 34) -> str:
     return "".join(parts)
 
 
-def _trajectory(path: str | None) -> np.ndarray | None:
-    """(n, 2) positions from a run's trajectory.tum, thinned to at most 400 points; None without one."""
+def _thin(rows: np.ndarray, most: int = 400) -> np.ndarray:
+    """At most about ``most`` evenly spaced rows, the last one kept."""
+    step = max(1, len(rows) // most)
+    return np.vstack([rows[::step], rows[-1:]])
+
+
+def _curves(path: str | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """From a run's trajectory.tum (read once) and truth.tum: its (n, 2) positions, and (n, 2) seconds since the
+    first pose with truth against position error (m), each thinned to about 400 points; None where a file is
+    missing or unreadable."""
     if not path:
-        return None
+        return None, None
     try:
-        _, poses = read_tum((Path(path) / TUM_ARTIFACT).read_text())
+        t, est = read_tum((Path(path) / TUM_ARTIFACT).read_text())
     except (OSError, ValueError):
-        return None
-    if not len(poses):
-        return None
-    step = max(1, len(poses) // 400)
-    return np.vstack([poses[::step, :2], poses[-1:, :2]])
+        return None, None
+    if not len(est):
+        return None, None
+    xy = _thin(est[:, :2])
+    try:
+        t_truth, truth = read_tum((Path(path) / TRUTH_TUM_ARTIFACT).read_text())
+    except (OSError, ValueError):
+        return xy, None
+    paired = paired_with_truth(t, est, t_truth)
+    if paired is None or not len(t_truth):
+        return xy, None
+    return xy, _thin(np.column_stack([t_truth - t_truth[0], np.hypot(*(paired[:, :2] - truth[:, :2]).T)]))
 
 
 def _trajectory_plot(a: np.ndarray, b: np.ndarray, title: str, size: int = 260) -> str:
@@ -92,25 +107,6 @@ def _trajectory_plot(a: np.ndarray, b: np.ndarray, title: str, size: int = 260) 
             f'<polyline points="{pts(a)}" fill="none" stroke="{A_COLOUR}" stroke-width="1.5"/>'
             f'<polyline points="{pts(b)}" fill="none" stroke="{B_COLOUR}" stroke-width="1.2"/></svg>'
             f"<figcaption>{html.escape(title)} ({span:.3g} m across)</figcaption></figure>")
-
-
-def _errors(path: str | None) -> np.ndarray | None:
-    """(n, 2): seconds since the first pose with truth, position error (m), from a run's trajectory.tum and
-    truth.tum, thinned to at most 400 points; None without both."""
-    if not path:
-        return None
-    try:
-        t, est = read_tum((Path(path) / TUM_ARTIFACT).read_text())
-        t_truth, truth = read_tum((Path(path) / TRUTH_TUM_ARTIFACT).read_text())
-    except (OSError, ValueError):
-        return None
-    paired = paired_with_truth(t, est, t_truth)
-    if paired is None or not len(t_truth):
-        return None
-    err = np.hypot(*(paired[:, :2] - truth[:, :2]).T)
-    out = np.column_stack([t_truth - t_truth[0], err])
-    step = max(1, len(out) // 400)
-    return np.vstack([out[::step], out[-1:]])
 
 
 def _error_plot(a: np.ndarray, b: np.ndarray, title: str, width: int = 360, height: int = 260) -> str:
@@ -144,11 +140,10 @@ def _trajectories(c: Comparison) -> list[str]:
         rb = index["B"].get(key)
         if rb is None:
             continue
-        ta, tb = _trajectory(ra.get("run_dir")), _trajectory(rb.get("run_dir"))
+        (ta, ea), (tb, eb) = _curves(ra.get("run_dir")), _curves(rb.get("run_dir"))
         if ta is not None and tb is not None:
             rs = "" if key[3] is None else f" recording seed {key[3]},"
             out.append(_trajectory_plot(ta, tb, f"{key[0]}/{key[1]}/{key[2]}{rs} seed {key[4]}"))
-            ea, eb = _errors(ra.get("run_dir")), _errors(rb.get("run_dir"))
             if ea is not None and eb is not None:
                 out.append(_error_plot(ea, eb, f"{key[0]}/{key[1]}/{key[2]}{rs} seed {key[4]}"))
     return out
