@@ -109,7 +109,8 @@ bench: $(STAMP)
 	$(if $(QUICK),,nice $(BIN)/python benchmarks/registration.py)
 	@echo; $(BIN)/python benchmarks/summary.py $(BENCH_DIR)
 
-# Optional: CHOLMOD (SuiteSparse) for the pose-graph solver; without it SciPy's SuperLU is used.
+# Optional: CHOLMOD (SuiteSparse) through scikit-sparse for the pose-graph solver; without it CVXOPT's CHOLMOD
+# (the solver extra) or QDLDL (a core dependency) is used.
 cholmod: $(STAMP)
 	@dpkg -s libsuitesparse-dev >/dev/null 2>&1 || apt-get install -y -q libsuitesparse-dev
 	$(BIN)/python -m pip install --quiet -e ".[dev,cholmod]"

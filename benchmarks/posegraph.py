@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 from bench_io import write_json
 
+from slamreplay.algorithms.common import sparse_cholesky
 from slamreplay.algorithms.common.posegraph import OptimizerConfig, PoseGraph, chi2, optimize
 from slamreplay.algorithms.common.posegraph_analysis import aligned_position_rmse
 from slamreplay.algorithms.common.posegraph_incremental import IncrementalConfig, IncrementalOptimizer
@@ -63,6 +64,11 @@ def solver_name() -> str:
     """The linear solver the optimizer picks: superlu, or the binding that runs CHOLMOD."""
     chol = SparseCholesky("auto")
     return str(getattr(chol, "provider", chol.backend))  # revisions before the CVXOPT binding have no provider
+
+
+def plain_solver() -> str:
+    """The linear solver of a plain ``pip install`` (no CHOLMOD binding): QDLDL, a core dependency, else SuperLU."""
+    return "qdldl" if getattr(sparse_cholesky, "HAVE_QDLDL", False) else "superlu"
 
 
 def median_time(fn: Callable[[], Any], repeat: int) -> tuple[float, Any]:
@@ -194,10 +200,11 @@ def batch_table(data: Path, repeat: int, names: list[str]) -> dict[str, dict[str
             print(f"note: {name} skipped ({'g2opy' if 'g2o' in name else 'gtsam'} not installed)")
     none = OptimizerConfig(kernel=Kernel.NONE)
     lm = OptimizerConfig(method="lm", kernel=Kernel.NONE)
-    cols = ["ours GN", "ours LM", "ours chordal+GN", *[p for p, f in peers.items() if f is not None]]
+    plain = OptimizerConfig(kernel=Kernel.NONE, linear_solver=plain_solver())  # type: ignore[arg-type]
+    cols = ["ours GN", "ours LM", "ours chordal+GN", "ours GN plain", *[p for p, f in peers.items() if f is not None]]
     provider = solver_name()
-    print(f"\nlinear solver: {'SciPy SuperLU' if provider == 'superlu' else f'CHOLMOD ({provider})'}; "
-          f"times are CPU ms (median of {repeat})")
+    print(f"\nlinear solver: {'SciPy SuperLU' if provider == 'superlu' else provider}; 'ours GN plain': "
+          f"{plain_solver()}, the solver of a plain pip install; times are CPU ms (median of {repeat})")
     figures: dict[str, dict[str, float]] = {}
     print(f"{'dataset':<17}{'ref chi2':>10} | " + " | ".join(f"{c:>22}" for c in cols) + " | ours GN / peer")
     for label, rel, ref in DATASETS:
@@ -211,6 +218,8 @@ def batch_table(data: Path, repeat: int, names: list[str]) -> dict[str, dict[str
         cells["ours LM"] = (t, r.chi2_final)
         t, r = median_time(lambda g=g: optimize(g.with_poses(init_chordal(g)), none), repeat)
         cells["ours chordal+GN"] = (t, r.chi2_final)
+        t, r = median_time(lambda g=g: optimize(g, plain), repeat)
+        cells["ours GN plain"] = (t, r.chi2_final)
         own = []
         for pname, prep in peers.items():
             if prep is not None:
@@ -218,17 +227,19 @@ def batch_table(data: Path, repeat: int, names: list[str]) -> dict[str, dict[str
                 cells[pname] = (t, peer_chi2(g, poses))
                 if getattr(timed_peer, "own_chi2", None) is not None:
                     own.append(f"{pname} {timed_peer.own_chi2:.3f}")  # type: ignore[attr-defined]
-        ratios = [f"{cells['ours GN'][0] / cells[p][0]:.2f}x {p}" for p in cols[3:]]
+        ratios = [f"{cells['ours GN'][0] / cells[p][0]:.2f}x {p}" for p in cols[4:]]
         row = " | ".join(f"{cells[c][0] * 1e3:8.1f} ms {cells[c][1]:11.3f}" for c in cols)
         print(f"{label:<17}{ref:>10.3f} | {row} | " + ", ".join(ratios))
         key = label.split(" ")[0].lower()
         figures[key] = {"ours_gn_ms": 1e3 * cells["ours GN"][0], "chi2": cells["ours GN"][1],
-                        "ours_lm_ms": 1e3 * cells["ours LM"][0]}
+                        "ours_lm_ms": 1e3 * cells["ours LM"][0], "ours_gn_plain_ms": 1e3 * cells["ours GN plain"][0],
+                        "chi2_plain": cells["ours GN plain"][1]}
         for pname, field in (("g2o GN", "g2o_gn"), ("GTSAM GN", "gtsam_gn"), ("GTSAM LM", "gtsam_lm")):
             if pname in cells:
                 figures[key][f"{field}_ms"] = 1e3 * cells[pname][0]
                 figures[key][f"{field}_chi2"] = cells[pname][1]
                 figures[key][f"ours_over_{field}"] = cells["ours GN"][0] / cells[pname][0]
+                figures[key][f"ours_plain_over_{field}"] = cells["ours GN plain"][0] / cells[pname][0]
         if own:
             print(f"{'':<17}{'':>10}   (GTSAM's own objective, 2 x error with its Logmap residual: {', '.join(own)})")
     return figures
@@ -421,7 +432,7 @@ def main() -> None:
     if args.quick:
         args.skip = sorted({*args.skip, "mit", "robust"})
     figures: dict[str, Any] = {"benchmark": "posegraph", "repeat": args.repeat, "clock": "process CPU time",
-                               "linear_solver": solver_name()}
+                               "linear_solver": solver_name(), "plain_linear_solver": plain_solver()}
     if "batch" not in args.skip:
         figures["datasets"] = batch_table(args.data, args.repeat, names)
     if "mit" not in args.skip:

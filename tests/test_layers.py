@@ -12,8 +12,8 @@ PACKAGES = ("recorder", "replay", "algorithms", "api")
 # What each package may import among the project's packages and the heavy third-party ones.
 ALLOWED_PROJECT = {"algorithms": {"algorithms"}, "recorder": {"recorder"},
                    "replay": {"replay", "recorder", "algorithms"}, "api": set(PACKAGES)}
-# numeric libraries only; sksparse and cvxopt are bindings of CHOLMOD (the pose-graph Cholesky)
-ALGORITHMS_THIRD_PARTY = {"numpy", "scipy", "cv2", "sksparse", "cvxopt"}
+# numeric libraries only; sksparse and cvxopt are bindings of CHOLMOD, qdldl an LDL' (the pose-graph Cholesky)
+ALGORITHMS_THIRD_PARTY = {"numpy", "scipy", "cv2", "sksparse", "cvxopt", "qdldl"}
 
 
 def _top(module: str) -> str:

@@ -179,7 +179,8 @@ class OptimizerConfig:
     gauge : index of the vertex held fixed, or a tuple of indices to hold several fixed.
     lm_lambda : initial LM damping, relative to diag(H).
     divergence_ratio : DIVERGED when the cost exceeds this multiple of the initial cost.
-    linear_solver : "auto" (CHOLMOD if scikit-sparse imports, else SuperLU), "cholmod", "superlu".
+    linear_solver : "auto" (CHOLMOD if scikit-sparse or CVXOPT imports, else QDLDL, a core dependency,
+        else SuperLU), "cholmod", "qdldl", "superlu".
     graduated : DCS only: start Phi at the largest loop-closure chi2 of the initial guess (no edge
         down-weighted, plain least squares) and divide it by ``graduated_factor`` per iteration
         down to the target Phi (graduated non-convexity), so a poor start does not down-weight
@@ -226,8 +227,8 @@ class OptimizerConfig:
             raise ValueError(f"kernel_parameter must be > 0, got {self.kernel_parameter}")
         if not self.divergence_ratio > 1.0:
             raise ValueError(f"divergence_ratio must be > 1, got {self.divergence_ratio}")
-        if self.linear_solver not in ("auto", "cholmod", "superlu"):
-            raise ValueError(f"linear_solver must be auto, cholmod or superlu, got {self.linear_solver!r}")
+        if self.linear_solver not in ("auto", "cholmod", "qdldl", "superlu"):
+            raise ValueError(f"linear_solver must be auto, cholmod, qdldl or superlu, got {self.linear_solver!r}")
         if not 0.0 < self.graduated_factor < 1.0:
             raise ValueError(f"graduated_factor must be in (0, 1), got {self.graduated_factor}")
         if not 0.0 <= self.chord_tol < 1.0:
@@ -254,7 +255,7 @@ class OptimizationResult:
     edge_chi2 : (m,) per-edge chi2 at the returned poses (rejected edges included).
     weights : (m,) IRLS weights at the returned poses (1 where no kernel applies, 0 when rejected).
     n_factorizations : sparse Cholesky factorizations done.
-    linear_solver : "cholmod" or "superlu".
+    linear_solver : "cholmod", "qdldl" or "superlu".
     inliers : (m,) bool, False for the edges the inlier gate rejected.
     edges_rejected : number of rejected edges.
     """
@@ -346,7 +347,10 @@ class _Problem:
         self.info = np.ascontiguousarray(graph.information.transpose(1, 2, 0))  # (3, 3, m)
         self.fixed = tuple(int(v) for v in np.unique(gauge))
         self.chol = SparseCholesky(cfg.linear_solver)
-        self.system = (BlockSystem(n, graph.i, graph.j, self.fixed, order=order, lower=self.chol.wants_lower)
+        if order is None and self.chol.orders_itself:
+            order = np.arange(n - len(self.fixed), dtype=np.int64)
+        self.system = (BlockSystem(n, graph.i, graph.j, self.fixed, order=order, lower=self.chol.wants_lower,
+                                   upper=self.chol.wants_upper)
                        if n > len(self.fixed) else None)
         self._lin: tuple[F64, F64, F64, F64, F64] | None = None  # poses, e, cos, sin, u of the last evaluate
         z = graph.measurements
@@ -450,7 +454,10 @@ class _Problem:
             data[self.system.diag_slots] += damping
         if not self.chol.factor(self.system.matrix(data)):
             return None
-        return -self.chol.solve(b)
+        try:
+            return -self.chol.solve(b)
+        except np.linalg.LinAlgError:  # a zero pivot only the solve could tell (QDLDL's re-factorization)
+            return None
 
     def apply(self, poses: F64, dx: F64) -> F64:
         """Additive update of the free vertices, heading wrapped."""

@@ -4,17 +4,25 @@
 the vertex blocks and, for every (edge, block, row, column) contribution, its slot in the CSC
 data array. Each iteration then only fills numbers with ``np.bincount`` [1]_.
 
-:class:`SparseCholesky` uses CHOLMOD, with its symbolic analysis done on the first factorization and
-reused for every later one (same pattern, new numbers): through scikit-sparse (``sksparse``) when it
-is importable (the ``cholmod`` extra, built against the system's SuiteSparse), else through CVXOPT's
-``cvxopt.cholmod``, which installs from a wheel with SuiteSparse inside (the ``solver`` extra: not a
-core dependency, as CVXOPT is GPL-3.0 and slamreplay MIT). Measured on
-the first normal equations of M3500 / intel / city10000 (CPU ms, numeric factorization + solve, one
-run on a shared 2-core machine): CVXOPT 4.0 / 1.5 / 23.3, SciPy SuperLU 9.2 / 2.5 / 64.0, cholespy
-16.6 / 5.8 / 90.0 (cholespy has no reuse of the analysis: each factorization starts over).
-Without either, SciPy's SuperLU on the already-permuted matrix with the natural ordering and no
-pivoting, the fastest SciPy path measured here (the ordering is the only symbolic step SciPy lets
-us reuse).
+:class:`SparseCholesky` keeps the symbolic work of its factorization (ordering, analysis) for every
+later matrix with the same pattern, and picks, in this order:
+
+- CHOLMOD through scikit-sparse (``sksparse``) when it is importable (the ``cholmod`` extra, built
+  against the system's SuiteSparse);
+- CHOLMOD through CVXOPT's ``cvxopt.cholmod``, which installs from a wheel with SuiteSparse inside (the
+  ``solver`` extra: not a core dependency, as CVXOPT is GPL-3.0 and slamreplay MIT);
+- QDLDL (``qdldl``, Apache-2.0, a core dependency from a wheel): an up-looking LDL' after its own AMD
+  ordering, ``update`` re-factoring in place with the ordering and elimination tree kept. It reads the
+  upper triangle, which :class:`BlockSystem` lays out directly (``upper``);
+- SciPy's SuperLU on the already-permuted matrix with the natural ordering and no pivoting, the fastest
+  SciPy path measured here (the ordering is the only symbolic step SciPy lets us reuse), where neither
+  imports.
+
+Measured on the first normal equations of M3500 / intel / city10000 (CPU ms, numeric factorization +
+solve, one run on a shared 2-core machine): CVXOPT 3.7 / 1.2 / 18.2, QDLDL 3.5 / 0.9 / 34.2, SciPy
+SuperLU 9.2 / 2.5 / 64.0, cholespy 16.6 / 5.8 / 90.0 (cholespy has no reuse of the analysis: each
+factorization starts over). QDLDL's first factorization, its AMD included, 7.7 / 2.7 / 49.8 against
+CVXOPT's 9.0 / 2.6 / 31.6 (CHOLMOD is supernodal on the larger two: QDLDL has no supernodes).
 
 References
 ----------
@@ -32,7 +40,7 @@ from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
-Backend = Literal["auto", "cholmod", "superlu"]
+Backend = Literal["auto", "cholmod", "qdldl", "superlu"]
 
 try:  # optional: CHOLMOD where SuiteSparse and scikit-sparse are installed
     from sksparse.cholmod import analyze as _cholmod_analyze  # type: ignore[import-not-found, unused-ignore]
@@ -46,7 +54,13 @@ try:  # CHOLMOD and AMD from CVXOPT's wheel (the solver extra)
 except ImportError:  # the install keeps working on SciPy alone
     _cvx_cholmod = None
 
+try:  # QDLDL (Apache-2.0): an LDL' with AMD inside, from a wheel; a core dependency
+    import qdldl as _qdldl  # type: ignore[import-untyped, unused-ignore]
+except ImportError:  # a platform without its wheel keeps working on SciPy alone
+    _qdldl = None
+
 HAVE_CVXOPT = _cvx_cholmod is not None
+HAVE_QDLDL = _qdldl is not None
 HAVE_CHOLMOD = _cholmod_analyze is not None or HAVE_CVXOPT
 _cholmod_order = _cholmod_analyze  # the ordering's own handle (tests fake the factorization's)
 # CVXOPT's CHOLMOD: supernodal (BLAS) factorization from this many unknowns, simplicial below.
@@ -56,6 +70,10 @@ _cholmod_order = _cholmod_analyze  # the ordering's own handle (tests fake the f
 # simplicial 45 / 15 / 3, supernodal 15 / 24 / 3. CHOLMOD's own choice (flops / nnz(L) >= 40)
 # picks simplicial for M3500 too.
 SUPERNODAL_MIN_SIZE = 8000
+# QDLDL: the largest normwise backward error a solve may have (SparseCholesky.solve). LDL' without pivoting
+# on the optimizer's positive semi-definite matrices gives about n eps; a factor left half from an older
+# matrix (a zero pivot) gives order 1.
+QDLDL_TOL = 1e-8
 
 
 def _cvx_lower(h: sp.csc_matrix) -> tuple[Any, I64]:
@@ -121,10 +139,16 @@ class BlockSystem:
     lower : bool
         Store only the lower triangle (what CHOLMOD reads of a symmetric matrix): about half the
         entries to fill and copy per iteration; ``matrix`` then returns that triangle.
+    upper : bool
+        Store only the upper triangle (what QDLDL reads), in CSC order: the lower layout
+        transposed once here, so each iteration costs what ``lower`` costs.
     """
 
     def __init__(self, n_vertices: int, i: I64, j: I64, fixed: int | tuple[int, ...], dim: int = 3,
-                 order: I64 | None = None, lower: bool = False) -> None:
+                 order: I64 | None = None, lower: bool = False, upper: bool = False) -> None:
+        if lower and upper:
+            raise ValueError("lower and upper exclude each other (neither: the full matrix)")
+        half = lower or upper
         d = dim
         free = np.ones(n_vertices, dtype=bool)
         free[np.asarray(fixed, dtype=np.int64)] = False
@@ -142,9 +166,11 @@ class BlockSystem:
         off = (p >= 0) & (q >= 0)
         hi, lo = np.maximum(p[off], q[off]), np.minimum(p[off], q[off])
         # column-major block keys (col * n + row), CSC order after sorting: every diagonal block,
-        # then the off-diagonal blocks of the edges (below the diagonal; above too unless lower)
+        # then the off-diagonal blocks of the edges: (hi, lo) below the diagonal unless upper,
+        # (lo, hi) above it unless lower
         diag_keys = np.arange(n_free, dtype=np.int64) * (n_free + 1)
-        keys = np.r_[diag_keys, lo * n_free + hi] if lower else np.r_[diag_keys, lo * n_free + hi, hi * n_free + lo]
+        keys = (np.r_[diag_keys, lo * n_free + hi] if lower else np.r_[diag_keys, hi * n_free + lo] if upper
+                else np.r_[diag_keys, lo * n_free + hi, hi * n_free + lo])
         ukeys, inv = np.unique(keys, return_inverse=True)
         ucol, urow = ukeys // n_free, ukeys % n_free
         cnt = np.bincount(ucol, minlength=n_free)
@@ -155,55 +181,64 @@ class BlockSystem:
         # sl[r, c, t]: data position of entry (r, c) of unique block t (entry-major, so per-edge
         # gathers come out edge-last); column t = n_u is a sentinel for absent blocks (nnz: dropped).
         # lower: a diagonal block keeps r >= c only and is the first of its block column, so scalar
-        # column c of block column k holds d * cnt[k] - c entries
-        tri = d * (d - 1) // 2 if lower else 0
+        # column c of block column k holds d * cnt[k] - c entries; upper: it keeps r <= c and is the
+        # last, d * cnt[k] - (d - 1 - c) entries. drop: the entries of the block column's diagonal
+        # block dropped before entry (r, c) in CSC order
+        tri = d * (d - 1) // 2 if half else 0
         cstart = np.r_[0, np.cumsum(d * d * cnt - tri)]
         nnz = int(cstart[-1])
-        drop = cc * (cc - 1) // 2 + cc if lower else 0 * cc
+        drop = (cc * (cc - 1) // 2 + cc if lower else cc * (d - 1) - cc * (cc - 1) // 2 if upper else 0 * cc)
         sl = np.empty((d, d, n_u + 1), dtype=np.int64)
         sl[:, :, :n_u] = (cstart[ucol] + d * rank) + cc * d * cnt[ucol] + rr - drop
         sl[:, :, n_u] = nnz
-        if lower:
+        if half:
             isdiag = np.flatnonzero(urow == ucol)
             for r, c in zip(*np.triu_indices(d, 1), strict=True):
-                sl[r, c, isdiag] = nnz  # the upper half of a diagonal block
+                if upper:
+                    r, c = c, r
+                sl[r, c, isdiag] = nnz  # the other half of a diagonal block
         indices = np.empty(nnz + 1, dtype=np.int32)  # [nnz]: where the dropped entries land
         indices[sl[:, :, :n_u].ravel()] = np.broadcast_to(d * urow + rr, (d, d, n_u)).ravel()
         indices = indices[:nnz]
-        per_col = np.repeat(d * cnt, d) - (np.tile(np.arange(d), n_free) if lower else 0)
+        per_col = np.repeat(d * cnt, d) - (np.tile(np.arange(d), n_free) if lower
+                                            else np.tile(np.arange(d)[::-1], n_free) if upper else 0)
         colptr = np.r_[0, np.cumsum(per_col)].astype(np.int32)
         # per edge (edge last): blocks (p, p), (p, q), (q, q); (p, q) is stored transposed where p is above q
+        # (upper: below q)
         m = i.size
         tdiag = np.r_[inv[:n_free], n_u]  # [-1] (a fixed endpoint) is the sentinel
         toff = np.full(m, n_u, dtype=np.int64)
-        toff[off] = inv[n_free : n_free + lo.size]  # block (hi, lo)
+        toff[off] = inv[n_free : n_free + lo.size]  # block (hi, lo); upper: (lo, hi)
         below = p > q
-        slot_h = np.empty((3 if lower else 4, d, d, m), dtype=np.int64)
+        slot_h = np.empty((3 if half else 4, d, d, m), dtype=np.int64)
         sl.take(tdiag[p], axis=2, out=slot_h[0])
         sl.take(toff, axis=2, out=slot_h[1])
-        np.copyto(slot_h[1], slot_h[1].transpose(1, 0, 2).copy(), where=~below)
+        np.copyto(slot_h[1], slot_h[1].transpose(1, 0, 2).copy(), where=below if upper else ~below)
         sl.take(tdiag[q], axis=2, out=slot_h[2])
-        if not lower:  # the mirror block (lo, hi) of the full matrix gets H_pq^T: a 4th group
+        if not half:  # the mirror block (lo, hi) of the full matrix gets H_pq^T: a 4th group
             toff[off] = inv[n_free + lo.size :]
             sl.take(toff, axis=2, out=slot_h[3])
             np.copyto(slot_h[3], slot_h[3].transpose(1, 0, 2).copy(), where=below)
         slot_b = np.stack([np.where(p >= 0, d * p, d * n_free), np.where(q >= 0, d * q, d * n_free)])
+        ar = np.arange(d)
+        diag_slots = sl[ar, ar][:, tdiag[:-1]].T.ravel()
+        slot_h = slot_h.ravel()
         self.dim = d
         self.size = d * n_free
         self.nnz = nnz
         self.lower = lower
+        self.upper = upper
         self.pos: I64 = pos
         self._indices = indices
         self._indptr = colptr
-        self._slot_h = slot_h.ravel()  # (group, d, d, edge)
+        self._slot_h = slot_h  # (group, d, d, edge)
         self._slot_b = (slot_b[:, None, :] + rr[:, :, 0][None]).ravel()  # (2, d, edge)
-        ar = np.arange(d)
-        self.diag_slots: I64 = sl[ar, ar][:, tdiag[:-1]].T.ravel()
+        self.diag_slots: I64 = diag_slots
         self.n_edges = int(m)
 
     def matrix(self, data: F64) -> sp.csc_matrix:
         """CSC matrix with this structure and the given data (shares the index arrays); the lower
-        triangle only when built with ``lower``."""
+        (upper) triangle only when built with ``lower`` (``upper``)."""
         m = sp.csc_matrix((self.size, self.size))
         m.data, m.indices, m.indptr = data, self._indices, self._indptr
         return m
@@ -221,7 +256,7 @@ class BlockSystem:
         """
         if blocks.shape[0] == 4:
             blocks = blocks[[0, 1, 3]]
-        w = blocks.ravel() if self.lower else np.concatenate([blocks.ravel(), blocks[1].ravel()])
+        w = blocks.ravel() if self.lower or self.upper else np.concatenate([blocks.ravel(), blocks[1].ravel()])
         data = np.bincount(self._slot_h, weights=w, minlength=self.nnz + 1)[: self.nnz]
         b = np.bincount(self._slot_b, weights=grad.ravel(), minlength=self.size + 1)[: self.size]
         return data.astype(np.float64, copy=False), b.astype(np.float64, copy=False)
@@ -244,28 +279,41 @@ class SparseCholesky:
 
     Parameters
     ----------
-    backend : {"auto", "cholmod", "superlu"}
-        ``auto`` picks CHOLMOD when a binding imports (scikit-sparse, else CVXOPT), SuperLU otherwise.
+    backend : {"auto", "cholmod", "qdldl", "superlu"}
+        ``auto`` picks CHOLMOD when a binding imports (scikit-sparse, else CVXOPT), else QDLDL (a core
+        dependency), else SuperLU.
     """
 
     def __init__(self, backend: Backend = "auto") -> None:
-        if backend not in ("auto", "cholmod", "superlu"):
-            raise ValueError(f"backend must be auto, cholmod or superlu, got {backend!r}")
+        if backend not in ("auto", "cholmod", "qdldl", "superlu"):
+            raise ValueError(f"backend must be auto, cholmod, qdldl or superlu, got {backend!r}")
         if backend == "cholmod" and not HAVE_CHOLMOD:
             raise ValueError("backend: 'cholmod' requested but neither cvxopt nor scikit-sparse (sksparse) is "
                              "importable: pip install cvxopt")
-        self.backend = "cholmod" if backend == "cholmod" or (backend == "auto" and HAVE_CHOLMOD) else "superlu"
+        if backend == "qdldl" and not HAVE_QDLDL:
+            raise ValueError("backend: 'qdldl' requested but qdldl is not importable: pip install qdldl")
+        if backend == "auto":
+            backend = "cholmod" if HAVE_CHOLMOD else "qdldl" if HAVE_QDLDL else "superlu"
+        self.backend = backend
         # which binding runs CHOLMOD: scikit-sparse when installed (the opt-in extra), else CVXOPT's wheel
-        self.provider = ("superlu" if self.backend == "superlu"
+        self.provider = (backend if backend != "cholmod"
                          else "scikit-sparse" if _cholmod_analyze is not None else "cvxopt")
+        self._qd: Any = None  # QDLDL: the solver (its AMD order and elimination tree), refactored in place
+        self._u: Any = None  # QDLDL: the upper triangle last factored, and its max-norm (a solve's check)
+        self._norm = 0.0
+        self._up: I64 | None = None  # QDLDL: positions of the upper triangle in the CSC data (None: all of it)
         self._symbolic: Any = None
         self._lu: Any = None
         self._a: Any = None  # CVXOPT: the matrix whose values are replaced before each numeric factorization
         self._low: I64 = np.zeros(0, np.int64)  # CVXOPT: positions of the lower triangle in the CSC data
         self._nnz = -1
+        self._qd_n = -1
         self._all = False
-        # whether BlockSystem should hand over the lower triangle only (all CVXOPT's CHOLMOD reads)
+        # whether BlockSystem should hand over the lower (upper) triangle only: all CVXOPT's CHOLMOD (QDLDL) reads
         self.wants_lower = self.provider == "cvxopt"
+        self.wants_upper = self.provider == "qdldl"
+        # QDLDL orders the matrix itself (AMD, once per pattern): a block order of ours would be thrown away
+        self.orders_itself = self.provider == "qdldl"
 
     def factor(self, h: sp.csc_matrix) -> bool:
         """Factor ``h`` (symmetric, already fill-reduced); False when it is singular / not PD.
@@ -312,6 +360,8 @@ class SparseCholesky:
             except ArithmeticError:  # not positive definite
                 return False
             return True
+        if self.provider == "qdldl":
+            return self._factor_qdldl(h)
         try:
             # relax=1, panel_size=1 measured 35 % faster than SuperLU's defaults on M3500, intel and
             # city10000; large values (relax 16, panel 32) crash SciPy 1.17's SuperLU.
@@ -323,8 +373,62 @@ class SparseCholesky:
             return False
         return True
 
+    def _factor_qdldl(self, h: sp.csc_matrix) -> bool:
+        """QDLDL: AMD, elimination tree and numeric factorization for a new pattern, the numeric one alone
+        (``update``, in place) for the same pattern."""
+        assert _qdldl is not None
+        n = h.shape[0]
+        if n == 0:
+            return False
+        if self._qd is None or self._nnz != h.nnz or self._qd_n != n:
+            cols = np.repeat(np.arange(n, dtype=np.int64), np.diff(h.indptr))
+            up = np.flatnonzero(h.indices <= cols)
+            self._up = None if up.size == h.nnz else up  # None: h is the upper triangle (BlockSystem(upper=True))
+            self._nnz, self._qd_n = h.nnz, n
+            u = self._upper(h)
+            try:
+                self._qd = _qdldl.Solver(u, upper=True)
+            except (RuntimeError, ValueError):  # a zero pivot: singular
+                self._qd = None
+                return False
+        else:
+            u = self._upper(h)
+            self._qd.update(u, upper=True)
+        self._u = u
+        a, cols = np.abs(u.data), np.repeat(np.arange(n), np.diff(u.indptr))
+        rowsum = np.bincount(u.indices, a, n) + np.bincount(cols, a, n) - np.abs(u.diagonal())
+        self._norm = float(rowsum.max())  # |H| in the max norm, H = U + U^T - diag(U)
+        return True
+
+    def _upper(self, h: sp.csc_matrix) -> sp.csc_matrix:
+        if self._up is None:
+            return h
+        n = h.shape[0]
+        cols = np.repeat(np.arange(n, dtype=np.int64), np.diff(h.indptr))
+        up = self._up
+        return sp.csc_matrix((np.asarray(h.data, np.float64)[up], h.indices[up], np.r_[0, np.cumsum(
+            np.bincount(cols[up], minlength=n))]), shape=h.shape)
+
     def solve(self, rhs: F64) -> F64:
-        """Solve with the last successful factorization; rhs (N,) or (N, k)."""
+        """Solve with the last successful factorization; rhs (N,) or (N, k).
+
+        QDLDL's re-factorization (same pattern, new numbers) does not report a zero pivot: it stops there
+        and leaves the rest of the factor from the previous matrix. So a QDLDL solve checks its normwise
+        backward error, ``|H x - b| <= QDLDL_TOL (|H| |x| + |b|)`` in the max norm (two products with the
+        triangle), and raises ``np.linalg.LinAlgError`` instead of returning a wrong answer.
+        """
+        if self.provider == "qdldl":
+            r = np.asarray(rhs, np.float64)
+            if r.ndim == 1:
+                x = np.asarray(self._qd.solve(r), dtype=np.float64)
+            else:
+                x = np.column_stack([self._qd.solve(np.ascontiguousarray(r[:, k])) for k in range(r.shape[1])])
+            u = self._u
+            res = u @ x + u.T @ x - u.diagonal().reshape((-1,) + (1,) * (x.ndim - 1)) * x - r
+            scale = self._norm * np.max(np.abs(x), initial=0.0) + np.max(np.abs(r), initial=0.0)
+            if not (np.all(np.isfinite(x)) and np.max(np.abs(res), initial=0.0) <= QDLDL_TOL * scale):
+                raise np.linalg.LinAlgError("singular matrix: a zero pivot in the LDL' factorization")
+            return x
         if self.provider == "scikit-sparse":
             return np.asarray(self._symbolic(rhs), dtype=np.float64)
         if self.provider == "cvxopt":

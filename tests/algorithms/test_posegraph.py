@@ -454,6 +454,53 @@ def test_cvxopt_cholmod_reuses_the_analysis(monkeypatch: pytest.MonkeyPatch) -> 
     assert not sc.SparseCholesky("cholmod").factor(big)
 
 
+@pytest.mark.skipif(not sc.HAVE_QDLDL, reason="qdldl is not installed")
+def test_qdldl_refactors_in_place_and_reports_singular_matrices(monkeypatch: pytest.MonkeyPatch) -> None:
+    """QDLDL: one AMD + elimination tree per pattern, ``update`` for every later factorization, SuperLU's answer;
+    a zero pivot is False on the first factorization and LinAlgError (a failed step) on a re-factorization."""
+    calls = {"new": 0, "update": 0}
+    real = sc._qdldl.Solver
+
+    class Counting:
+        def __init__(self, a: object, upper: bool = False) -> None:
+            calls["new"] += 1
+            assert upper
+            self.s = real(a, upper=True)
+
+        def update(self, a: object, upper: bool = False) -> None:
+            calls["update"] += 1
+            self.s.update(a, upper=upper)
+
+        def solve(self, b: np.ndarray) -> np.ndarray:
+            return self.s.solve(b)
+
+    monkeypatch.setattr(sc._qdldl, "Solver", Counting)
+    g, _ = random_graph(np.random.default_rng(12), n=40, loops=12)
+    ref = optimize(g, OptimizerConfig(kernel=Kernel.NONE, linear_solver="superlu"))
+    r = optimize(g, OptimizerConfig(kernel=Kernel.NONE, linear_solver="qdldl"))
+    assert r.linear_solver == "qdldl" and r.n_factorizations >= 2
+    assert calls == {"new": 1, "update": r.n_factorizations - 1}
+    np.testing.assert_allclose(r.poses, ref.poses, atol=1e-9)
+    lm = optimize(g, OptimizerConfig(method="lm", kernel=Kernel.NONE, linear_solver="qdldl"))
+    np.testing.assert_allclose(lm.poses, ref.poses, atol=1e-6)
+    # a full matrix (posegraph_init's systems) works as well: its upper triangle is taken
+    a = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 2.0]])
+    chol = sc.SparseCholesky("qdldl")
+    assert chol.factor(sp.csc_matrix(a))
+    np.testing.assert_allclose(chol.solve(np.ones(3)), np.linalg.solve(a, np.ones(3)), rtol=1e-12)
+    np.testing.assert_allclose(chol.solve(np.eye(3)), np.linalg.inv(a), rtol=1e-12)  # several right-hand sides
+    assert chol.factor(sp.csc_matrix(a + 1.0 * (a != 0)))  # same pattern: re-factored in place
+    np.testing.assert_allclose(chol.solve(np.ones(3)), np.linalg.solve(a + 1.0 * (a != 0), np.ones(3)), rtol=1e-12)
+    singular = np.array([[1.0, 1.0, 0.0], [1.0, 2.0, 1.0], [0.0, 1.0, 1.0]])  # a's pattern; a zero pivot in any order
+    assert not sc.SparseCholesky("qdldl").factor(sp.csc_matrix(singular))
+    assert chol.factor(sp.csc_matrix(singular))  # QDLDL's update does not tell
+    with pytest.raises(np.linalg.LinAlgError, match="zero pivot"):
+        chol.solve(np.ones(3))
+    with pytest.raises(ValueError, match="pip install qdldl"):
+        monkeypatch.setattr(sc, "HAVE_QDLDL", False)
+        sc.SparseCholesky("qdldl")
+
+
 def test_robust_mask_chooses_the_edges_the_kernel_applies_to() -> None:
     """optimize(robust=...) overrides the |i - j| != 1 rule: a false sequential edge is rejected only when masked."""
     n = 6

@@ -35,10 +35,11 @@ def mahalanobis2(g: PoseGraph, est: np.ndarray, ref: np.ndarray) -> float:
 
 
 @pytest.mark.parametrize("dim", [1, 2, 3])
-@pytest.mark.parametrize("lower", [False, True])
-def test_block_system_matches_the_dense_sum(dim: int, lower: bool) -> None:
+@pytest.mark.parametrize("triangle", ["full", "lower", "upper"])
+def test_block_system_matches_the_dense_sum(dim: int, triangle: str) -> None:
     """H, b and diag slots equal the dense sum of edge blocks (duplicate, reversed edges; two fixed vertices)."""
-    rng = np.random.default_rng(dim + 10 * lower)
+    lower, upper = triangle == "lower", triangle == "upper"
+    rng = np.random.default_rng(dim + 10 * lower + 20 * upper)
     n, d = 12, dim
     i = rng.integers(0, n, 30)
     j = (i + rng.integers(1, n, 30)) % n
@@ -47,7 +48,7 @@ def test_block_system_matches_the_dense_sum(dim: int, lower: bool) -> None:
     a, c = rng.normal(size=(2, m, d, d))
     hii, hjj, hij = a @ a.transpose(0, 2, 1), c @ c.transpose(0, 2, 1), rng.normal(size=(m, d, d))
     gi, gj = rng.normal(size=(2, m, d))
-    bs = BlockSystem(n, i, j, fixed, dim=d, lower=lower)
+    bs = BlockSystem(n, i, j, fixed, dim=d, lower=lower, upper=upper)
     data, b = bs.assemble(np.stack([hii, hij, hjj]).transpose(0, 2, 3, 1), np.stack([gi.T, gj.T]))
     dense, bd = np.zeros((n * d, n * d)), np.zeros(n * d)
     for k in range(m):
@@ -64,7 +65,7 @@ def test_block_system_matches_the_dense_sum(dim: int, lower: bool) -> None:
     ref = dense[np.ix_(perm, perm)]
     h = bs.matrix(data)
     assert h.has_sorted_indices
-    np.testing.assert_allclose(h.toarray(), np.tril(ref) if lower else ref, atol=1e-12)
+    np.testing.assert_allclose(h.toarray(), np.tril(ref) if lower else np.triu(ref) if upper else ref, atol=1e-12)
     np.testing.assert_allclose(b, bd[perm], atol=1e-12)
     np.testing.assert_allclose(data[bs.diag_slots], np.diag(ref), atol=1e-12)
 

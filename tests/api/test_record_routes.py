@@ -3,9 +3,8 @@ per importer from the registry; GET /importers says which and why not."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import warnings
+from pathlib import Path
 
 import pytest
 from service_helpers import InlineExecutor

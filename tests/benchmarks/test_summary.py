@@ -21,8 +21,9 @@ def test_table_rows_targets_and_missing_files(tmp_path: Path) -> None:
     bench_io.write_json(tmp_path / "replay_throughput.json", {
         "reader_over_raw": 1.1, "noop_over_raw": 1.4, "odometry_null_over_raw": 1.3, "rrd_over_raw": float("nan"),
         "rrd_bytes": 2_000_000, "messages": 42})
-    bench_io.write_json(tmp_path / "posegraph.json", {"linear_solver": "cvxopt", "datasets": {
-        "m3500": {"ours_over_g2o_gn": 0.75}}})
+    bench_io.write_json(tmp_path / "posegraph.json", {"linear_solver": "cvxopt", "plain_linear_solver": "qdldl",
+                                                      "datasets": {"m3500": {"ours_over_g2o_gn": 0.75,
+                                                                             "ours_plain_over_g2o_gn": 0.85}}})
     lines = summary.table(tmp_path)
     row = {line.split(" | ")[0].lstrip("| "): line for line in lines if line.startswith("| ")}
     assert row["RecordingReader / raw mcap decode"].endswith("| 1.10x | 1.20x | yes |")
@@ -31,7 +32,8 @@ def test_table_rows_targets_and_missing_files(tmp_path: Path) -> None:
     assert row["pose graph GN / g2o GN, M3500"].endswith("| 0.75x | 0.80x | yes |")
     assert "not run" in row["pose graph GN / g2o GN, intel"]
     assert "not run" in row["loop closure per 320x240 image, simulator"]
-    assert "pose-graph linear solver: cvxopt" in lines
+    assert row["pose graph GN / g2o GN, M3500, plain install"].endswith("| 0.85x | 0.80x | no |")
+    assert "pose-graph linear solver: cvxopt; plain install (no `solver` extra): qdldl" in lines
     doc = json.loads((tmp_path / "replay_throughput.json").read_text())
     assert doc["rrd_over_raw"] is None and doc["machine"]["cpus"] >= 1
     assert not list(tmp_path.glob("*.tmp"))
