@@ -35,7 +35,9 @@ each timed segment to report how far the recovered state is from ``I^-1 i``).
 on) over the paper scenario (``sim-landmarks`` defaults, that many seconds, ``--seed``), each in a
 fresh process that reads the recording message by message, and reports the memory as the run
 grows: the growth of the process's resident memory over the run and of its peak (``ru_maxrss``,
-a high-water mark, so reading the recording can hide the filter's growth), the final
+a high-water mark, so reading the recording can hide the filter's growth), the process's resident
+memory before D-SLAM and its peak (absolute), D-SLAM's arrays (information matrix, recovery,
+covariance cache and summary: what the filter holds), the final
 relinearisation's summary (entries, bytes) against the bytes the previous design's log of every
 measurement would hold, and the per-scan time of all scans, of the scans that close a loop (a
 feature unseen for ``loop_closure_gap_scans`` re-observed) and of the 25 scans after each. A
@@ -304,6 +306,8 @@ def duration_run(duration: float, seed: int, out: Path) -> dict[str, object]:
     log = slam.map_log
     return {"duration_s": duration, "scans": len(t), "mapped": slam.n, "loop_closures": len(loops),
             "rss_growth_mb": rss_mb() - rss0, "peak_rss_growth_mb": peak_rss_mb() - peak0,
+            "rss_before_mb": rss0, "peak_rss_mb": peak_rss_mb(),
+            "dslam_array_mb": (slam.info.nbytes + slam.recovery.nbytes + slam.covariance.nbytes + log.nbytes) / 2**20,
             "summary_entries": log.entries,
             "summary_kb": log.nbytes / 1e3, "measurements": len(log), "full_log_kb": old_bytes / 1e3,
             "step_mean_ms": float(t.mean()), "step_p95_ms": float(np.percentile(t, 95)),

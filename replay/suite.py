@@ -15,6 +15,12 @@ error names the file, the line and the key::
     [pipelines.dslam.variants]
     default = {}
     tight = { range_sigma_m = 0.05 }              # config keys as `slamreplay pipelines` lists them
+    paper = { preset = "paper" }                  # a preset of the pipeline's, its keys overridable beside it
+
+``preset`` names one of the pipeline's presets (``slamreplay pipelines`` lists them) for a variant,
+or for all of them beside ``variants`` (a variant's own ``preset`` wins). It is written out into
+the variant's config values, under the keys the variant sets itself, as ``slamreplay run
+--preset`` layers it: the cell's config (and so its cache key) holds every value the preset set.
 
 A *cell* is one run: (recording, recording seed, pipeline, variant, run seed). Cells that
 differ only by their seeds form a *group*, which ``compare`` matches across two results.
@@ -45,7 +51,7 @@ SIMULATORS = ("sim-landmarks", "sim-seabed", "sim-corridor")
 TOP_KEYS = {"seeds", "recordings", "pipelines", "name"}
 RECORDING_KEYS = {"path", "url", "sim", "args", "seeds", "topic_map"}
 ID_RECORDING_KEYS = {"id"}  # a suite sent to the service names uploaded recordings by id, nothing else
-PIPELINE_KEYS = {"variants", "config"}
+PIPELINE_KEYS = {"variants", "config", "preset"}
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
 
@@ -301,6 +307,16 @@ def _pipeline(chk: _Checker, name: str, doc: Any) -> dict[str, dict[str, Any]]:
         vkeys = [*keys, "variants", variant]
         chk.name(variant, vkeys)
         values = {**base, **chk.table(values, vkeys)}
+        if "preset" in values:
+            preset, at = values.pop("preset"), [*vkeys, "preset"]
+        else:
+            preset, at = doc.get("preset"), [*keys, "preset"]
+        if preset is not None:
+            if not isinstance(preset, str) or preset not in cls.presets:
+                have = ", ".join(sorted(cls.presets)) or "(none)"
+                raise chk.fail(at, f"pipeline {name} has no preset {preset!r}; its presets: {have} "
+                                   f"(see `slamreplay pipelines`)")
+            values = {**cls.presets[preset], **values}
         try:
             resolve_config(cls, values)
         except ReplayError as err:

@@ -49,6 +49,25 @@ def test_parse_and_expand(tmp_path: Path) -> None:
     assert ("landmarks", "dslam", "tight") in groups and len(groups) == 2 * 3
 
 
+def test_a_variant_names_a_preset(tmp_path: Path) -> None:
+    """``preset`` writes the pipeline's preset into the variant's config; the variant's own keys win over it;
+    a pipeline-level preset applies to the variants that name none."""
+    from slamreplay.replay.pipeline import get_pipeline
+
+    paper = get_pipeline("dslam").presets["paper"]
+    key = next(iter(paper))
+    text = GOOD.replace("tight = { range_gate_sigma = 2.0 }",
+                        f'paper = {{ preset = "paper" }}\nmixed = {{ preset = "paper", {key} = {paper[key] + 1} }}')
+    suite = load_suite(write(tmp_path, text))
+    variants = suite.pipelines["dslam"]
+    assert variants["default"] == {} and variants["paper"] == paper
+    assert variants["mixed"] == {**paper, key: paper[key] + 1}
+    assert "preset" not in variants["paper"]
+    text = GOOD.replace("[pipelines.dslam.variants]", '[pipelines.dslam]\npreset = "paper"\n[pipelines.dslam.variants]')
+    suite = load_suite(write(tmp_path, text.replace("range_gate_sigma", _a_dslam_float_key())))
+    assert suite.pipelines["dslam"]["default"] == paper
+
+
 def _a_dslam_float_key() -> str:
     from slamreplay.replay.pipeline import config_schema, get_pipeline
 
@@ -69,6 +88,10 @@ def _a_dslam_float_key() -> str:
     (GOOD.replace("seeds = [1, 2]  ", "sedes = [1, 2]  "), 1, r"sedes: unknown key"),
     (GOOD.replace("seeds = [1, 2]  ", "seeds = [-1]    "), 1, r"seeds: must be a non-empty list of integers"),
     (GOOD + "[pipelines.odometry.extra]\n", 12, r"pipelines\.odometry\.extra: unknown key"),
+    (GOOD.replace("tight = { range_gate_sigma = 2.0 }", 'tight = { preset = "papr" }'), 11,
+     r"pipelines\.dslam\.variants\.tight\.preset: pipeline dslam has no preset 'papr'; its presets: paper"),
+    (GOOD.replace("[pipelines.odometry]", '[pipelines.odometry]\npreset = "fast"'), 9,
+     r"pipelines\.odometry\.preset: pipeline odometry has no preset 'fast'; its presets: "),
 ])
 def test_errors_name_file_line_and_key(tmp_path: Path, text: str, line: int, pattern: str) -> None:
     """Each validation error starts with FILE:LINE and names the key."""
