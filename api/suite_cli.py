@@ -118,6 +118,8 @@ def cmd_suite_run(args: argparse.Namespace) -> int:
     failed = [r for r in rows if r["status"] != "succeeded"]
     cached = sum(1 for r in rows if r.get("cached"))
     if not args.quiet:
+        from slamreplay.replay.compare import variants_table
+        print(variants_table(rows))
         for r in failed:
             print(f"  FAILED {Path(r['run_dir']).name}: {r['error']}")
         print(f"suite: {len(rows)} cells, {cached} from cache, {len(rows) - cached - len(failed)} run, "

@@ -309,6 +309,39 @@ def format_table(c: Comparison) -> str:
     return "\n".join(lines)
 
 
+def variants_table(rows: list[dict[str, Any]]) -> str:
+    """One results directory's figures side by side: per recording and pipeline, each metric (a row) by variant
+    (a column), the mean ± sd over the cell's seeds that succeeded. What ``suite run`` prints at its end."""
+    tables: dict[tuple[str, str], dict[str, list[dict[str, Any]]]] = {}
+    for r in rows:
+        tables.setdefault((r["recording"], r["pipeline"]), {}).setdefault(r["variant"], []).append(r)
+    lines: list[str] = []
+    for (recording, pipeline), variants in tables.items():
+        ok = {v: [r for r in rs if r["status"] == "succeeded"] for v, rs in variants.items()}
+        better: dict[str, str] = {}
+        for rs in ok.values():
+            for r in rs:
+                better.update({m: r.get("better", {}).get(m, "none") for m in r.get("metrics", {})})
+        heads = [f"{v} ({len(ok[v])}/{len(rs)} ok)" for v, rs in variants.items()]
+        width = max([20, *map(len, heads)])
+        lines.append(f"{recording} / {pipeline}")
+        lines.append(f"  {'metric':<30}   " + " ".join(f"{h:>{width}}" for h in heads))
+        for m in sorted(better):
+            cells = []
+            for v in variants:
+                vals = np.array([r["metrics"][m] for r in ok[v] if r["metrics"].get(m) is not None], dtype=float)
+                vals = vals[np.isfinite(vals)]
+                cells.append("-" if not vals.size else fmt_ms(float(vals.mean()),
+                                                               float(vals.std(ddof=1)) if vals.size > 1 else None))
+            arrow = {"lower": "l", "higher": "h"}.get(better[m], " ")
+            lines.append(f"  {m:<30} {arrow} " + " ".join(f"{c:>{width}}" for c in cells))
+        lines.append("")
+    if lines:
+        lines.append("(l: lower is better, h: higher, blank: neither, e.g. a NEES; mean ± sd over the seeds; "
+                     "`slamreplay compare` tests A against B)")
+    return "\n".join(lines)
+
+
 def fmt(x: float | None, digits: int = 4, signed: bool = False) -> str:
     if x is None or not math.isfinite(x):
         return "-"

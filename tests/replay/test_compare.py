@@ -135,3 +135,24 @@ def test_pair_rrds_are_written_once_and_linked(tmp_path: Path) -> None:
     html = (tmp_path / "out" / "r.html").read_text()
     assert 'href="../rrd/a0--b0.rrd"' in html and ">A/B r1s0</a>" in html and "a2--b2" not in html
     assert "[A/B r2s0](../rrd/a1--b1.rrd)" in (tmp_path / "out" / "s.md").read_text()
+
+
+def test_variants_table_puts_each_variants_seeds_side_by_side() -> None:
+    """suite run's closing table: mean ± sd per variant column, failed cells counted out, direction marked."""
+    from slamreplay.replay.compare import variants_table
+
+    default = rows([0.1, 0.2, 0.3])
+    paper = [{**r, "variant": "paper"} for r in rows([0.4, 0.6])] + [
+        {**r, "variant": "paper"} for r in rows([0.0], status="failed")]
+    nees = [{**r, "metrics": {**r["metrics"], "landmark_nees_mean": 2.0}, "better": {**r["better"],
+                                                                                      "landmark_nees_mean": "none"}}
+            for r in default]
+    text = variants_table(nees + paper)
+    lines = text.splitlines()
+    assert lines[0] == "landmarks / dslam"
+    assert "default (3/3 ok)" in lines[1] and "paper (2/3 ok)" in lines[1]
+    rmse = next(line for line in lines if line.strip().startswith("landmark_rmse_m"))
+    assert rmse.split()[1] == "l" and "0.2 ± 0.1" in rmse and "0.5 ± 0.14" in rmse
+    nees_line = next(line for line in lines if line.strip().startswith("landmark_nees_mean"))
+    assert "2 ± 0" in nees_line and nees_line.rstrip().endswith("-")  # no paper cell reports it
+    assert variants_table([]) == ""
