@@ -103,7 +103,10 @@ def test_ransac_recovers_motion_with_outliers(theta: float, scale: float, tx: fl
     z = src[:, 0] + 1j * src[:, 1] - c
     w = scale * np.exp(1j * theta) * z + complex(tx, ty) + c
     dst = np.stack([w.real, w.imag], axis=1)
-    dst[n_in:] = rng.uniform([0, 0], [320, 240], (n_out, 2))  # outliers (a few may land near the truth)
+    out = rng.uniform([0, 0], [320, 240], (n_out, 2))
+    near = np.hypot(*(out - dst[n_in:]).T) < 5.0  # an "outlier" within the threshold is an inlier: move it away
+    out[near] = dst[n_in:][near] + 50.0
+    dst[n_in:] = out
     m = estimate_motion(src, dst, CENTRE, np.random.default_rng(seed + 1), iterations=256, threshold_px=1.0)
     assert m is not None
     assert m.inliers[:n_in].all()
