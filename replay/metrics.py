@@ -92,8 +92,8 @@ _ARROW = {"lower": "lower is better", "higher": "higher is better", "none": ""}
 
 def metrics_markdown(title: str, values: Mapping[str, float], specs: Mapping[str, MetricSpec]) -> str:
     """The metrics of a run as a markdown table (value, unit, which way is better, meaning)."""
-    lines = [f"### {title}", "", "Map: ground truth grey, estimate blue, dead reckoning orange, accepted green, "
-             "rejected red; ellipses at 2 sigma.", "",
+    lines = [f"### {title}", "", "Map: ground truth grey, estimate blue (several robots: each in its series' "
+             "colour), dead reckoning orange, accepted green, rejected red; ellipses at 2 sigma.", "",
              "| metric | value | unit | better | meaning |", "|---|---:|---|---|---|"]
     for name, value in sorted(values.items()):
         spec = specs[name]

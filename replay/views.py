@@ -5,8 +5,9 @@
   mirror transform (``MAP_FLIP``) and map views look at it from the entity tree's root.
   Camera images and POMF surfaces keep image coordinates (row down) and are never flipped.
 - **Colours.** One palette for every pipeline and the diff: ground truth grey, estimate blue,
-  dead reckoning (and odometry prediction) orange, accepted green, rejected red. An entity's
-  colour follows from its path (``role_color``), so names and colours cannot disagree.
+  dead reckoning (and odometry prediction) orange, accepted green, rejected red; in a multi-robot
+  run each robot's estimate in its own colour (robot 1 blue; ``ROBOT_COLORS``, as its series). An
+  entity's colour follows from its path (``role_color``), so names and colours cannot disagree.
 - **Time.** ``step`` (the message's index in replay order) and ``sensor_time``: the message's
   log time as a duration since the recording's first message (not a date in 1970).
 - **Layouts.** A pipeline's blueprint is a row of tabs, the first one ``Summary``: the final
@@ -76,16 +77,25 @@ def state_color(state: str) -> Color:
     return next((c for key, c in _STATE_ROLES if key in state), series_color(state))
 
 
+_ROBOT_ENTITY = re.compile(r"/robot(\d+)/")  # robot N of a multi-robot run: world/robots/robotN, .../robotN/estimate
+
+
 def role_color(path: str) -> Color | None:
-    """The palette colour of an entity, from its path (None: no role)."""
+    """The palette colour of an entity, from its path (None: no role). What a multi-robot run estimates of
+    robot N (its pose, ellipse, trajectory) takes robot N's colour (ROBOT_COLORS, as its series do);
+    its truth and dead reckoning keep their roles' colours."""
     padded = f"/{path.strip('/')}/"
-    return next((c for key, c in _ROLES if key in padded), None)
+    color = next((c for key, c in _ROLES if key in padded), None)
+    if color == ESTIMATE and (m := _ROBOT_ENTITY.search(padded)):
+        return ROBOT_COLORS[(int(m.group(1)) - 1) % len(ROBOT_COLORS)]
+    return color
 
 
 _ROBOT_SERIES = re.compile(r"^metrics/robot(\d+)_")  # one series per robot of a multi-robot run
-# robot 1 the estimate's blue, then colours that no role of the map uses (no orange, grey, red or green)
-ROBOT_COLORS: tuple[Color, ...] = (ESTIMATE, (150, 60, 200), (0, 180, 200), (140, 86, 75), (230, 90, 180),
-                                   (188, 189, 34))
+# robot 1 the estimate's blue, then colours that no role of a run's map uses (no orange, grey, red, green or
+# the measurements' purple, which comes last); cyan and pink are the diff view's runs, never in the same view
+ROBOT_COLORS: tuple[Color, ...] = (ESTIMATE, (0, 180, 200), (230, 90, 180), (140, 86, 75), (188, 189, 34),
+                                   (150, 60, 200))
 
 
 def series_color(path: str) -> Color:

@@ -35,6 +35,13 @@ def test_role_colors_follow_the_palette() -> None:
     assert views.role_color("camera/candidate/outliers") == views.REJECTED
     assert views.role_color("world/graph/after/edges/rejected") == views.REJECTED
     assert views.role_color("metrics/nees_band/robot_95_low") == views.TRUTH
+    # a multi-robot run: robot N's estimate in robot N's colour (as its series), its truth grey
+    assert views.role_color("world/robots/robot1") == views.ESTIMATE
+    assert views.role_color("world/robots/robot3/covariance") == views.ROBOT_COLORS[2]
+    assert views.role_color("world/trajectory/robot2/estimate/tail") == views.ROBOT_COLORS[1]
+    assert views.role_color("world/trajectory/robot2/truth") == views.TRUTH
+    assert views.role_color("world/trajectory/robot2/odometry") == views.DEAD_RECKONING
+    assert views.series_color("metrics/robot2_position_error_m") == views.ROBOT_COLORS[1]
     assert views.role_color("runs/A/world/trajectory/estimate") == views.RUN_A
     assert views.role_color("world/nav/global_path") == views.ACCEPTED
     assert views.role_color("world/map/edges") == views.MAP_PRIOR
