@@ -256,6 +256,7 @@ class LocalExecutor:
 
     def run(self, task: Task) -> Outcome:
         worker = self._idle.get()
+        retire = False
         try:
             with self._lock:
                 if self._closed:
@@ -275,7 +276,11 @@ class LocalExecutor:
                 if killed_for is None and conn.poll():
                     result: Outcome = conn.recv()
                     if self.limits.is_limit_error(result.error):
-                        proc.join(GRACE_S)  # the worker exits after a limit failure; replaced below
+                        # the worker exits after a limit failure; it is replaced below even if it has not
+                        # exited yet (a loaded host can take longer than GRACE_S to return its memory), or
+                        # the next job would be sent to a process about to end
+                        retire = True
+                        proc.join(GRACE_S)
                     return result
             except (EOFError, OSError, BrokenPipeError):
                 pass
@@ -293,7 +298,7 @@ class LocalExecutor:
                 worker.job_id = None
                 worker.jobs += 1
                 self._cancelled.discard(task.job_id)
-                if not self._closed and (not worker.alive() or worker.jobs >= self.max_jobs_per_worker):
+                if not self._closed and (retire or not worker.alive() or worker.jobs >= self.max_jobs_per_worker):
                     worker.replace(self._ctx, os.getpid(), self._job, self.limits)  # idle now: safe to stop
             self._idle.put(worker)
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 import time
 
 import numpy as np
@@ -15,12 +16,14 @@ import numpy as np
 from slamreplay.api.executor import Outcome, Report, Task, run_task
 
 HOG_STEP_BYTES = 32 << 20
+SLOW_EXIT_S = 6.0  # longer than the executor's GRACE_S wait for a worker to exit
 HOG_MAX_BYTES = 3 << 30  # the stand-in gives up (and "succeeds") here, so a broken limit fails the test, not the host
 
 
 def standin_job(task: Task, report: Report | None = None) -> Outcome:
     """``hog``: allocate until stopped; ``sleep``: 60 s in short naps; ``stuck``: 60 s in one native call;
-    ``crash``: SIGKILL itself; anything else: the real job."""
+    ``slow-exit``: like ``sleep``, and its process ends SLOW_EXIT_S after the job; ``crash``: SIGKILL itself;
+    anything else: the real job."""
     if task.pipeline == "hog":
         chunks = []
         while len(chunks) * HOG_STEP_BYTES < HOG_MAX_BYTES:
@@ -34,6 +37,11 @@ def standin_job(task: Task, report: Report | None = None) -> Outcome:
     if task.pipeline == "stuck":
         time.sleep(60)  # one call: an exception raised into this thread waits for it to return
         return Outcome("succeeded", "the stuck job was never stopped")
+    if task.pipeline == "slow-exit":  # keeps its process alive after the job, as a slow exit on a loaded host does
+        threading.Thread(target=time.sleep, args=(SLOW_EXIT_S,)).start()  # not a daemon: the exit waits for it
+        for _ in range(600):
+            time.sleep(0.1)
+        return Outcome("succeeded", "the slow-exit job was never stopped")
     if task.pipeline == "crash":
         os.kill(os.getpid(), signal.SIGKILL)
     return run_task(task, report)

@@ -47,6 +47,21 @@ def test_memory_hog_fails_alone(two_limited_workers: LocalExecutor, store: Store
     assert run_all(two_limited_workers, [after]) == [Outcome("succeeded")]  # the hog's worker was replaced
 
 
+def test_a_worker_slow_to_exit_after_a_limit_gets_no_next_job(store: Store, tmp_path: Path) -> None:
+    """A worker ends after a limit failure; if it has not ended within the executor's wait (a loaded host), it is
+    replaced anyway: the next job runs in a fresh process, not in one about to exit (CI: 'exited with code 0')."""
+    ex = LocalExecutor(1, JobLimits(wall_s=1.0), job=standin_job)
+    ex.start()
+    try:
+        rec = write_tiny_recording(tmp_path / "tiny.mcap")
+        slow = claimed(store, rec, "6" * 32, "slow-exit", tmp_path)
+        after = claimed(store, rec, "7" * 32, "odometry", tmp_path)
+        assert run_all(ex, [slow]) == [Outcome("failed", "job exceeded its wall-time limit of 1 s")]
+        assert run_all(ex, [after]) == [Outcome("succeeded")]
+    finally:
+        ex.close()
+
+
 def test_wall_time_limit_and_stuck_job(store: Store, tmp_path: Path) -> None:
     """A job past its wall time fails with the limit, even one stuck in a native call (ended with its process)."""
     ex = LocalExecutor(2, JobLimits(wall_s=1.0), job=standin_job)
