@@ -32,7 +32,7 @@ import numpy as np
 import rerun.blueprint as rrb
 
 from slamreplay.algorithms.common import se2
-from slamreplay.algorithms.common.motion import between1, compose1
+from slamreplay.algorithms.common.motion import between1
 from slamreplay.algorithms.dslam import ScanStatus
 from slamreplay.algorithms.dslam.multi import MultiDSlam
 from slamreplay.algorithms.observe import CovarianceEllipses, Image, Points, Pose, Scalar, Segments
@@ -51,7 +51,14 @@ from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metrics import position_errors, rmse
 from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext, recording_sensor_model, robots_in
 from slamreplay.replay.pipelines.dslam import DSlamPipeline, DSlamPipelineConfig
-from slamreplay.replay.pipelines.landmark_slam import METRICS
+from slamreplay.replay.pipelines.landmark_slam import (
+    METRICS,
+    landmark_scores,
+    truth_pose_at,
+    world_cov,
+    world_pose,
+    world_xy,
+)
 from slamreplay.replay.reader import ROBOT_NAMESPACE, Envelope
 from slamreplay.replay.trajectory import TrajectoryLog
 
@@ -189,16 +196,15 @@ class DSlamMultiPipeline(Pipeline):
     # -- frames
     def _world_pose(self, pose: np.ndarray) -> np.ndarray:
         assert self.T is not None
-        return compose1(self.T, pose)
+        return world_pose(self.T, pose)
 
     def _world_xy(self, xy: np.ndarray) -> np.ndarray:
         assert self.T is not None
-        return se2.transform_points(self.T, np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+        return world_xy(self.T, xy)
 
     def _world_cov(self, cov: np.ndarray) -> np.ndarray:
         assert self.T is not None
-        rot = se2.rot(self.T[2])
-        return cast(np.ndarray, rot @ cov @ rot.T)
+        return world_cov(self.T, cov)
 
     # -- messages
     def step(self, env: Envelope) -> None:
@@ -229,7 +235,7 @@ class DSlamMultiPipeline(Pipeline):
     def _place(self, robot: _Robot) -> None:
         """Its ground-truth pose at its first odometry message: robot 1's fixes the map frame, the others start."""
         assert robot.t0 is not None
-        robot.start_w = _truth_at(robot.t0, robot.t_gt, robot.gt)
+        robot.start_w = truth_pose_at(robot.t0, robot.t_gt, robot.gt, clamp=True)
         if robot.name == REFERENCE:
             self.T = robot.start_w
             self.ctx.log(f"map frame: robot {REFERENCE}'s start, world pose {np.round(self.T, 4).tolist()}")
@@ -293,7 +299,7 @@ class DSlamMultiPipeline(Pipeline):
         obs.log(f"world/robots/robot{robot.name}/covariance",
                 CovarianceEllipses(pose_w[None, :2], self._world_cov(res.pose_cov[:2, :2])[None]))
         if robot.t_gt and robot.t_gt[0] <= t:  # against the latest ground truth (the replay has not read on)
-            truth = _truth_at(t, robot.t_gt, robot.gt)
+            truth = truth_pose_at(t, robot.t_gt, robot.gt, clamp=True)
             obs.log(f"metrics/robot{robot.name}_position_error_m",
                     Scalar(float(np.hypot(pose_w[0] - truth[0], pose_w[1] - truth[1]))))
         world_xy = self._world_xy(self.slam.estimates())
@@ -360,7 +366,7 @@ class DSlamMultiPipeline(Pipeline):
             for t, pose, cov in robot.scan_poses:
                 if t < robot.t_gt[0] or t > robot.t_gt[-1] or not np.all(np.linalg.eigvalsh(cov) > 0):
                     continue
-                e = se2.between(cast(np.ndarray, self.T), _truth_at(t, robot.t_gt, robot.gt)) - pose
+                e = se2.between(cast(np.ndarray, self.T), truth_pose_at(t, robot.t_gt, robot.gt, clamp=True)) - pose
                 e[2] = se2.wrap_angle(e[2])
                 nees.append(float(e @ np.linalg.solve(cov, e)))
             if nees:
@@ -379,13 +385,8 @@ class DSlamMultiPipeline(Pipeline):
         out["landmarks_true"] = float(len(self.truth_ids))
         lookup = {int(i): k for k, i in enumerate(self.truth_ids.tolist())}
         pairs = [(f, lookup[i]) for f, i in enumerate(self.slam.feature_ids) if i in lookup]
-        out["false_landmarks"] = float(len(world_xy) - len(pairs))
-        if pairs:
-            f_idx, t_idx = np.array(pairs).T
-            err = world_xy[f_idx] - self.truth_xy[t_idx]
-            covs = self._world_cov(self.slam.marginal_covariances()[f_idx])
-            out["landmark_rmse_m"] = float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
-            out["landmark_nees_mean"] = float(np.mean(np.einsum("ni,nij,nj->n", err, np.linalg.inv(covs), err)))
+        out.update(landmark_scores(world_xy, self.truth_xy, pairs,
+                                   lambda f: self._world_cov(self.slam.marginal_covariances()[f])))
         return out
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -412,15 +413,3 @@ class DSlamMultiPipeline(Pipeline):
             views.tab("Log", views.log_view("Log", "log", "dslam")),
         )
 
-
-def _truth_at(t: int, t_gt: list[int], gt: list[np.ndarray]) -> np.ndarray:
-    """Ground truth at ``t``: interpolated between the samples around it, else the nearest one."""
-    tg = np.asarray(t_gt, dtype=np.int64)
-    k = int(np.searchsorted(tg, t))
-    if k >= len(tg):
-        return np.asarray(gt[-1], dtype=np.float64)
-    if tg[k] == t or k == 0:
-        return np.asarray(gt[k], dtype=np.float64)
-    pose: np.ndarray = se2.interpolate([float(t - tg[k - 1])], [0.0, float(tg[k] - tg[k - 1])],
-                                       np.stack([gt[k - 1], gt[k]]))[0]
-    return pose

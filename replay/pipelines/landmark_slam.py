@@ -49,6 +49,52 @@ from slamreplay.replay.trajectory import TrajectoryLog
 Association = Literal["auto", "known", "unknown"]
 
 
+def world_pose(T: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """A pose of the filter's frame in the world frame (``T``: the filter frame's world pose)."""
+    return compose1(T, pose)
+
+
+def world_xy(T: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    return se2.transform_points(T, np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+
+
+def world_cov(T: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    rot = se2.rot(T[2])
+    return cast(np.ndarray, rot @ cov @ rot.T)
+
+
+def truth_pose_at(t: int, t_gt: list[int], gt: list[np.ndarray], clamp: bool = False) -> np.ndarray | None:
+    """Ground truth at ``t``, interpolated between the samples around it; outside their span None, or with
+    ``clamp`` the nearest sample (a start a few ms before the first truth message)."""
+    if not t_gt:
+        return None
+    if not clamp and (t < t_gt[0] or t > t_gt[-1]):
+        return None
+    tg = np.asarray(t_gt, dtype=np.int64)
+    k = int(np.searchsorted(tg, t))
+    if k >= len(tg):
+        return np.asarray(gt[-1], dtype=np.float64)
+    if tg[k] == t or k == 0:
+        return np.asarray(gt[k], dtype=np.float64)
+    pose: np.ndarray = se2.interpolate([float(t - tg[k - 1])], [0.0, float(tg[k] - tg[k - 1])],
+                                       np.stack([gt[k - 1], gt[k]]))[0]
+    return pose
+
+
+def landmark_scores(world_xy: np.ndarray, truth_xy: np.ndarray, pairs: list[tuple[int, int]],
+                    world_covs: Any) -> dict[str, float]:
+    """``false_landmarks``, and for the (feature, truth) ``pairs`` the landmark RMSE and mean NEES;
+    ``world_covs(f_idx)`` gives the paired features' world-frame covariances (k, 2, 2)."""
+    out = {"false_landmarks": float(len(world_xy) - len(pairs))}
+    if pairs:
+        f_idx, t_idx = np.array(pairs).T
+        err = world_xy[f_idx] - truth_xy[t_idx]
+        covs = world_covs(f_idx)
+        out["landmark_rmse_m"] = float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
+        out["landmark_nees_mean"] = float(np.mean(np.einsum("ni,nij,nj->n", err, np.linalg.inv(covs), err)))
+    return out
+
+
 @dataclass(frozen=True, slots=True)
 class LandmarkSlamConfig:
     """Inputs and noise models shared by the landmark SLAM pipelines."""
@@ -170,14 +216,13 @@ class LandmarkSlamPipeline(Pipeline):
 
     # -- frames
     def to_world_pose(self, pose: np.ndarray) -> np.ndarray:
-        return compose1(self.T, pose)
+        return world_pose(self.T, pose)
 
     def to_world_xy(self, xy: np.ndarray) -> np.ndarray:
-        return se2.transform_points(self.T, np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+        return world_xy(self.T, xy)
 
     def to_world_cov(self, cov: np.ndarray) -> np.ndarray:
-        rot = se2.rot(self.T[2])
-        return cast(np.ndarray, rot @ cov @ rot.T)
+        return world_cov(self.T, cov)
 
     # -- messages
     def step(self, env: Envelope) -> None:
@@ -295,15 +340,7 @@ class LandmarkSlamPipeline(Pipeline):
             self.ctx.observer.log("world/landmarks/estimate/covariance", CovarianceEllipses(world_xy, covs))
 
     def _truth_pose_at(self, t: int) -> np.ndarray | None:
-        if not self.t_gt or t < self.t_gt[0] or t > self.t_gt[-1]:
-            return None
-        tg = np.asarray(self.t_gt, dtype=np.int64)
-        k = int(np.searchsorted(tg, t))
-        if tg[k] == t or k == 0:
-            return self.gt[k]
-        pose: np.ndarray = se2.interpolate([float(t - tg[k - 1])], [0.0, float(tg[k] - tg[k - 1])],
-                                           np.stack([self.gt[k - 1], self.gt[k]]))[0]
-        return pose
+        return truth_pose_at(t, self.t_gt, self.gt)
 
     def _robot_nees(self, t: int, res: Any) -> None:
         truth = self._truth_pose_at(t)
@@ -408,13 +445,8 @@ class LandmarkSlamPipeline(Pipeline):
             d = np.hypot(*(world_xy[:, None, :] - self.truth_xy[None, :, :]).transpose(2, 0, 1))
             rows, cols = linear_sum_assignment(np.where(d <= self.config.match_radius_m, d, 1e9))
             pairs = [(int(f), int(k)) for f, k in zip(rows, cols, strict=True) if d[f, k] <= self.config.match_radius_m]
-        out["false_landmarks"] = float(n - len(pairs))
-        if pairs:
-            f_idx, t_idx = np.array(pairs).T
-            err = world_xy[f_idx] - self.truth_xy[t_idx]
-            covs = self.to_world_cov(self.filter.marginal_covariances()[f_idx])
-            out["landmark_rmse_m"] = float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
-            out["landmark_nees_mean"] = float(np.mean(np.einsum("ni,nij,nj->n", err, np.linalg.inv(covs), err)))
+        out.update(landmark_scores(world_xy, self.truth_xy, pairs,
+                                   lambda f: self.to_world_cov(self.filter.marginal_covariances()[f])))
         return out
 
     def timings(self) -> dict[str, float]:
