@@ -318,6 +318,20 @@ def linearize(poses: F64, i: I64, j: I64, z: F64, jacobians: bool = True) -> tup
     return e, ji, jj
 
 
+def _edge_gradients(e: F64, c: F64, s: F64, u: F64, wf: tuple[F64, ...]) -> F64:
+    """Per edge ``J_i^T W e`` and ``J_j^T W e`` (2, 3, m), from the errors, the Jacobians' parts (``cos``,
+    ``sin``, ``u``: ``_Problem._errors``) and the weighted information's entries (w00, w01, w02, w11, w12, w22)."""
+    w00, w01, w02, w11, w12, w22 = wf
+    we0 = w00 * e[0] + w01 * e[1] + w02 * e[2]
+    we1 = w01 * e[0] + w11 * e[1] + w12 * e[2]
+    we2 = w02 * e[0] + w12 * e[1] + w22 * e[2]
+    grad = np.empty((2, 3, e.shape[1]))
+    grad[1, 0], grad[1, 1], grad[1, 2] = c * we0 - s * we1, s * we0 + c * we1, we2
+    np.negative(grad[1], out=grad[0])
+    grad[0, 2] += u[0] * we0 + u[1] * we1
+    return grad
+
+
 class _Problem:
     """A graph with its fixed structure: the block system, the factorization, the kernel mask."""
 
@@ -425,13 +439,7 @@ class _Problem:
         hii[0, 2] -= v0
         hii[1, 2] -= v1
         hii[2, 2] += suu - 2.0 * v2
-        we0 = w00 * e[0] + w01 * e[1] + w02 * e[2]
-        we1 = w01 * e[0] + w11 * e[1] + w12 * e[2]
-        we2 = w02 * e[0] + w12 * e[1] + w22 * e[2]
-        grad = np.empty((2, 3, self.graph.n_edges))
-        grad[1, 0], grad[1, 1], grad[1, 2] = c * we0 - s * we1, s * we0 + c * we1, we2
-        np.negative(grad[1], out=grad[0])
-        grad[0, 2] += u[0] * we0 + u[1] * we1
+        grad = _edge_gradients(e, c, s, u, (w00, w01, w02, w11, w12, w22))
         return self.system.assemble(blocks, grad)
 
     def gradient(self, poses: F64, w: F64) -> F64:
@@ -439,12 +447,8 @@ class _Problem:
         assert self.system is not None
         e, c, s, u = self._errors(poses)
         f = self.info
-        we = [(f[r, 0] * e[0] + f[r, 1] * e[1] + f[r, 2] * e[2]) * w for r in range(3)]
-        grad = np.empty((2, 3, self.graph.n_edges))
-        grad[1, 0], grad[1, 1], grad[1, 2] = c * we[0] - s * we[1], s * we[0] + c * we[1], we[2]
-        np.negative(grad[1], out=grad[0])
-        grad[0, 2] += u[0] * we[0] + u[1] * we[1]
-        return self.system.assemble_gradient(grad)
+        wf = (f[0, 0] * w, f[0, 1] * w, f[0, 2] * w, f[1, 1] * w, f[1, 2] * w, f[2, 2] * w)
+        return self.system.assemble_gradient(_edge_gradients(e, c, s, u, wf))
 
     def step(self, data: F64, b: F64, damping: F64 | None) -> F64 | None:
         """Solve (H + diag(damping)) dx = -b; None when the factorization fails."""

@@ -299,9 +299,12 @@ class SparseCholesky:
         self.provider = (backend if backend != "cholmod"
                          else "scikit-sparse" if _cholmod_analyze is not None else "cvxopt")
         self._qd: Any = None  # QDLDL: the solver (its AMD order and elimination tree), refactored in place
-        self._u: Any = None  # QDLDL: the upper triangle last factored, and its max-norm (a solve's check)
+        self._u: Any = None  # QDLDL: the upper triangle last factored, its diagonal and max-norm (a solve's check)
+        self._diag: F64 = np.zeros(0)
         self._norm = 0.0
         self._up: I64 | None = None  # QDLDL: positions of the upper triangle in the CSC data (None: all of it)
+        self._ucols: I64 = np.zeros(0, np.int64)  # QDLDL: the column of each entry of the upper triangle
+        self._upattern: tuple[Any, Any] = (None, None)  # QDLDL: its (indices, indptr)
         self._symbolic: Any = None
         self._lu: Any = None
         self._a: Any = None  # CVXOPT: the matrix whose values are replaced before each numeric factorization
@@ -380,34 +383,30 @@ class SparseCholesky:
         n = h.shape[0]
         if n == 0:
             return False
-        if self._qd is None or self._nnz != h.nnz or self._qd_n != n:
+        new = self._qd is None or self._nnz != h.nnz or self._qd_n != n
+        if new:  # the upper triangle's pattern, and where its entries sit in h's data (None: all of them)
             cols = np.repeat(np.arange(n, dtype=np.int64), np.diff(h.indptr))
-            up = np.flatnonzero(h.indices <= cols)
-            self._up = None if up.size == h.nnz else up  # None: h is the upper triangle (BlockSystem(upper=True))
+            keep = h.indices <= cols
+            self._up = None if keep.all() else np.flatnonzero(keep)
             self._nnz, self._qd_n = h.nnz, n
-            u = self._upper(h)
+            self._ucols = cols if self._up is None else cols[self._up]
+            indptr = h.indptr if self._up is None else np.r_[0, np.cumsum(np.bincount(self._ucols, minlength=n))]
+            self._upattern = (h.indices if self._up is None else h.indices[self._up], indptr)
+        u = h if self._up is None else sp.csc_matrix(
+            (np.asarray(h.data, np.float64)[self._up], *self._upattern), shape=h.shape)
+        if new:
             try:
                 self._qd = _qdldl.Solver(u, upper=True)
             except (RuntimeError, ValueError):  # a zero pivot: singular
                 self._qd = None
                 return False
         else:
-            u = self._upper(h)
             self._qd.update(u, upper=True)
-        self._u = u
-        a, cols = np.abs(u.data), np.repeat(np.arange(n), np.diff(u.indptr))
-        rowsum = np.bincount(u.indices, a, n) + np.bincount(cols, a, n) - np.abs(u.diagonal())
+        self._u, self._diag = u, u.diagonal()
+        a = np.abs(u.data)
+        rowsum = np.bincount(u.indices, a, n) + np.bincount(self._ucols, a, n) - np.abs(self._diag)
         self._norm = float(rowsum.max())  # |H| in the max norm, H = U + U^T - diag(U)
         return True
-
-    def _upper(self, h: sp.csc_matrix) -> sp.csc_matrix:
-        if self._up is None:
-            return h
-        n = h.shape[0]
-        cols = np.repeat(np.arange(n, dtype=np.int64), np.diff(h.indptr))
-        up = self._up
-        return sp.csc_matrix((np.asarray(h.data, np.float64)[up], h.indices[up], np.r_[0, np.cumsum(
-            np.bincount(cols[up], minlength=n))]), shape=h.shape)
 
     def solve(self, rhs: F64) -> F64:
         """Solve with the last successful factorization; rhs (N,) or (N, k).
@@ -424,7 +423,7 @@ class SparseCholesky:
             else:
                 x = np.column_stack([self._qd.solve(np.ascontiguousarray(r[:, k])) for k in range(r.shape[1])])
             u = self._u
-            res = u @ x + u.T @ x - u.diagonal().reshape((-1,) + (1,) * (x.ndim - 1)) * x - r
+            res = u @ x + u.T @ x - self._diag.reshape((-1,) + (1,) * (x.ndim - 1)) * x - r
             scale = self._norm * np.max(np.abs(x), initial=0.0) + np.max(np.abs(r), initial=0.0)
             if not (np.all(np.isfinite(x)) and np.max(np.abs(res), initial=0.0) <= QDLDL_TOL * scale):
                 raise np.linalg.LinAlgError("singular matrix: a zero pivot in the LDL' factorization")
