@@ -22,7 +22,8 @@ covariance gives mean NEES 2 and 1 and 95 % of the pairs inside the chi2 bounds 
 ``gm`` is the geometric mean of ``e^2 / C`` over the pairs, times the chi2 mean over its geometric
 mean (1 when calibrated; robust to the heavy tails that move the mean).
 
-Run: ``.venv/bin/python benchmarks/ifmi_calibration.py [--pairs 40] [--sizes 256] [--json PATH]``.
+Run: ``.venv/bin/python benchmarks/ifmi_calibration.py [--pairs 40] [--sizes 256] [--translation-band 1]
+[--json PATH]``.
 """
 
 from __future__ import annotations
@@ -108,10 +109,13 @@ def make_pair(images: list[np.ndarray], n: int, cond: Condition, rng: np.random.
     return ref, mov, (angle, scale, dx, dy)
 
 
-def measure(images: list[np.ndarray], n: int, cond: Condition, count: int, seed: int) -> dict[str, np.ndarray]:
-    """Errors and both covariances of ``count`` pairs (accepted ones only)."""
+def measure(images: list[np.ndarray], n: int, cond: Condition, count: int, seed: int,
+            translation_band: int = IfmiConfig().translation_band) -> dict[str, np.ndarray]:
+    """Errors and both covariances of ``count`` pairs (accepted ones only), the translation read from
+    ``translation_band`` on."""
     rng = np.random.default_rng(seed)
-    paper, calibrated = IfmiConfig(covariance="paper"), IfmiConfig(covariance="calibrated")
+    paper = IfmiConfig(covariance="paper", translation_band=translation_band)
+    calibrated = IfmiConfig(covariance="calibrated", translation_band=translation_band)
     rows: list[list[float]] = []
     for _ in range(count):
         ref, mov, (angle, scale, dx, dy) = make_pair(images, n, cond, rng)
@@ -148,8 +152,14 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[256])
     parser.add_argument("--data", type=Path, default=Path(os.environ.get("SLAMREPLAY_DATA", "../shared/data")))
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--translation-band", type=int, default=IfmiConfig().translation_band,
+                        help="IfmiConfig.translation_band (1: the paper's full band, as before; default %(default)s)")
     parser.add_argument("--json", type=Path, help="write every row here")
     args = parser.parse_args()
+    try:
+        IfmiConfig(translation_band=args.translation_band)
+    except ValueError as e:
+        parser.error(str(e))
     table: list[dict[str, Any]] = []
     hdr = (f"{'size':>4} {'source':<17} {'condition':<12} {'acc':>7} | {'transl. NEES (2 dof) paper':>26} | "
            f"{'calibrated':>22} | {'rotation NEES (1 dof) paper':>27} | {'calibrated':>22}")
@@ -164,7 +174,7 @@ def main() -> None:
             pooled: dict[str, list[np.ndarray]] = {}
             attempted = 0
             for ci, (cname, cond) in enumerate(CONDITIONS.items()):
-                m = measure(images, n, cond, args.pairs, args.seed + 1000 * ci + n)
+                m = measure(images, n, cond, args.pairs, args.seed + 1000 * ci + n, args.translation_band)
                 attempted += args.pairs
                 for key, val in m.items():
                     pooled.setdefault(key, []).append(val)
@@ -172,7 +182,8 @@ def main() -> None:
             allm = {k: np.concatenate(v) for k, v in pooled.items()}
             table.append(_row(n, source, "all", allm, attempted))
     if args.json:
-        args.json.write_text(json.dumps({"pairs_per_row": args.pairs, "rows": table}, indent=1) + "\n")
+        args.json.write_text(json.dumps({"pairs_per_row": args.pairs, "translation_band": args.translation_band,
+                                         "rows": table}, indent=1) + "\n")
 
 
 def _row(n: int, source: str, cname: str, m: dict[str, np.ndarray], attempted: int) -> dict[str, Any]:

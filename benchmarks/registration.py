@@ -31,7 +31,8 @@ none of them always pays for the caches the previous method flushed.
 NEES of the translation error against it on pairs perturbed by sensor noise and blur (paper
 against calibrated: benchmarks/ifmi_calibration.py).
 
-Run: ``.venv/bin/python benchmarks/registration.py [--pairs 40] [--sizes 256 512] [--data ../shared/data] [--nees]``.
+Run: ``.venv/bin/python benchmarks/registration.py [--pairs 40] [--sizes 256 512] [--data ../shared/data] [--nees]
+[--translation-band 1] [--json PATH]``.
 Peer: ``pip install imreg_dft`` (skipped with a note when missing).
 """
 
@@ -52,6 +53,7 @@ from typing import Any  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
+from bench_io import write_json  # noqa: E402
 
 from slamreplay.algorithms.ifmi import IfmiConfig, Status, prepare, register, register_prepared  # noqa: E402
 from slamreplay.recorder.sim.seabed import procedural_texture  # noqa: E402
@@ -323,7 +325,14 @@ def main() -> None:
     parser.add_argument("--nees", action="store_true", help="only the covariance calibration (NEES) study")
     parser.add_argument("--fixed-order", action="store_true",
                         help="run the methods in the same order on every pair (ours always first) instead of rotating")
+    parser.add_argument("--translation-band", type=int, default=IfmiConfig().translation_band,
+                        help="ours: IfmiConfig.translation_band (1: the paper's full band; default %(default)s)")
+    parser.add_argument("--json", type=Path, help="write every row here")
     args = parser.parse_args()
+    try:
+        IfmiConfig(translation_band=args.translation_band)
+    except ValueError as e:
+        parser.error(str(e))
     if args.nees:
         for n in args.sizes:
             nees_table(load_sources(args.data, n), n, args.pairs, args.seed)
@@ -334,8 +343,9 @@ def main() -> None:
           f"times = median per pair of wall (ms/pair) and process CPU time (cpu ms, steadier on a shared machine)")
     hdr = f"{'size':>5} {'source':<11} {'method':<13} {'ms/pair':>8} {'cpu ms':>7} {'success':>8} {'accepted':>8} " \
           f"{'angle deg':>10} {'scale %':>8} {'shift px':>9} {'grid px':>8}"
+    rows: list[dict[str, Any]] = []
     for n in args.sizes:
-        config = IfmiConfig()
+        config = IfmiConfig(translation_band=args.translation_band)
         ocv = OpenCvLogPolar((n, n))
         held: list[Any] = [None]
 
@@ -357,6 +367,7 @@ def main() -> None:
             rng = np.random.default_rng(args.seed)
             pairs = make_pairs(images, n, args.pairs, rng)
             table = run(pairs, methods, n, args.success_px, rotate=not args.fixed_order)
+            rows += [{"size": n, "source": source, "method": name, **row} for name, row in table.items()]
             print()
             print(hdr)
             for name, row in table.items():
@@ -369,6 +380,8 @@ def main() -> None:
                 ratios = [f"ours/{k} = {ours / v[col]:.3f} ({v[col] / ours:.1f}x faster)"
                           for k, v in table.items() if not k.startswith("ours")]
                 print(f"{'':>5} {'':<11} {label} time ratios: " + "; ".join(ratios))
+    if args.json:
+        write_json(args.json, {"pairs": args.pairs, "translation_band": args.translation_band, "rows": rows})
 
 
 if __name__ == "__main__":

@@ -52,6 +52,10 @@ class IfmiConfig:
     refine_translation : after the coarse pass of steps 7-9, warp the reference by the whole estimate,
         shift included, before the full-resolution POMF; else that POMF uses the reference re-rotated
         and re-scaled only (:mod:`slamreplay.algorithms.ifmi.registration`).
+    translation_band : the finest band the translation peak is read in (1: all frequencies, as in the paper;
+        b: those below 1/b of Nyquist, a power of 2; :func:`spectral.band_peak`). The default 2 leaves out the
+        upper half of the frequencies, where the bilinear warps of the pair and of step 7 garble the phase
+        (docs/ifmi.md, "The translation's band").
     """
 
     n_angle: int = 0
@@ -63,6 +67,7 @@ class IfmiConfig:
     max_scale: float = 2.0
     refine_translation: bool = True
     covariance: str = "calibrated"
+    translation_band: int = 2
 
     def __post_init__(self) -> None:
         for name in ("n_angle", "n_radius"):
@@ -78,6 +83,8 @@ class IfmiConfig:
             raise ValueError(f"min_pnr must be >= 0, got {self.min_pnr}")
         if self.covariance not in COVARIANCES:
             raise ValueError(f"covariance must be one of {', '.join(COVARIANCES)}, got {self.covariance!r}")
+        if self.translation_band < 1 or self.translation_band & (self.translation_band - 1):
+            raise ValueError(f"translation_band must be a power of 2 (1, 2, 4, ...), got {self.translation_band}")
         if not self.max_scale > 1.0:
             raise ValueError(f"max_scale must be > 1, got {self.max_scale}")
 

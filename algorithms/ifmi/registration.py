@@ -23,8 +23,10 @@ large; ``IfmiConfig.covariance`` (default ``"calibrated"``) replaces it by the c
 
 Beyond the paper, each for a measured failure: steps 7-9 run coarse first (half resolution,
 both half turns) and then at full resolution with the reference warped by the whole estimate;
-the PNR is read in the finest band of the POMF where the Dirac is clear (noise, blur and
-low-texture mud otherwise drown eq. 13, :func:`spectral.band_peak`); a weak pair also tries the
+the translation peak and its PNR are read in the finest band of the POMF, from
+``IfmiConfig.translation_band`` on (default 2: the upper half of the frequencies holds the
+bilinear warps' garbled phase), where the Dirac is clear (noise, blur and low-texture mud
+otherwise drown eq. 13, :func:`spectral.band_peak`); a weak pair also tries the
 rotation/scale of the lower radii and the other half turn (:func:`register_prepared`); and a
 rotation within 1.5 degrees of a multiple of 90 is re-measured away from the pixel grid's
 imprint (:func:`_rotation_scale`).
@@ -341,16 +343,16 @@ def _translation_pass(ref: Prepared, mov: Prepared, p: Plan, config: IfmiConfig,
     phase of the spectrum non-linearly and would bias the estimate. The residual shift is then
     within about a pixel, where the subpixel estimate is unbiased, and both windows see the same
     content, so the PNR measures the match rather than the overlap lost to the window. The
-    peak is that of the finest band whose PNR reaches ``min_pnr`` (:func:`spectral.band_peak`).
+    peak is that of the finest band from ``config.translation_band`` on whose PNR reaches
+    ``min_pnr`` (:func:`spectral.band_peak`).
     """
     cx, cy = cand.coarse_shift
     whole = (float(round(cx)), float(round(cy))) if config.refine_translation else (0.0, 0.0)
     assert mov.spectrum is not None  # register_prepared checked the roles
     cross = spectral.normalized_cross(_warped_spectrum(ref, p, cand.angle, cand.scale, whole), mov.spectrum,
                                       overwrite_a=True)
-    surface = spectral.pomf(cross, p.shape)
     peak, band, surface = spectral.band_peak(cross, p.shape, config.peak_neighbourhood, config.min_pnr,
-                                             spectral.find_peak(surface, config.peak_neighbourhood), surface)
+                                             min_band=config.translation_band)
     return _Result(cand, whole, surface, peak, band)
 
 

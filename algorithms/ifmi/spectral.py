@@ -228,7 +228,7 @@ def bands(shape: tuple[int, int]) -> tuple[int, ...]:
 
 
 def band_peak(cross: C64, shape: tuple[int, int], k: int, min_pnr: float, full: Peak | None = None,
-              surface: F32 | None = None, refine: bool = True) -> tuple[Peak, int, F32]:
+              surface: F32 | None = None, refine: bool = True, min_band: int = 1) -> tuple[Peak, int, F32]:
     """The POMF's Dirac in the finest band where eq. (13) reaches ``min_pnr``, else in the band where it is largest.
 
     Eqs. (11)-(13) read the Dirac's share of the whole POMF, and the phase-only spectrum gives
@@ -242,24 +242,33 @@ def band_peak(cross: C64, shape: tuple[int, int], k: int, min_pnr: float, full: 
     location refined on the band's trigonometric interpolant, :func:`refine_peak`, unless
     ``refine`` is False; the covariance of eq. (10) scaled by ``b**2``), the band ``b`` and its
     surface.
+
+    ``min_band`` leaves the finer bands out (``IfmiConfig.translation_band``): the search starts at
+    the first band ``b >= min_band`` (at the coarsest band when the image has none that coarse).
+    ``full`` and ``surface``, the full band's peak and POMF, save a transform when band 1 is searched.
     """
-    if full is None or surface is None:
-        surface = pomf(cross, shape)
-        full = find_peak(surface, k)
-    best, best_b, best_surface = full, 1, surface
-    for b in bands(shape)[1:]:
-        if best.pnr >= min_pnr:
+    usable = [b for b in bands(shape) if b >= min_band] or [bands(shape)[-1]]
+    best: tuple[Peak, int, F32] | None = None
+    for b in usable:
+        if best is not None and best[0].pnr >= min_pnr:
             break
-        sub_shape = (shape[0] // b, shape[1] // b)
-        sub_cross = low_band(cross, shape, b)
-        sub = pomf(sub_cross, sub_shape)
-        peak = find_peak(sub, k, cross=sub_cross if refine else None)
-        if peak.pnr > best.pnr:
+        if b == 1:
+            if full is None or surface is None:
+                surface = pomf(cross, shape)
+                full = find_peak(surface, k)
+            candidate = (full, 1, surface)
+        else:
+            sub_shape = (shape[0] // b, shape[1] // b)
+            sub_cross = low_band(cross, shape, b)
+            sub = pomf(sub_cross, sub_shape)
+            peak = find_peak(sub, k, cross=sub_cross if refine else None)
             (crr, crc), (_, ccc) = peak.cov
-            best = Peak(b * peak.row, b * peak.col, ((b * b * crr, b * b * crc), (b * b * crc, b * b * ccc)), peak.s,
-                        peak.pnr, peak.value)
-            best_b, best_surface = b, sub
-    return best, best_b, best_surface
+            candidate = (Peak(b * peak.row, b * peak.col, ((b * b * crr, b * b * crc), (b * b * crc, b * b * ccc)),
+                              peak.s, peak.pnr, peak.value), b, sub)
+        if best is None or candidate[0].pnr > best[0].pnr:
+            best = candidate
+    assert best is not None  # usable is never empty
+    return best
 
 
 def _parabola_offset(c_minus: float, c0: float, c_plus: float) -> float:

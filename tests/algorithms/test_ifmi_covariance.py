@@ -10,6 +10,7 @@ import pytest
 
 from slamreplay.algorithms.ifmi import IfmiConfig, Status, register
 from slamreplay.algorithms.ifmi import covariance as ifmi_cov
+from slamreplay.algorithms.ifmi.plan import DEFAULT_CONFIG
 from slamreplay.recorder.sim.seabed import procedural_texture
 from tests.algorithms.test_ifmi import N, perturbed
 
@@ -22,38 +23,71 @@ def texture() -> np.ndarray:
     return procedural_texture(1024, 1024, np.random.default_rng(7))
 
 
-def test_calibrated_nees_is_within_two_sided_bounds(texture: np.ndarray) -> None:
-    """60 known warps with noise sigma 2 and 5: mean NEES within 0.5x-2x the dof, most inside the 95 % band.
-
-    Too low is a failure as well as too high: the paper's eq. (10) gives translation NEES ~0.02.
-    """
-    rng = np.random.default_rng(21)
-    t_nees, r_nees = [], []
-    for k in range(60):
-        ref, mov, (dx, dy), angle = perturbed(texture, rng, (2.0, 5.0)[k % 2], 0.0)
-        r = register(ref, mov)
+def _nees(texture: np.ndarray, rng: np.random.Generator, noise: float, pairs: int,
+          config: IfmiConfig = DEFAULT_CONFIG) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Translation NEES (2 dof), rotation NEES (1 dof) and shift error (px) of ``pairs`` known warps."""
+    t_nees, r_nees, err = [], [], []
+    for _ in range(pairs):
+        ref, mov, (dx, dy), angle = perturbed(texture, rng, noise, 0.0)
+        r = register(ref, mov, config)
         assert r.status is Status.OK
         e = np.array([r.shift_px[0] - dx, r.shift_px[1] - dy])
         t_nees.append(float(e @ np.linalg.solve(r.covariance[:2, :2], e)))
         r_nees.append(((r.angle_deg - angle + 180.0) % 360.0 - 180.0) ** 2 / float(r.covariance[2, 2]))
-    t, rot = np.array(t_nees), np.array(r_nees)
+        err.append(float(np.hypot(*e)))
+    return np.array(t_nees), np.array(r_nees), np.array(err)
+
+
+def test_calibrated_nees_is_within_two_sided_bounds(texture: np.ndarray) -> None:
+    """Known warps: clean pairs calibrated (mean NEES within 0.5x-2x the dof), noisy ones conservative but not by
+    the paper's orders of magnitude; most inside the 95 % band.
+
+    Too low is a failure as well as too high: the paper's eq. (10) gives translation NEES ~0.002-0.03 and rotation
+    ~0.001-0.03. Measured here: clean 2.04 and 1.29; sensor noise 5, 0.60 and 0.45. Under noise both are 2-4x
+    conservative (docs/ifmi.md: translation 0.47-0.80, rotation 0.44-1.22 per condition of the calibration
+    study): the bounds hold them there.
+    """
+    rng = np.random.default_rng(21)
+    t, rot, _ = _nees(texture, rng, 0.0, 30)
     assert 1.0 <= t.mean() <= 4.0 and np.mean(t <= CHI2_2_95) >= 0.85
     assert 0.5 <= rot.mean() <= 2.0 and np.mean(rot <= CHI2_1_95) >= 0.85
+    t, rot, _ = _nees(texture, rng, 5.0, 30)
+    assert 0.3 <= t.mean() <= 2.0 and np.mean(t <= CHI2_2_95) >= 0.9
+    assert 0.25 <= rot.mean() <= 2.0 and np.mean(rot <= CHI2_1_95) >= 0.9
+
+
+def test_translation_band_2_is_more_accurate_under_noise(texture: np.ndarray) -> None:
+    """Leaving out the upper half band (``translation_band=2``, the default) shrinks the shift error of noisy pairs:
+    their upper frequencies hold the bilinear warps' garbled phase and noise (measured median 0.087 -> 0.050 px)."""
+    errs = {b: _nees(texture, np.random.default_rng(21), 5.0, 30, IfmiConfig(translation_band=b))[2] for b in (1, 2)}
+    assert np.median(errs[2]) < 0.75 * np.median(errs[1])
+    assert np.median(errs[2]) < 0.07
+
+
+@pytest.mark.parametrize("value", [0, 3, -2])
+def test_bad_translation_band_names_the_key(value: int) -> None:
+    """A band that is not a power of 2 raises ValueError naming the key, in the registration and the pipeline."""
+    from slamreplay.replay.pipelines.ifmi import IfmiPipelineConfig
+
+    with pytest.raises(ValueError, match=r"translation_band must be a power of 2"):
+        IfmiConfig(translation_band=value)
+    with pytest.raises(ValueError, match=r"translation_band must be a power of 2"):
+        IfmiPipelineConfig(translation_band=value)
 
 
 def test_paper_switch_gives_the_previous_covariance(texture: np.ndarray) -> None:
-    """``covariance="paper"`` is eq. (10) as before (values of the code before the switch), and the calibrated
-    translation block is it divided by PNR sqrt(H W) plus the overlap lever."""
+    """``covariance="paper"`` with the paper's full band is eq. (10) as before (values of the code before the
+    switch), and the calibrated translation block is it divided by PNR sqrt(H W) plus the overlap lever."""
     ref = texture[300:300 + N, 200:200 + N].astype(np.float32)
     a = cv2.getRotationMatrix2D(((N - 1) / 2, (N - 1) / 2), 10.0, 1.05)
     a[:, 2] += (3.0, 2.0)
     mov = cv2.warpAffine(ref, a, (N, N))
-    p = register(ref, mov, IfmiConfig(covariance="paper"))
+    p = register(ref, mov, IfmiConfig(covariance="paper", translation_band=1))
     np.testing.assert_allclose(p.covariance, [[0.08340470782052702, 3.7863093105270746e-05, 0.0],
                                               [3.7863093105270746e-05, 0.0834581952083801, 0.0],
                                               [0.0, 0.0, 0.11274355281089062]], rtol=1e-6)  # numpy/FFT builds
     assert p.scale_var == pytest.approx(6.961853452681873e-05, rel=1e-6)
-    c = register(ref, mov, IfmiConfig(covariance="calibrated"))
+    c = register(ref, mov, IfmiConfig(covariance="calibrated", translation_band=1))
     assert c.shift_px == p.shift_px and c.angle_deg == p.angle_deg and c.pnr == p.pnr
     (cyy, cyx), (_, cxx) = ifmi_cov.translation(((p.covariance[1, 1], p.covariance[0, 1]),
                                                  (p.covariance[0, 1], p.covariance[0, 0])), p.pnr, (N, N))
@@ -105,9 +139,11 @@ def test_bad_covariance_value_names_the_key(value: str) -> None:
 
 
 def test_paper_preset_selects_the_paper_covariance() -> None:
-    """``--preset paper`` sets ``covariance`` to the paper's, and every preset key has a note."""
+    """``--preset paper`` sets ``covariance`` and ``translation_band`` to the paper's, and every preset key has a
+    note."""
     from slamreplay.replay.pipelines.ifmi import IfmiPipeline, IfmiPipelineConfig
 
     paper = IfmiPipeline.presets["paper"]
-    assert paper == {"covariance": "paper"} and set(paper) == set(IfmiPipeline.preset_notes)
-    assert IfmiPipelineConfig(**paper).covariance == "paper"
+    assert paper == {"covariance": "paper", "translation_band": 1} and set(paper) == set(IfmiPipeline.preset_notes)
+    cfg = IfmiPipelineConfig(**paper)
+    assert cfg.covariance == "paper" and cfg.translation_band == 1
