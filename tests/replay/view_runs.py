@@ -11,6 +11,8 @@ import numpy as np
 import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
+from slamreplay.algorithms.common import se2
+from slamreplay.recorder import GroundTruthPose, LandmarkMap, OdometryPose, RangeBearingScan, Recorder
 from slamreplay.replay.run import run_recording
 
 
@@ -36,7 +38,47 @@ def make_runs(out: Path) -> dict[str, Path]:
     along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])
     navigate(runs["topometric"], out / "world.json", int(np.searchsorted(along, 6.0)), out / "nav.mcap", seed=1)
     runs["topometric-nav"] = run_recording(out / "nav.mcap", "topometric-nav", out / "topometric-nav").run_dir
+    write_multi_recording(out / "multi.mcap", steps=100)
+    runs["dslam-multi"] = run_recording(out / "multi.mcap", "dslam-multi", out / "dslam-multi").run_dir
     return runs
+
+
+STARTS = {1: np.array([4.0, 5.0, 0.3]), 2: np.array([12.0, 6.0, -1.0]), 3: np.array([20.0, 5.0, 2.0])}
+SIGMA_R, SIGMA_B = 0.05, np.radians(1.0)
+
+
+def write_multi_recording(path: Path, steps: int = 200, seed: int = 4, robots: tuple[int, ...] = (1, 2, 3),
+                          truth: tuple[int, ...] = (1, 2, 3)) -> Path:
+    """Robots wandering around their own part of a 8 x 4 landmark grid, topics under /robotN/, ground truth
+    for the robots in ``truth``; one step is 0.2 s, the robots' messages 1 ms apart within a step."""
+    rng = np.random.default_rng(seed)
+    gx, gy = np.arange(8) * 3.0 + 1.0, np.arange(4) * 3.0 + 1.0
+    lm = np.stack(np.meshgrid(gx, gy), -1).reshape(-1, 2)
+    pose = {k: STARTS[k].copy() for k in robots}
+    odo = {k: np.zeros(3) for k in robots}
+    with Recorder(path, source={"test": "multi"}, seed=seed) as rec:
+        rec.write("/ground_truth/landmarks", LandmarkMap(1_000_000_000, np.arange(len(lm)), lm))
+        for step in range(steps):
+            for k in robots:
+                t = 1_000_000_000 + step * 200_000_000 + k * 1_000_000
+                ns = f"/robot{k}"
+                if k in truth:
+                    rec.write(f"{ns}/ground_truth/pose", GroundTruthPose(t, *pose[k]))
+                rec.write(f"{ns}/odom", OdometryPose(t, *odo[k]))
+                rel = se2.transform_points(se2.inverse(pose[k]), lm)
+                r, b = np.hypot(rel[:, 0], rel[:, 1]), np.arctan2(rel[:, 1], rel[:, 0])
+                ids = np.flatnonzero((r < 5) & (np.abs(b) < np.pi / 2))
+                rec.write(f"{ns}/landmarks/range_bearing",
+                          RangeBearingScan(t, r[ids] + rng.normal(0, SIGMA_R, len(ids)),
+                                           b[ids] + rng.normal(0, SIGMA_B, len(ids)), ids, SIGMA_R, SIGMA_B))
+                home = STARTS[k][:2] + np.array([0.0, 0.5]) - pose[k][:2]
+                w = float(np.clip(rng.normal(0, 0.1), -0.3, 0.3))
+                if np.hypot(*home) > 3:
+                    w = float(np.clip(se2.wrap_angle(np.arctan2(home[1], home[0]) - pose[k][2]), -0.3, 0.3))
+                u = np.array([0.04, 0.0, 0.2 * w])
+                pose[k] = se2.compose(pose[k], u)
+                odo[k] = se2.compose(odo[k], u + rng.normal(0, [0.004, 0.001, 0.004]))
+    return path
 
 
 def rrd_entities(rrd: Path) -> dict[str, dict[str, Any]]:
