@@ -9,11 +9,12 @@ scale log-uniform in [0.8, 1.25], shifts uniform in +-20 % of N (+-40 % for part
 Sources: ``procedural`` (the seeded ``sim-seabed`` texture, 2048 x 2048: the calibration's one
 fitted constant, ``covariance.ROTATION_GAIN``, comes from it), and two held-out real ones, the
 Skerki underwater frames ``skerki-underwater-group29`` and ``skerki-underwater-seq0658-0714``
-(576 x 384; enlarged for N > 384). Conditions (noise sigmas in grey levels of 8-bit images):
-``clean``; ``noise 2/5/10`` (Gaussian sensor noise on both images); ``illumination`` (the moving
-image times a gain in [0.7, 1.3] and a lamp-like linear ramp of +-20 %, plus an offset, noise 3);
-``overlap`` (shifts up to 40 %: 36-100 % overlap, noise 3); ``blur`` (Gaussian blur 1 px on the
-moving image, noise 3).
+(576 x 384; enlarged for N > 384), plus any folder of images given with ``--images`` (e.g. the
+indoor ``rtabmap-loop-samples/images``, a different kind of scene: docs/ifmi.md). Conditions (noise
+sigmas in grey levels of 8-bit images): ``clean``; ``noise 2/5/10`` (Gaussian sensor noise on both
+images); ``illumination`` (the moving image times a gain in [0.7, 1.3] and a lamp-like linear ramp
+of +-20 %, plus an offset, noise 3); ``overlap`` (shifts up to 40 %: 36-100 % overlap, noise 3);
+``blur`` (Gaussian blur 1 px on the moving image, noise 3).
 
 Per pair accepted by PNR (eq. 13): translation NEES ``e^T C^-1 e`` (2 dof) over (dx, dy) and
 rotation NEES ``e_angle^2 / var_angle`` (1 dof; the scale's, 1 dof, in the JSON only), for both
@@ -23,7 +24,7 @@ covariance gives mean NEES 2 and 1 and 95 % of the pairs inside the chi2 bounds 
 mean (1 when calibrated; robust to the heavy tails that move the mean).
 
 Run: ``.venv/bin/python benchmarks/ifmi_calibration.py [--pairs 40] [--sizes 256] [--translation-band 1]
-[--json PATH]``.
+[--images DIR ...] [--json PATH]``.
 """
 
 from __future__ import annotations
@@ -70,16 +71,35 @@ CONDITIONS = {
 }
 
 
-def load_sources(data: Path, n: int) -> dict[str, list[np.ndarray]]:
-    """The images of every source, those of Skerki enlarged when ``n`` exceeds their height (384)."""
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
+
+
+def read_folder(folder: Path, n: int) -> list[np.ndarray]:
+    """Every image of ``folder`` (grey), enlarged when ``n`` exceeds its smaller side (by ``1.5 n / 512``, as
+    the Skerki frames for 512 px pairs); images smaller than 64 px are left out."""
+    imgs = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in sorted(folder.iterdir())
+            if p.suffix.lower() in IMAGE_SUFFIXES]
+    out = []
+    for img in imgs:
+        if img is None or min(img.shape) < 64:
+            continue
+        if n > min(img.shape):
+            f = max(1.5 * n / 512, (n + 1) / min(img.shape))
+            img = cv2.resize(img, None, fx=f, fy=f, interpolation=cv2.INTER_CUBIC)
+        out.append(img)
+    return out
+
+
+def load_sources(data: Path, n: int, folders: tuple[Path, ...] = ()) -> dict[str, list[np.ndarray]]:
+    """The images of every source: the procedural texture, the two Skerki sets under ``data`` (skipped when
+    absent) and each of ``folders``, named ``parent/folder``."""
     out = {"procedural": [procedural_texture(2048, 2048, np.random.default_rng(7))]}
     for name, folder in SKERKI.items():
-        imgs = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in sorted((data / folder).glob("*.png"))]
+        imgs = read_folder(data / folder, n) if (data / folder).is_dir() else []
         if imgs:
-            if n > 384:
-                f = 1.5 * n / 512
-                imgs = [cv2.resize(i, None, fx=f, fy=f, interpolation=cv2.INTER_CUBIC) for i in imgs]
             out[name] = imgs
+    for folder in folders:
+        out[f"{folder.resolve().parent.name}/{folder.resolve().name}"] = read_folder(folder, n)
     return out
 
 
@@ -154,23 +174,31 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--translation-band", type=int, default=IfmiConfig().translation_band,
                         help="IfmiConfig.translation_band (1: the paper's full band, as before; default %(default)s)")
+    parser.add_argument("--images", type=Path, nargs="+", default=[], metavar="DIR",
+                        help="more held-out sources: folders of images (png, jpg, bmp, tif, pgm), each at least "
+                             "64 px on its smaller side")
     parser.add_argument("--json", type=Path, help="write every row here")
     args = parser.parse_args()
     try:
         IfmiConfig(translation_band=args.translation_band)
     except ValueError as e:
         parser.error(str(e))
+    for folder in args.images:
+        if not folder.is_dir():
+            parser.error(f"--images {folder}: not a folder")
+        if not read_folder(folder, 64):
+            parser.error(f"--images {folder}: no readable image of at least 64 px in it (png, jpg, bmp, tif, pgm)")
     table: list[dict[str, Any]] = []
-    hdr = (f"{'size':>4} {'source':<17} {'condition':<12} {'acc':>7} | {'transl. NEES (2 dof) paper':>26} | "
+    hdr = (f"{'size':>4} {'source':<27} {'condition':<12} {'acc':>7} | {'transl. NEES (2 dof) paper':>26} | "
            f"{'calibrated':>22} | {'rotation NEES (1 dof) paper':>27} | {'calibrated':>22}")
-    sub = f"{'':>4} {'':<17} {'':<12} {'':>7} | {'mean  in95':>26} | {'mean  in95    gm':>22} | {'mean  in95':>27} | " \
+    sub = f"{'':>4} {'':<27} {'':<12} {'':>7} | {'mean  in95':>26} | {'mean  in95    gm':>22} | {'mean  in95':>27} | " \
           f"{'mean  in95    gm':>22}"
     for n in args.sizes:
         print(f"\n{n} x {n}, {args.pairs} pairs per row; chi2 95 % bounds 5.991 (2 dof), 3.841 (1 dof); "
               f"calibrated: mean 2 / 1, in95 0.95, gm 1")
         print(hdr)
         print(sub)
-        for source, images in load_sources(args.data, n).items():
+        for source, images in load_sources(args.data, n, tuple(args.images)).items():
             pooled: dict[str, list[np.ndarray]] = {}
             attempted = 0
             for ci, (cname, cond) in enumerate(CONDITIONS.items()):
@@ -191,7 +219,7 @@ def _row(n: int, source: str, cname: str, m: dict[str, np.ndarray], attempted: i
     p, c = stats(m, "paper"), stats(m, "calibrated")
     acc = f"{len(m['e'])}/{attempted}"
     if p:
-        print(f"{n:>4} {source:<17} {cname:<12} {acc:>7} | {p['t_mean']:20.3f} {p['t_in95']:5.2f} | "
+        print(f"{n:>4} {source:<27} {cname:<12} {acc:>7} | {p['t_mean']:20.3f} {p['t_in95']:5.2f} | "
               f"{c['t_mean']:9.2f} {c['t_in95']:5.2f} {c['t_gm']:5.2f} | {p['r_mean']:21.4f} {p['r_in95']:5.2f} | "
               f"{c['r_mean']:9.2f} {c['r_in95']:5.2f} {c['r_gm']:5.2f}")
     return {"size": n, "source": source, "condition": cname, "accepted": len(m["e"]), "attempted": attempted,
