@@ -130,12 +130,13 @@ def make_pair(images: list[np.ndarray], n: int, cond: Condition, rng: np.random.
 
 
 def measure(images: list[np.ndarray], n: int, cond: Condition, count: int, seed: int,
-            translation_band: int = IfmiConfig().translation_band) -> dict[str, np.ndarray]:
+            translation_band: int = IfmiConfig().translation_band, lever: str = IfmiConfig().lever
+            ) -> dict[str, np.ndarray]:
     """Errors and both covariances of ``count`` pairs (accepted ones only), the translation read from
     ``translation_band`` on."""
     rng = np.random.default_rng(seed)
     paper = IfmiConfig(covariance="paper", translation_band=translation_band)
-    calibrated = IfmiConfig(covariance="calibrated", translation_band=translation_band)
+    calibrated = IfmiConfig(covariance="calibrated", translation_band=translation_band, lever=lever)
     rows: list[list[float]] = []
     for _ in range(count):
         ref, mov, (angle, scale, dx, dy) = make_pair(images, n, cond, rng)
@@ -174,6 +175,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--translation-band", type=int, default=IfmiConfig().translation_band,
                         help="IfmiConfig.translation_band (1: the paper's full band, as before; default %(default)s)")
+    parser.add_argument("--lever", choices=("overlap", "content"), default=IfmiConfig().lever,
+                        help="IfmiConfig.lever of the calibrated covariance (default %(default)s)")
     parser.add_argument("--images", type=Path, nargs="+", default=[], metavar="DIR",
                         help="more held-out sources: folders of images (png, jpg, bmp, tif, pgm), each at least "
                              "64 px on its smaller side")
@@ -202,7 +205,8 @@ def main() -> None:
             pooled: dict[str, list[np.ndarray]] = {}
             attempted = 0
             for ci, (cname, cond) in enumerate(CONDITIONS.items()):
-                m = measure(images, n, cond, args.pairs, args.seed + 1000 * ci + n, args.translation_band)
+                m = measure(images, n, cond, args.pairs, args.seed + 1000 * ci + n, args.translation_band,
+                            args.lever)
                 attempted += args.pairs
                 for key, val in m.items():
                     pooled.setdefault(key, []).append(val)

@@ -84,7 +84,8 @@ def rotation_scale(cross: C64, shape: tuple[int, int], row: float, col: float) -
     return ((g * crr, g * crc), (g * crc, g * ccc))
 
 
-def with_overlap_lever(cov: F64, scale_var: float, scale: float, shift_px: tuple[float, float]) -> F64:
+def with_overlap_lever(cov: F64, scale_var: float, scale: float, shift_px: tuple[float, float],
+                       arm: tuple[float, float] | None = None) -> F64:
     """Add the rotation/scale errors' effect on the shift measured in the overlap (calibrated covariance).
 
     The translation POMF measures the displacement where the two images overlap: for images
@@ -101,8 +102,10 @@ def with_overlap_lever(cov: F64, scale_var: float, scale: float, shift_px: tuple
     cov : (3, 3) over (dx px, dy px, angle deg), the translation block and the angle variance filled.
     scale_var : variance of the scale; ``scale`` the scale.
     shift_px : (dx, dy).
+    arm : (x, y) px, the lever to use instead of ``shift_px / 2`` (``IfmiConfig.lever = "content"``: the
+        shift minus the whitened match's centroid, both from the image centre).
     """
-    lever = 0.5 * np.asarray(shift_px, dtype=np.float64)
+    lever = 0.5 * np.asarray(shift_px, dtype=np.float64) if arm is None else np.asarray(arm, dtype=np.float64)
     g = np.array([lever[1], -lever[0]]) * (math.pi / 180.0)  # px per degree of angle error
     out = np.array(cov, dtype=np.float64)
     out[:2, :2] += np.outer(g, g) * out[2, 2] + np.outer(lever, lever) * (scale_var / scale**2)

@@ -155,6 +155,7 @@ class _Result:
     surface: F32
     peak: spectral.Peak
     band: int
+    centroid: tuple[float, float] | None = None  # where the POMF's match is, (x, y) px from the image centre
 
 
 def register_prepared(ref: Prepared, mov: Prepared, config: IfmiConfig = DEFAULT_CONFIG,
@@ -216,7 +217,10 @@ def register_prepared(ref: Prepared, mov: Prepared, config: IfmiConfig = DEFAULT
     (t_yy, t_yx), (_, t_xx) = t_cov  # (row, col) = (y, x) bins -> (dx, dy)
     cov = np.array([[t_xx, t_yx, 0.0], [t_yx, t_yy, 0.0], [0.0, 0.0, angle_var]])
     if config.covariance == "calibrated":
-        cov = covariance.with_overlap_lever(cov, scale_var, c.scale, shift)
+        # The reference turns about its centre, which lies at the shift in the moving image: the lever of the
+        # angle and scale errors is the match's position from there (the overlap's centre: half the shift).
+        arm = None if best.centroid is None else (shift[0] - best.centroid[0], shift[1] - best.centroid[1])
+        cov = covariance.with_overlap_lever(cov, scale_var, c.scale, shift, arm)
     status = Status.OK if t.pnr >= config.min_pnr else Status.AMBIGUOUS
     if observer is not NULL_OBSERVER:
         _log_surface(observer, "ifmi/pomf/rotation_scale", c.rs_surface, c.rs)
@@ -349,11 +353,36 @@ def _translation_pass(ref: Prepared, mov: Prepared, p: Plan, config: IfmiConfig,
     cx, cy = cand.coarse_shift
     whole = (float(round(cx)), float(round(cy))) if config.refine_translation else (0.0, 0.0)
     assert mov.spectrum is not None  # register_prepared checked the roles
-    cross = spectral.normalized_cross(_warped_spectrum(ref, p, cand.angle, cand.scale, whole), mov.spectrum,
-                                      overwrite_a=True)
+    warped = _warped_spectrum(ref, p, cand.angle, cand.scale, whole)
+    centroid = None
+    if config.covariance == "calibrated" and config.lever == "content":
+        centroid = _match_centroid(warped, mov.spectrum, p.shape, config.translation_band)
+    cross = spectral.normalized_cross(warped, mov.spectrum, overwrite_a=True)
     peak, band, surface = spectral.band_peak(cross, p.shape, config.peak_neighbourhood, config.min_pnr,
                                              min_band=config.translation_band)
-    return _Result(cand, whole, surface, peak, band)
+    return _Result(cand, whole, surface, peak, band, centroid)
+
+
+def _match_centroid(warped: NDArray[np.complex64], moving: NDArray[np.complex64], shape: tuple[int, int],
+                    band: int) -> tuple[float, float]:
+    """Where the translation POMF's match lies: the centroid of ``max(a b, 0)``, ``a`` and ``b`` the whitened
+    (phase-only) images of the reference warped onto ``moving`` and of ``moving``, in band ``band``.
+
+    The POMF's value at the shift is ``sum_x a(x) b(x)``: each place adds ``a b``, so a displacement
+    field moves the peak by its average under that weight. A uniform texture spreads it over the
+    overlap (centroid: the overlap's centre); a scene of a few edges puts it on them.
+    """
+    b = max(1, min(band, spectral.bands(shape)[-1]))
+    sub = (shape[0] // b, shape[1] // b)
+    wa = spectral.pomf(spectral.low_band(spectral.phase_only(warped.copy()), shape, b), sub)
+    wb = spectral.pomf(spectral.low_band(spectral.phase_only(moving.copy()), shape, b), sub)
+    w = np.maximum(wa * wb, 0.0)
+    total = float(w.sum())
+    if not total > 0.0:
+        return (0.0, 0.0)
+    ys = np.arange(sub[0], dtype=np.float64) * b - (shape[0] - 1) / 2.0
+    xs = np.arange(sub[1], dtype=np.float64) * b - (shape[1] - 1) / 2.0
+    return (float(w.sum(axis=0) @ xs) / total, float(w.sum(axis=1) @ ys) / total)
 
 
 def _log_surface(observer: Observer, path: str, surface: F32, peak: spectral.Peak, band: int = 1) -> None:

@@ -147,3 +147,47 @@ def test_paper_preset_selects_the_paper_covariance() -> None:
     assert paper == {"covariance": "paper", "translation_band": 1} and set(paper) == set(IfmiPipeline.preset_notes)
     cfg = IfmiPipelineConfig(**paper)
     assert cfg.covariance == "paper" and cfg.translation_band == 1
+
+
+def test_match_centroid_sits_where_the_content_is(texture: np.ndarray) -> None:
+    """The whitened match of a pair whose texture fills only the top-left quadrant lies in that quadrant; a
+    texture over the whole image puts it near the centre."""
+    from slamreplay.algorithms.ifmi import spectral
+    from slamreplay.algorithms.ifmi.plan import plan
+    from slamreplay.algorithms.ifmi.registration import _match_centroid
+
+    p = plan((N, N), DEFAULT_CONFIG)
+    whole = texture[:N, :N].astype(np.float32)
+    corner = np.full((N, N), float(whole.mean()), np.float32)
+    corner[: N // 2, : N // 2] = whole[: N // 2, : N // 2]
+    for image, inside in ((corner, lambda x, y: -0.45 * N < x < -0.1 * N and -0.45 * N < y < -0.1 * N),
+                          (whole, lambda x, y: abs(x) < 0.1 * N and abs(y) < 0.1 * N)):
+        spec = spectral.spectrum(image.copy(), p.window)
+        x, y = _match_centroid(spec, spec.copy(), (N, N), 2)
+        assert inside(x, y), (x, y)
+
+
+def test_content_lever_is_longer_than_half_the_shift(texture: np.ndarray) -> None:
+    """``lever="content"``: on a uniform texture the window weighs the overlap's part near the image centre, so
+    the lever (from the reference's centre, at the shift) is longer than half the shift, and the translation
+    covariance larger; the estimate itself is the same."""
+    rng = np.random.default_rng(5)
+    checked = 0
+    for _ in range(5):
+        ref, mov, (dx, dy), _ = perturbed(texture, rng, 2.0, 0.0)
+        if math.hypot(dx, dy) < 0.1 * N:
+            continue
+        checked += 1
+        a = register(ref, mov, IfmiConfig(lever="overlap"))
+        b = register(ref, mov, IfmiConfig(lever="content"))
+        assert a.shift_px == b.shift_px and a.angle_deg == b.angle_deg
+        assert np.trace(b.covariance[:2, :2]) > np.trace(a.covariance[:2, :2])
+        assert b.covariance[2, 2] == a.covariance[2, 2]
+    assert checked >= 3
+
+
+@pytest.mark.parametrize("value", ["", "centre", "Content"])
+def test_bad_lever_names_the_key(value: str) -> None:
+    """An unknown ``lever`` raises ValueError naming the key and its values."""
+    with pytest.raises(ValueError, match=r"lever must be overlap or content"):
+        IfmiConfig(lever=value)
