@@ -12,7 +12,7 @@ Metrics add ``info_nnz_blocks`` and ``info_nnz_blocks_per_landmark`` to the shar
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -30,18 +30,31 @@ from slamreplay.replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfi
 class DSlamPipelineConfig(LandmarkSlamConfig):
     """The shared parameters plus D-SLAM's (algorithms/dslam/filter.py DSlamConfig)."""
 
-    ci_criterion: Literal["det", "trace"] = "det"
-    recovery: Literal["local", "pcg", "direct"] = "local"
-    global_every_scans: int = 100
-    covariance_refresh_scans: int = 0  # 0: exact recomputation only when a scan sees < 2 vicinity features
-    loop_closure_gap_scans: int = 300
-    localization_gate_probability: float = 0.9999  # a measurement pose outside this gate of the prediction is unused
-    map_gate_probability: float = 0.9999  # a recast update outside this gate of the map is skipped (1: no gate)
-    final_relinearization_iterations: int = 10  # Gauss-Newton over the map's measurements at the end (0: EIF)
-    composite_max_scans: int = 0  # known ids: composite scans (algorithms/dslam/composite.py); 0: the paper's rule
-    composite_max_distance_m: float = 3.0
-    composite_max_heading_sigma_rad: float = 0.4
-    info_every_scans: int = 100  # links and sparsity image interval
+    ci_criterion: Literal["det", "trace"] = field(default="det", metadata={"help": (
+        "Covariance Intersection (localization) weight minimising the fused pose covariance's det or trace")})
+    recovery: Literal["local", "pcg", "direct"] = field(default="local", metadata={"help": (
+        "map recovery x = I^-1 i: local solves with periodic global PCG, pcg (whole map every update) or direct")})
+    global_every_scans: int = field(default=100, metadata={"help": (
+        "recovery=local: a global PCG solve every this many map updates; 0: only when local solves fall short")})
+    covariance_refresh_scans: int = field(default=0, metadata={"help": (
+        "recompute nearby features' joint covariance exactly every this many scans; 0: when a scan sees < 2 of them")})
+    loop_closure_gap_scans: int = field(default=300, metadata={"help": (
+        "re-seeing a feature unseen for this many scans is a loop closure: a global solve then is direct, not PCG")})
+    localization_gate_probability: float = field(default=0.9999, metadata={"help": (
+        "beyond the paper: do not fuse a measurement pose failing this chi-square gate (its fit, or vs the "
+        "prediction); 1: off")})
+    map_gate_probability: float = field(default=0.9999, metadata={"help": (
+        "beyond the paper: skip a recast map update whose innovation fails this chi-square gate; 1: off")})
+    final_relinearization_iterations: int = field(default=10, metadata={"help": (
+        "beyond the paper: Gauss-Newton steps relinearising every map measurement at the end; 0: the EIF estimate")})
+    composite_max_scans: int = field(default=0, metadata={"help": (
+        "beyond the paper, known ids: map the readings of up to this many consecutive scans as one; 0: off")})
+    composite_max_distance_m: float = field(default=3.0, metadata={"help": (
+        "composite scans: a scan leaves the window once this much travel (m) lies behind it")})
+    composite_max_heading_sigma_rad: float = field(default=0.4, metadata={"help": (
+        "composite scans: ... or once the odometry heading sigma (rad) accrued since it exceeds this")})
+    info_every_scans: int = field(default=100, metadata={"help": (
+        "draw the information matrix's links and sparsity image every this many scans (and at the end)")})
 
     def __post_init__(self) -> None:
         LandmarkSlamConfig.__post_init__(self)

@@ -8,7 +8,7 @@ anchors, information matrix).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -30,7 +30,9 @@ class EkfSlamPipelineConfig(LandmarkSlamConfig):
     unobservable, as it is; the consistent baseline of benchmarks/dslam_consistency.py).
     """
 
-    jacobians: Literal["standard", "first_estimates"] = "standard"
+    jacobians: Literal["standard", "first_estimates"] = field(default="standard", metadata={"help": (
+        "EKF Jacobians at the latest estimates (standard: the paper's baseline) or, beyond the paper, at "
+        "first estimates (first_estimates: FEJ-EKF)")})
 
     def __post_init__(self) -> None:
         LandmarkSlamConfig.__post_init__(self)

@@ -16,7 +16,7 @@ expected value for a consistent estimate is 2 for a landmark and 3 for the robot
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal, cast
 
 import numpy as np
@@ -99,19 +99,34 @@ def landmark_scores(world_xy: np.ndarray, truth_xy: np.ndarray, pairs: list[tupl
 class LandmarkSlamConfig:
     """Inputs and noise models shared by the landmark SLAM pipelines."""
 
-    association: Association = "auto"  # auto: known ids when the first non-empty scan has them all
-    translation_sigma_per_sqrt_m: float = 0.02  # odometry noise (algorithms/common/motion.py)
-    heading_sigma_per_sqrt_m: float = 0.02
-    heading_sigma_per_sqrt_rad: float = 0.05
-    range_sigma_m: float = 0.15  # when a scan states no sigma (0); a value the user sets wins over the scan's
-    bearing_sigma_rad: float = 0.02
-    gate_probability: float = 0.99  # unknown ids (algorithms/common/association.py)
-    new_feature_probability: float = 0.9999
-    confirm_hits: int = 3
-    tentative_window_scans: int = 25
-    outlier_probability: float = 1.0  # known ids: reject an observation outside this gate (1: keep all)
-    map_every_scans: int = 25  # draw every landmark with its ellipse at this interval (and at the end)
-    match_radius_m: float = 1.0  # unknown ids: a feature farther than this from every true landmark is false
+    association: Association = field(default="auto", metadata={"help": (
+        "pair readings by landmark id (known), by the gates below (unknown), or auto: known when the first "
+        "non-empty scan has all ids")})
+    # odometry noise (algorithms/common/motion.py): Var(dx) = Var(dy) = s_t^2 d, Var(dtheta) = s_h^2 d + s_r^2 |dtheta|
+    translation_sigma_per_sqrt_m: float = field(default=0.02, metadata={"help": (
+        "odometry x and y noise sigma per sqrt(metre) driven (m/sqrt(m)); 0: none")})
+    heading_sigma_per_sqrt_m: float = field(default=0.02, metadata={"help": (
+        "odometry heading noise sigma per sqrt(metre) driven (rad/sqrt(m)); 0: none")})
+    heading_sigma_per_sqrt_rad: float = field(default=0.05, metadata={"help": (
+        "odometry heading noise sigma per sqrt(radian) turned (rad/sqrt(rad)); 0: none")})
+    range_sigma_m: float = field(default=0.15, metadata={"help": (
+        "range noise sigma (m) of scans that state none (0); a value the user sets overrides every scan's")})
+    bearing_sigma_rad: float = field(default=0.02, metadata={"help": (
+        "bearing noise sigma (rad) of scans that state none (0); a value the user sets overrides every scan's")})
+    gate_probability: float = field(default=0.99, metadata={"help": (
+        "unknown ids: chi-square gate probability for pairing a reading with a mapped or tentative feature")})
+    new_feature_probability: float = field(default=0.9999, metadata={"help": (
+        "unknown ids: an unpaired reading starts a tentative feature only outside this gate of every mapped one")})
+    confirm_hits: int = field(default=3, metadata={"help": (
+        "unknown ids: sightings that move a tentative feature into the map")})
+    tentative_window_scans: int = field(default=25, metadata={"help": (
+        "unknown ids: a tentative feature not seen again within this many scans is forgotten")})
+    outlier_probability: float = field(default=1.0, metadata={"help": (
+        "beyond the paper, known ids: drop a reading outside this chi-square gate of its prediction; 1: keep all")})
+    map_every_scans: int = field(default=25, metadata={"help": (
+        "draw every landmark with its 2-sigma ellipse every this many scans (and at the end)")})
+    match_radius_m: float = field(default=1.0, metadata={"help": (
+        "scoring, unknown ids: features pair one-to-one with true landmarks within this (m); unpaired ones are false")})
 
     def __post_init__(self) -> None:
         if self.map_every_scans < 1:

@@ -59,18 +59,31 @@ STAGES = ("features", "bow", "filter", "validation", "relaxation")
 class TopometricConfig:
     """Parameters of the ``topometric`` pipeline (the rest are :class:`MapperConfig` defaults)."""
 
-    sample_distance_m: float = 0.5  # paper III-A
-    sample_angle_deg: float = 10.0  # paper III-A
-    candidate_threshold: float = 0.1
-    recent_images: int = 10
-    history: int = 3  # time steps merged with max in the prediction (paper III-B)
-    word_radius_bits: int = 48
-    min_inliers: int = 12
-    max_translation_px: float = 40.0
-    max_rotation_deg: float = 8.0
-    max_scale: float = 1.10  # see ValidationConfig
-    same_place_m: float = 1.0  # truth rule for precision / recall
-    same_place_deg: float = 20.0
+    sample_distance_m: float = field(default=0.5, metadata={"help": (
+        "an image is taken each time odometry moved this far (m; the paper, III-A: 0.5)")})
+    sample_angle_deg: float = field(default=10.0, metadata={"help": (
+        "... or turned this much (degrees; the paper, III-A: 10)")})
+    candidate_threshold: float = field(default=0.1, metadata={"help": (
+        "a location whose filter posterior reaches this is a loop-closure candidate, validated by image geometry")})
+    recent_images: int = field(default=10, metadata={"help": (
+        "locations created from the last this many images are no loop-closure hypotheses; 0: none excluded")})
+    history: int = field(default=3, metadata={"help": (
+        "K: the odometry predictions of the last this many time steps are merged with max (paper III-B)")})
+    word_radius_bits: int = field(default=48, metadata={"help": (
+        "a BRIEF descriptor within this Hamming distance (of 256 bits) of its nearest word is that word, else new")})
+    min_inliers: int = field(default=12, metadata={"help": (
+        "a candidate needs at least this many descriptor matches and RANSAC inliers to be accepted")})
+    max_translation_px: float = field(default=40.0, metadata={"help": (
+        "a candidate whose image-to-image translation exceeds this (pixels) is rejected")})
+    max_rotation_deg: float = field(default=8.0, metadata={"help": (
+        "a candidate whose image-to-image rotation exceeds this (degrees) is rejected")})
+    # why 1.10: algorithms/topometric/validation.py, ValidationConfig
+    max_scale: float = field(default=1.10, metadata={"help": (
+        "a candidate's image-to-image scale must lie in [1 / max_scale, max_scale]")})
+    same_place_m: float = field(default=1.0, metadata={"help": (
+        "scoring (precision, recall): images show the same place when their true positions are this close (m)")})
+    same_place_deg: float = field(default=20.0, metadata={"help": (
+        "... and their true headings this close (degrees)")})
     odometry_gate: bool = field(default=True, metadata={"help": (
         "beyond the paper: a location is a loop-closure hypothesis only within 2 m + 10 % of the distance "
         "driven since the last loop closure (and 30 deg + 0.5 deg/m) of the odometry estimate; false: off")})

@@ -153,3 +153,14 @@ def test_a_setting_that_cannot_apply_is_an_error(tmp_path: Path) -> None:
     with pytest.raises(ReplayError, match="association=known was set, but the scan at 0 ns carries no landmark ids"):
         run_recording(path, "dslam", tmp_path / "known", config={"association": "known"})
     assert run_recording(path, "dslam", tmp_path / "auto").metrics["steps"] == 5  # auto: unknown ids, no error
+
+
+def test_every_builtin_config_key_has_help() -> None:
+    """`slamreplay pipelines` explains every key: each built-in pipeline's config field carries a help text."""
+    from slamreplay.replay.pipeline import config_schema, pipeline_plugins
+
+    builtins = {name: p for name, p in pipeline_plugins().items() if p.builtin}
+    assert {"dslam", "ekfslam", "topometric", "topometric-nav"} <= set(builtins)
+    missing = [f"{name}.{row['key']}" for name, plugin in builtins.items()
+               for row in config_schema(plugin.load().Config) if not str(row["help"]).strip()]
+    assert not missing, f"config keys without a help text: {', '.join(missing)}"
