@@ -35,7 +35,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUME
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import math  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -43,8 +42,10 @@ from typing import Any  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
+from bench_io import write_json  # noqa: E402
 
 from slamreplay.algorithms.ifmi import IfmiConfig, Status, register  # noqa: E402
+from slamreplay.algorithms.ifmi.covariance import LEVERS  # noqa: E402
 from slamreplay.recorder.sim.seabed import procedural_texture  # noqa: E402
 
 cv2.setNumThreads(1)
@@ -175,7 +176,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--translation-band", type=int, default=IfmiConfig().translation_band,
                         help="IfmiConfig.translation_band (1: the paper's full band, as before; default %(default)s)")
-    parser.add_argument("--lever", choices=("overlap", "content"), default=IfmiConfig().lever,
+    parser.add_argument("--lever", choices=LEVERS, default=IfmiConfig().lever,
                         help="IfmiConfig.lever of the calibrated covariance (default %(default)s)")
     parser.add_argument("--images", type=Path, nargs="+", default=[], metavar="DIR",
                         help="more held-out sources: folders of images (png, jpg, bmp, tif, pgm), each at least "
@@ -214,8 +215,8 @@ def main() -> None:
             allm = {k: np.concatenate(v) for k, v in pooled.items()}
             table.append(_row(n, source, "all", allm, attempted))
     if args.json:
-        args.json.write_text(json.dumps({"pairs_per_row": args.pairs, "translation_band": args.translation_band,
-                                         "rows": table}, indent=1) + "\n")
+        write_json(args.json, {"pairs_per_row": args.pairs, "translation_band": args.translation_band,
+                               "lever": args.lever, "rows": table})
 
 
 def _row(n: int, source: str, cname: str, m: dict[str, np.ndarray], attempted: int) -> dict[str, Any]:

@@ -56,6 +56,7 @@ F64 = NDArray[np.float64]
 Cov2 = tuple[tuple[float, float], tuple[float, float]]
 
 COVARIANCES = ("paper", "calibrated")  # values of IfmiConfig.covariance
+LEVERS = ("overlap", "content")  # values of IfmiConfig.lever (:func:`with_overlap_lever`)
 ROTATION_GAIN = 0.35  # rotation/scale: sandwich times ROTATION_GAIN sqrt(side); fitted on procedural images only
 
 

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamreplay.algorithms.ifmi import spectral
-from slamreplay.algorithms.ifmi.covariance import COVARIANCES
+from slamreplay.algorithms.ifmi.covariance import COVARIANCES, LEVERS
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -89,8 +89,8 @@ class IfmiConfig:
             raise ValueError(f"min_pnr must be >= 0, got {self.min_pnr}")
         if self.covariance not in COVARIANCES:
             raise ValueError(f"covariance must be one of {', '.join(COVARIANCES)}, got {self.covariance!r}")
-        if self.lever not in ("overlap", "content"):
-            raise ValueError(f"lever must be overlap or content, got {self.lever!r}")
+        if self.lever not in LEVERS:
+            raise ValueError(f"lever must be one of {', '.join(LEVERS)}, got {self.lever!r}")
         if self.translation_band < 1 or self.translation_band & (self.translation_band - 1):
             raise ValueError(f"translation_band must be a power of 2 (1, 2, 4, ...), got {self.translation_band}")
         if not self.max_scale > 1.0:

@@ -372,7 +372,7 @@ def _match_centroid(warped: NDArray[np.complex64], moving: NDArray[np.complex64]
     field moves the peak by its average under that weight. A uniform texture spreads it over the
     overlap (centroid: the overlap's centre); a scene of a few edges puts it on them.
     """
-    b = max(1, min(band, spectral.bands(shape)[-1]))
+    b = min(band, spectral.bands(shape)[-1])
     sub = (shape[0] // b, shape[1] // b)
     wa = spectral.pomf(spectral.low_band(spectral.phase_only(warped.copy()), shape, b), sub)
     wb = spectral.pomf(spectral.low_band(spectral.phase_only(moving.copy()), shape, b), sub)

@@ -40,7 +40,6 @@ from slamreplay.algorithms.common import se2
 from slamreplay.algorithms.common.posegraph import OptimizerConfig, PoseGraph, chi2, optimize
 from slamreplay.algorithms.common.posegraph_analysis import marginal_covariances
 from slamreplay.algorithms.ifmi import IfmiConfig, Prepared, Registration, Status, prepare, register_prepared
-from slamreplay.algorithms.ifmi.covariance import COVARIANCES
 from slamreplay.algorithms.ifmi.mapping import (
     edge_from_registration,
     flatten_illumination,
@@ -102,8 +101,7 @@ class IfmiPipelineConfig:
         "interpolation errors; best with covariance=calibrated)")})
 
     def __post_init__(self) -> None:
-        if not self.min_pnr >= 0:
-            raise ValueError(f"min_pnr must be >= 0, got {self.min_pnr}")
+        self.registration()  # min_pnr, covariance and translation_band: IfmiConfig's checks and messages
         if not self.loop_radius >= 0:
             raise ValueError(f"loop_radius must be >= 0, got {self.loop_radius}")
         if self.max_candidates < 0 or self.min_gap < 2:
@@ -114,10 +112,10 @@ class IfmiPipelineConfig:
             raise ValueError("metres_per_pixel must be >= 0 and mosaic_max_px >= 64")
         if not (self.loop_gate_deg > 0 and self.loop_gate_footprints > 0):
             raise ValueError("loop_gate_deg and loop_gate_footprints must be > 0")
-        if self.covariance not in COVARIANCES:
-            raise ValueError(f"covariance must be one of {', '.join(COVARIANCES)}, got {self.covariance!r}")
-        if self.translation_band < 1 or self.translation_band & (self.translation_band - 1):
-            raise ValueError(f"translation_band must be a power of 2 (1, 2, 4, ...), got {self.translation_band}")
+
+    def registration(self) -> IfmiConfig:
+        """The registration's configuration these keys make."""
+        return IfmiConfig(min_pnr=self.min_pnr, covariance=self.covariance, translation_band=self.translation_band)
 
 
 class IfmiPipeline(Pipeline):
@@ -196,8 +194,7 @@ class IfmiPipeline(Pipeline):
 
     def __init__(self, config: IfmiPipelineConfig, ctx: ReplayContext) -> None:
         super().__init__(config, ctx)
-        self.reg_config = IfmiConfig(min_pnr=config.min_pnr, covariance=config.covariance,
-                                     translation_band=config.translation_band)
+        self.reg_config = config.registration()
         self.mpp = config.metres_per_pixel or _recorded_mpp(ctx) or 1.0
         self.start = ctx.T_world_start if ctx.T_world_start is not None else np.zeros(3)
         self.images: list[np.ndarray] = []
