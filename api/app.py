@@ -4,7 +4,10 @@ Routes only validate and delegate (to ``RecordingService``, ``JobService`` and `
 replays run in worker processes, never in the event loop. Ids in paths and queries must be
 hex (sha256 for recordings, 32 digits for jobs), so user input never names a file. When a
 token is set, every route but ``/healthz`` needs ``Authorization: Bearer <token>`` (the
-interactive ``/docs`` page is then off, as a browser cannot send the token from it).
+interactive ``/docs`` page is then off, as a browser cannot send the token from it). With or
+without a token, only the host names the server answers to are served and other sites cannot
+make changes (``slamreplay.api.siteguard``); the app starts only while it holds its data
+directory's lock (``slamreplay.api.datalock``).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from fastapi import APIRouter, Depends, FastAPI, Path, Query, Request, Response
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 from starlette.concurrency import run_in_threadpool
 
+from slamreplay.api.datalock import DataDirLock
 from slamreplay.api.deps import ERRORS, JobsDep, RecordingsDep, require_token
 from slamreplay.api.errors import ApiError, disk_full_error, is_disk_full
 from slamreplay.api.executor import Executor, LocalExecutor
@@ -37,6 +41,7 @@ from slamreplay.api.multipart import FILE_FIELD, form_file, is_form
 from slamreplay.api.record_routes import install_record_routes
 from slamreplay.api.recordings import RecordingService
 from slamreplay.api.settings import Settings
+from slamreplay.api.siteguard import SiteGuard
 from slamreplay.api.store import Store
 from slamreplay.api.web import install_web
 from slamreplay.recorder.errors import RecorderError
@@ -224,18 +229,28 @@ def make_executor(settings: Settings) -> Executor:
     return LocalExecutor(settings.workers, settings.job_limits)
 
 
-def create_app(settings: Settings | None = None, executor: Executor | None = None) -> FastAPI:
-    """The service over ``settings.data_dir``; the executor runs (and the scheduler starts) with the lifespan."""
+def create_app(settings: Settings | None = None, executor: Executor | None = None,
+               lock: DataDirLock | None = None) -> FastAPI:
+    """The service over ``settings.data_dir``; the executor runs (and the scheduler starts) with the lifespan.
+
+    ``lock``: the data directory's lock when the caller took it already (``slamreplay serve``); else the
+    lifespan takes it, and fails with ``DataDirInUseError`` while another server holds the directory.
+    """
     settings = settings or Settings.from_env()
     settings.make_dirs()
     store = Store(settings.db_path)
-    jobs = JobService(settings, store, executor or make_executor(settings))
+    jobs = JobService(settings, store, executor or make_executor(settings), lock)
     recordings = RecordingService(settings, store)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        await run_in_threadpool(recordings.sweep)
-        await run_in_threadpool(jobs.start)
+        await run_in_threadpool(jobs.hold_data_dir)  # before the sweep: another server's uploads are not ours
+        try:
+            await run_in_threadpool(recordings.sweep)
+            await run_in_threadpool(jobs.start)
+        except BaseException:
+            jobs.lock.release()
+            raise
         try:
             yield
         finally:
@@ -249,6 +264,7 @@ def create_app(settings: Settings | None = None, executor: Executor | None = Non
     app.state.settings = settings
     app.state.jobs = jobs
     app.state.recordings = recordings
+    app.add_middleware(SiteGuard, hosts=settings.allowed_hosts)  # outermost: before any route or error handler
     for exc in (ApiError, ReplayError, RecorderError, OSError, sqlite3.Error):
         app.add_exception_handler(exc, handle_error)
     app.include_router(public)

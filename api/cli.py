@@ -14,8 +14,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+# Only light modules here (a test checks it): the parser is built before every command, --help included, and
+# each command imports the heavy stack (numpy, rerun, mcap, fastapi ...) in its function.
+from slamreplay.api.cli_parser import SuggestingParser, VersionAction, command_of
 from slamreplay.api.graph_cli import add_graph_parser
 from slamreplay.api.hints import spell_commands, tool, view_hint
+from slamreplay.api.pipelines_cli import add_pipelines_parser
 from slamreplay.api.progress import progress_bar
 from slamreplay.api.suite_cli import add_suite_parsers
 from slamreplay.recorder.errors import RecorderError
@@ -53,7 +57,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     importer = get_importer(args.source)
     options = {k: v for k, v in vars(args).items() if k not in ("func", "source", "command", "debug", "quiet")}
     log = (lambda text: None) if args.quiet else _eprint
-    with progress_bar(importer.progress_label, args.quiet) as update:
+    with progress_bar(f"record {args.source}", args.quiet) as update:
         summary = importer.record(options, update, log)
     if not args.quiet:
         _eprint(f"wrote {args.out}: {summary}")
@@ -86,7 +90,7 @@ def _add_record_parsers(rsub: Any, quiet: argparse.ArgumentParser) -> None:
 
 
 # ---------------------------------------------------------------------------------------
-# inspect, recover, pipelines
+# inspect, recover
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
@@ -180,55 +184,6 @@ def cmd_recover(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def cmd_pipelines(args: argparse.Namespace) -> int:
-    from slamreplay.replay.pipeline import config_schema, pipeline_plugins
-
-    rows: list[dict[str, Any]] = []
-    broken: list[str] = []
-    for name, plugin in pipeline_plugins().items():
-        where = {"name": name, "origin": plugin.origin, "distribution": plugin.distribution,
-                 "version": plugin.version, "entry_point": plugin.value}
-        if plugin.error is not None:
-            rows.append({**where, "error": plugin.error})
-            broken.append(plugin.describe() + " " + plugin.error)
-            continue
-        cls = plugin.load()
-        rows.append({**where, "error": None, "summary": cls.summary, "required_topics": list(cls.required_topics),
-                     "optional_topics": list(cls.optional_topics), "config": config_schema(cls.Config),
-                     "presets": {k: dict(v) for k, v in cls.presets.items()},
-                     "metrics": {k: {"better": m.better, "unit": m.unit, "description": m.description}
-                                 for k, m in cls.metrics.items()}})
-    if not rows:
-        from slamreplay.recorder.plugins import missing_builtins_hint
-        from slamreplay.replay.pipeline import PIPELINE_GROUP
-
-        raise CliError(missing_builtins_hint(PIPELINE_GROUP))
-    if args.json:
-        print(json.dumps(rows, indent=2, default=str))
-    else:
-        for r in rows:
-            if r["error"] is not None:
-                print(f"{r['name']}: BROKEN ({r['origin']}, {r['entry_point']}): {r['error']}")
-                continue
-            print(f"{r['name']}: {r['summary']}")
-            print(f"  from:     {r['origin']}" + ("" if r["origin"] == "built-in" else f" ({r['entry_point']})"))
-            print(f"  needs:    {', '.join(r['required_topics'])}")
-            if r["optional_topics"]:
-                print(f"  uses:     {', '.join(r['optional_topics'])}")
-            for c in r["config"]:
-                print(f"  --set {c['key']}=<{c['type']}>  (default {c['default']}) {c['help']}")
-            if not r["config"]:
-                print("  config:   (no keys)")
-            for preset, values in r["presets"].items():
-                print(f"  --preset {preset}: " + (", ".join(f"{k}={v}" for k, v in values.items())
-                                                or "the defaults (they are already the paper's)"))
-            print("  metrics:  " + ", ".join(f"{k} ({m['better']} is better)" if m["better"] != "none" else k
-                                             for k, m in r["metrics"].items()))
-    for line in broken:  # listed above; and one line each on stderr, exit 2: an installed plugin does not work
-        _eprint(f"slamreplay: error: {line}")
-    return EXIT_BAD_INPUT if broken else EXIT_OK
-
-
 # ---------------------------------------------------------------------------------------
 # run, diff
 
@@ -248,11 +203,14 @@ def _load_config_file(path: str | None) -> dict[str, Any]:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from slamreplay.replay.recording_file import check_recording
+
+    check_recording(args.file)  # a typo in the path: one line at once, before the replay stack is imported
     from slamreplay.replay.pipeline import parse_assignments
     from slamreplay.replay.run import run_recording
 
     config = {**_load_config_file(args.config), **parse_assignments(args.set)}
-    with progress_bar(f"replaying {args.pipeline}", args.quiet) as update:
+    with progress_bar(f"run {args.pipeline} on {Path(args.file).name}", args.quiet, unit="messages") as update:
         result = run_recording(args.file, args.pipeline, args.out, seed=args.seed, config=config,
                                topic_map=_parse_pairs(args.topic_map, "--topic-map"),
                                start_ns=args.start_ns, end_ns=args.end_ns, log_timings=args.log_timings,
@@ -276,7 +234,7 @@ def cmd_navigate(args: argparse.Namespace) -> int:
 
     overrides = dict(PAPER_NAVIGATION) if args.preset == "paper" else {}
     overrides.update({k: v for k in PAPER_NAVIGATION if (v := getattr(args, k)) is not None})
-    with progress_bar("navigating", args.quiet) as update:
+    with progress_bar(f"navigate to node {args.goal}", args.quiet) as update:
         s = navigate(args.map, args.world, args.goal, Path(args.out), start=args.start, seed=args.seed,
                      visual_correction=not args.no_visual_correction, through_walls=args.through_walls,
                      progress=update, overrides=overrides)
@@ -338,16 +296,20 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    import uvicorn
+    """Take the data directory's lock, then the port, and only then announce and build the app: a second
+    server on a directory or a port in use exits 2 on one line without touching the first one's jobs."""
     from pydantic import ValidationError
 
-    from slamreplay.api.app import create_app
+    from slamreplay.api.datalock import DataDirInUseError, DataDirLock
+    from slamreplay.api.listen import ListenError, listen, url_host
     from slamreplay.api.settings import Settings
+    from slamreplay.api.siteguard import LOOPBACK_HOSTS, served_hosts
 
     try:
         settings = Settings.from_env(data_dir=args.data_dir, workers=args.workers, executor=args.executor,
                                      ray_address=args.ray_address, storage_url=args.storage_url,
-                                     job_memory_mib=args.job_memory_mib, job_timeout_s=args.job_timeout_s)
+                                     job_memory_mib=args.job_memory_mib, job_timeout_s=args.job_timeout_s,
+                                     allowed_hosts=tuple(args.allowed_host) or None)
     except ValidationError as err:
         problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'settings'}: {e['msg']}" for e in err.errors())
         raise CliError(f"invalid setting (from SLAMREPLAY_* or the options): {problems}") from None
@@ -355,35 +317,60 @@ def cmd_serve(args: argparse.Namespace) -> int:
         settings.make_dirs()
     except OSError as err:
         raise CliError(f"--data-dir {settings.data_dir}: cannot create it: {err.strerror or err}") from None
-    auth = "bearer token required" if settings.token else "no token (set SLAMREPLAY_TOKEN to require one)"
-    _eprint(f"slamreplay serve: http://{args.host}:{args.port} over {settings.data_dir.resolve()} "
-            f"({settings.workers} {settings.executor} worker(s), {auth})")
+    settings = settings.model_copy(update={"allowed_hosts": served_hosts(settings.allowed_hosts, args.host)})
+    lock = DataDirLock(settings.data_dir)
     try:
-        app = create_app(settings)
+        lock.acquire()
+        sock = listen(args.host, args.port)
+    except (DataDirInUseError, ListenError) as err:
+        lock.release()
+        raise CliError(str(err)) from None
+    except OSError as err:  # the lock file: a read-only data directory
+        raise CliError(f"--data-dir {settings.data_dir}: cannot lock it: {err.strerror or err}") from None
+    base = f"http://{url_host(args.host)}:{sock.getsockname()[1]}"
+    lock.set_address(base)
+    auth = "bearer token required" if settings.token else "no token (set SLAMREPLAY_TOKEN to require one)"
+    names = [h for h in settings.allowed_hosts if h not in LOOPBACK_HOSTS]
+    hosts = "" if args.host == "127.0.0.1" else (
+        f"; host names served: loopback, {', '.join(names)}" if names else
+        "; host names served: loopback only (clients elsewhere need --allowed-host NAME)")
+    _eprint(f"slamreplay serve: {base} over {settings.data_dir.resolve()} "
+            f"({settings.workers} {settings.executor} worker(s), {auth}{hosts})")
+    import uvicorn  # the service's stack, imported once the directory and the port are ours (a refusal is quick)
+
+    from slamreplay.api.app import create_app
+
+    try:
+        app = create_app(settings, lock=lock)
     except ImportError as err:  # --executor ray without the extra: the message has the install command
         raise CliError(str(err)) from None
-    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
+    uvicorn.Server(uvicorn.Config(app, host=args.host, port=args.port, log_level=args.log_level)).run(sockets=[sock])
+    lock.release()
     return EXIT_OK
 
 
 # ---------------------------------------------------------------------------------------
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+def build_parser(command: str | None = None) -> SuggestingParser:
+    """The ``slamreplay`` parser; with ``command`` (the one on the command line) not ``record``, the sub-commands
+    of ``record`` (one per importer plugin, each imported to ask for its options) are left out."""
+    p = SuggestingParser(
         prog="slamreplay",
         description="Record sensor streams to MCAP, replay them deterministically through SLAM pipelines, "
                     "and inspect every step in Rerun.",
         epilog="Start with `make demo`, then `slamreplay pipelines`. Each command has its own --help.",
     )
     p.add_argument("--debug", action="store_true", help="show a traceback on errors")
+    p.add_argument("--version", action=VersionAction)
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    quiet = argparse.ArgumentParser(add_help=False)
-    quiet.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
+    quiet = SuggestingParser(add_help=False)
+    quiet.add_argument("-q", "--quiet", action="store_true", help="no progress (bar or lines) and no summary")
 
     rec = sub.add_parser("record", help="make a recording from a simulator or a public dataset")
     rsub = rec.add_subparsers(dest="source", required=True, metavar="SOURCE")
-    _add_record_parsers(rsub, quiet)
+    if command in (None, "record"):
+        _add_record_parsers(rsub, quiet)
 
     ins = sub.add_parser("inspect", help="topics, schemas, counts, time span and health of a recording")
     ins.add_argument("file", help="an .mcap recording or a ROS 2 bag directory")
@@ -405,9 +392,7 @@ def build_parser() -> argparse.ArgumentParser:
     rcv.add_argument("--out", required=True, help="the new .mcap to write (must not exist)")
     rcv.set_defaults(func=cmd_recover)
 
-    pl = sub.add_parser("pipelines", help="list pipelines, the topics they need and their config keys")
-    pl.add_argument("--json", action="store_true", help="machine-readable output")
-    pl.set_defaults(func=cmd_pipelines)
+    add_pipelines_parser(sub)
 
     run = sub.add_parser("run", parents=[quiet], help="replay a recording through a pipeline into a run directory",
                          description="Replay FILE through a pipeline. Writes RUN_DIR/run.rrd (open with `rerun`), "
@@ -550,6 +535,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="memory limit of each job's process (default: SLAMREPLAY_JOB_MEMORY_MIB, else none)")
     srv.add_argument("--job-timeout-s", type=float, default=None, metavar="S",
                      help="wall-time limit of each job (default: SLAMREPLAY_JOB_TIMEOUT_S, else none)")
+    srv.add_argument("--allowed-host", action="append", default=[], metavar="NAME",
+                     help="a host name clients may reach the server by, besides 127.0.0.1, localhost, ::1 and --host "
+                          "(repeatable; *.example.org for subdomains, * for any; default: "
+                          "SLAMREPLAY_ALLOWED_HOSTS, comma-separated); requests naming another host are refused")
     srv.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"],
                      help="uvicorn log level (default: info)")
     srv.set_defaults(func=cmd_serve)
@@ -560,8 +549,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(command_of(argv))
+    args = parser.parse_args_suggesting(argv)
     try:
         return int(args.func(args))
     except (CliError, ReplayError, RecorderError) as err:

@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 from slamreplay.api.hints import has_display, tool, view_hint
-from slamreplay.api.progress import progress_bar
+from slamreplay.api.progress import progress_bar, say
 from slamreplay.replay.run import RunResult, run_recording
 
 MARKER = ".slamreplay-demo"
@@ -20,8 +20,7 @@ DEMO_DURATION_S = 600.0
 
 
 def _say(text: str, quiet: bool) -> None:
-    if not quiet:
-        print(text, file=sys.stderr, flush=True)
+    say(text, quiet)
 
 
 # Which pipelines each demo recording goes through (a forward camera is no photo-mapping input).
@@ -45,19 +44,19 @@ def _recordings(out: Path, data: Path | None, quiet: bool) -> list[Path]:
     made = []
     path = rec_dir / "sim-landmarks.mcap"
     _say(f"recording the D-SLAM paper scenario (sim-landmarks, seed 1, 600 s) -> {path}", quiet)
-    with progress_bar("simulating", quiet) as update:
+    with progress_bar("record sim-landmarks", quiet) as update:
         # The paper's scenario, 10 minutes of driving (the simulator's default is 30): the demo
         # replays it through D-SLAM and EKF-SLAM too and should finish in a few minutes.
         simulate_landmarks(path, LandmarkSimConfig(duration_s=DEMO_DURATION_S), seed=1, progress=update)
     made.append(path)
     path = rec_dir / "sim-seabed.mcap"
     _say(f"recording the iFMI photo-mapping survey (sim-seabed, seed 1) -> {path}", quiet)
-    with progress_bar("simulating", quiet) as update:
+    with progress_bar("record sim-seabed", quiet) as update:
         simulate_seabed(path, SeabedSimConfig(), seed=1, progress=update)
     made.append(path)
     path = rec_dir / "sim-corridor.mcap"
     _say(f"recording the teleoperated mapping route (sim-corridor, seed 1, 2.5 images/s) -> {path}", quiet)
-    with progress_bar("simulating", quiet) as update:
+    with progress_bar("record sim-corridor", quiet) as update:
         simulate_corridor(path, CorridorConfig(camera_rate_hz=2.5), seed=1, progress=update)
     made.append(path)
     mrclam = data / "mrclam-dataset6" if data is not None else None
@@ -66,7 +65,7 @@ def _recordings(out: Path, data: Path | None, quiet: bool) -> list[Path]:
 
         path = rec_dir / "mrclam6-robot1.mcap"
         _say(f"importing MRCLAM dataset 6, robot 1 -> {path}", quiet)
-        with progress_bar("importing", quiet) as update:
+        with progress_bar("record mrclam", quiet) as update:
             import_mrclam(mrclam, 1, path, progress=update)
         made.append(path)
     else:
@@ -85,7 +84,7 @@ def _navigation(out: Path, map_run: Path, world: Path, quiet: bool) -> Path:
     goal = int(np.searchsorted(along, NAV_GOAL_ALONG_M)) if along[-1] > NAV_GOAL_ALONG_M else len(poses) - 1
     path = out / "recordings" / "sim-corridor-navigation.mcap"
     _say(f"navigating on the map from node 0 to node {goal} with the simulator in the loop -> {path}", quiet)
-    with progress_bar("navigating", quiet) as update:
+    with progress_bar(f"navigate to node {goal}", quiet) as update:
         navigate(map_run, world, goal, path, seed=1, progress=update)
     return path
 
@@ -106,7 +105,7 @@ def run_demo(out: Path, data: Path | None, quiet: bool = False) -> int:
         recording = queue.pop(0)
         for name in PIPELINES[recording.stem]:
             run_dir = out / f"{recording.stem}--{name}"
-            with progress_bar(f"{name} on {recording.name}", quiet) as update:
+            with progress_bar(f"run {name} on {recording.name}", quiet, unit="messages") as update:
                 result = run_recording(recording, name, run_dir, seed=1, progress=update,
                                        )
             results.append((recording.stem, name, result))

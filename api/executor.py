@@ -7,7 +7,8 @@ called from a scheduler thread (never the event loop) and blocks until the job e
 crash, a kill, an out-of-memory kill) fails only the job it was running, with the cause
 recorded, and is replaced for the next job. Workers write their progress to the job store
 themselves, run at a lower CPU priority than the server, ignore Ctrl-C (the server decides
-when they stop) and exit when the server process is gone.
+when they stop) and exit when the server process is gone; each holds a copy of the data directory's
+locked file (``share_fd``), so a new server cannot start while one of them lives.
 
 Both executors run the same job function, ``run_task``, under the same ``Watchdog``
 (``slamreplay.api.limits``): a job past its memory or wall-time limit fails alone with that limit in
@@ -153,7 +154,27 @@ def run_limited(job: Job, task: Task, limits: JobLimits, report: Report | None =
     return outcome
 
 
-def _worker_main(conn: Connection, parent_pid: int, job: Job, limits: JobLimits) -> None:
+class SharedFd:
+    """An open file descriptor that a spawned worker receives a copy of (the same open file, as ``fork``
+    would share it): the worker holds the data directory's lock for as long as it lives."""
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        from multiprocessing import reduction
+
+        # DupFd passes the descriptor to the child being spawned (as multiprocessing does for Pipe ends)
+        return (_received_fd, (reduction.DupFd(self.fd),))
+
+
+def _received_fd(dup: Any) -> SharedFd:
+    return SharedFd(dup.detach())
+
+
+def _worker_main(conn: Connection, parent_pid: int, job: Job, limits: JobLimits,
+                 held: SharedFd | None = None) -> None:
+    # ``held`` is never closed: the data directory stays locked until this process ends
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.nice(WORKER_NICENESS)
     threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
@@ -210,13 +231,14 @@ class _Worker:
                 self.proc.kill()
                 self.proc.join(2.0)
 
-    def replace(self, ctx: Any, parent_pid: int, job: Job, limits: JobLimits) -> None:
-        """Start a fresh process in place of this one (which is stopped first)."""
+    def replace(self, ctx: Any, parent_pid: int, job: Job, limits: JobLimits, held: int | None = None) -> None:
+        """Start a fresh process in place of this one (which is stopped first); it gets a copy of ``held``."""
         self.stop()
         if self.conn is not None:
             self.conn.close()
         parent, child = ctx.Pipe()
-        proc = ctx.Process(target=_worker_main, args=(child, parent_pid, job, limits), daemon=True,
+        shared = None if held is None else SharedFd(held)
+        proc = ctx.Process(target=_worker_main, args=(child, parent_pid, job, limits, shared), daemon=True,
                            name="slamreplay-worker")
         proc.start()
         child.close()
@@ -241,11 +263,17 @@ class LocalExecutor:
         self._lock = threading.Lock()
         self._cancelled: set[str] = set()
         self._closed = False
+        self._held: int | None = None
+
+    def share_fd(self, fd: int) -> None:
+        """Give every worker started from now on a copy of ``fd``, the data directory's locked file: the lock
+        then outlives a killed server until its last worker has exited (slamreplay.api.datalock)."""
+        self._held = fd
 
     def start(self) -> None:
         with self._lock:
             for worker in self._workers:
-                worker.replace(self._ctx, os.getpid(), self._job, self.limits)
+                worker.replace(self._ctx, os.getpid(), self._job, self.limits, self._held)
                 self._idle.put(worker)
 
     def worker_pids(self) -> dict[str, int]:
@@ -264,7 +292,7 @@ class LocalExecutor:
                 if task.job_id in self._cancelled:
                     return Outcome("cancelled", "cancelled by request")
                 if not worker.alive():
-                    worker.replace(self._ctx, os.getpid(), self._job, self.limits)
+                    worker.replace(self._ctx, os.getpid(), self._job, self.limits, self._held)
                 worker.job_id = task.job_id
                 proc, conn = worker.proc, worker.conn
             if proc is None or conn is None:
@@ -299,7 +327,7 @@ class LocalExecutor:
                 worker.jobs += 1
                 self._cancelled.discard(task.job_id)
                 if not self._closed and (retire or not worker.alive() or worker.jobs >= self.max_jobs_per_worker):
-                    worker.replace(self._ctx, os.getpid(), self._job, self.limits)  # idle now: safe to stop
+                    worker.replace(self._ctx, os.getpid(), self._job, self.limits, self._held)  # idle: safe to stop
             self._idle.put(worker)
 
     def _wait(self, conn: Connection, proc: BaseProcess) -> str | None:

@@ -6,11 +6,15 @@ import argparse
 import json
 from typing import Any
 
+# The choices of replay/graph_io.py (SOLVERS, INITS, ROBUST), spelled here so that building the parser does not
+# import the pose-graph solver (scipy) before every command; tests/api/test_cli_startup.py checks they agree.
+SOLVERS = ("gn", "lm")
+INITS = ("odometry", "chordal", "file")
+ROBUST = ("none", "dcs", "huber", "cauchy")
+
 
 def add_graph_parser(sub: Any) -> None:
     """Add the ``graph`` command group to the CLI's subparsers."""
-    from slamreplay.replay.graph_io import INITS, ROBUST, SOLVERS
-
     graph = sub.add_parser("graph", help="pose-graph tools (g2o VERTEX_SE2/EDGE_SE2, TORO VERTEX2/EDGE2)")
     gsub = graph.add_subparsers(dest="graph_command", required=True, metavar="GRAPH_COMMAND")
     opt = gsub.add_parser("optimize", help="optimize a 2D pose graph file (maximum likelihood, sparse GN/LM)",

@@ -6,6 +6,12 @@ Submitting only inserts a row and wakes the threads, so queued jobs survive a re
 start-up, jobs left running by the previous server are re-queued once, then everything
 queued runs.
 
+No job runs twice at once: ``Store.claim_next`` hands a queued job to one scheduler thread (one
+write transaction), and the only way back from ``running`` to ``queued`` is the re-queue at
+start-up, which runs only under the data directory's lock (``slamreplay.api.datalock``). That
+lock is held by the server and by every local worker it started, so it is free only once none
+of the previous server's processes can still be running a job.
+
 With a storage URL (``Settings.storage_url``) tasks name locations there instead of the
 data directory: the recording is copied there before its first job, and the run directory
 is copied back into ``runs/`` when the job ends, so every route reads local files.
@@ -21,12 +27,14 @@ from pathlib import Path
 from typing import Any
 
 from slamreplay.api import storage
+from slamreplay.api.datalock import DataDirLock
 from slamreplay.api.errors import ConflictError, NotFoundError
 from slamreplay.api.executor import Executor, Outcome, Task
 from slamreplay.api.settings import Settings
 from slamreplay.api.store import JobRow, Store
 from slamreplay.replay.diff_view import write_comparison_rrd
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.metric_registry import normalize
 from slamreplay.replay.pipeline import all_pipelines, get_pipeline, resolve_config
 
 log = logging.getLogger("slamreplay.jobs")
@@ -35,18 +43,31 @@ log = logging.getLogger("slamreplay.jobs")
 class JobService:
     """Queue, run and cancel jobs; owns the scheduler threads."""
 
-    def __init__(self, settings: Settings, store: Store, executor: Executor) -> None:
+    def __init__(self, settings: Settings, store: Store, executor: Executor, lock: DataDirLock | None = None) -> None:
         self.settings = settings
         self.store = store
         self.executor = executor
+        self.lock = lock if lock is not None else DataDirLock(settings.data_dir)
         self._wake = threading.Condition()
         self._stopping = threading.Event()
         self._threads: list[threading.Thread] = []
 
     # -- lifecycle -------------------------------------------------------------------------
 
+    def hold_data_dir(self) -> None:
+        """Take the data directory's lock (a no-op when this service holds it already).
+
+        Raises ``DataDirInUseError`` naming the server that holds it."""
+        self.lock.acquire()
+
     def start(self) -> None:
-        """Re-queue jobs a previous server left running, start the executor and the scheduler threads."""
+        """Take the data directory's lock, re-queue jobs a previous server left running, start the executor
+        and the scheduler threads. Raises ``DataDirInUseError`` (before touching any job) when another server holds
+        the data directory."""
+        self.hold_data_dir()
+        share_fd = getattr(self.executor, "share_fd", None)  # local workers hold the lock too (see above)
+        if share_fd is not None:
+            share_fd(self.lock.fd)
         all_pipelines()  # import them now rather than in the first POST /jobs
         requeued, interrupted = self.store.recover_after_restart()
         if requeued or interrupted:
@@ -65,6 +86,7 @@ class JobService:
         self.executor.close()
         for t in self._threads:
             t.join(5.0)
+        self.lock.release()
 
     def wake(self) -> None:
         with self._wake:
@@ -97,15 +119,25 @@ class JobService:
         """Write how a job ended, retrying (backing off to 5 s) while the database is busy or its disk is full,
         so no job stays ``running`` while the server lives; at a stop it is re-queued at start-up."""
         attempt = 0
+        metrics = self.metric_values(job_id) if outcome.status == "succeeded" else None
         while True:
             try:
-                self.store.finish_job(job_id, outcome.status, outcome.error)
+                self.store.finish_job(job_id, outcome.status, outcome.error, metrics)
                 return
             except Exception:
                 attempt += 1
                 log.exception("could not record the end of job %s (try %d)", job_id, attempt)
             if self._stopping.wait(min(0.1 * 2 ** attempt, 5.0)):
                 return
+
+    def metric_values(self, job_id: str) -> dict[str, float]:
+        """{metric: value} from a run's metrics.json under the metrics' current names, copied into the store so
+        that the runs table never opens thousands of files; {} when the file is missing or unreadable."""
+        try:
+            doc = json.loads((self.run_dir(job_id) / "metrics.json").read_text())
+            return normalize({k: float(v["value"]) for k, v in doc.get("metrics", {}).items()})
+        except (OSError, ValueError, TypeError, KeyError, AttributeError):
+            return {}
 
     def task_of(self, job: JobRow) -> Task:
         """The task of ``job``; with a storage URL, its recording is copied there first (once)."""

@@ -108,7 +108,10 @@ class JobOut(BaseModel):
     status: JobStatusName
     progress: float = Field(ge=0.0, le=1.0)
     error: str | None = Field(description="why it failed, was cancelled or interrupted")
-    note: str | None = Field(description="what happened to it besides running (e.g. re-queued after a restart)")
+    note: str | None = Field(description="what happened to it besides running (e.g. re-queued after a restart), "
+                                         "or what someone wrote of it on the web page")
+    name: str | None = Field(default=None, description="the name given to it on the web page")
+    tags: list[str] = Field(default_factory=list, description="its tags (the web page's runs table filters by them)")
     attempts: int
     created_at: datetime
     started_at: datetime | None
@@ -137,7 +140,8 @@ class JobOut(BaseModel):
         if job.status == "succeeded":
             links |= {"rrd": f"{base}/rrd", "metrics": f"{base}/metrics"}
         return cls(id=job.id, recording_id=job.recording_id, pipeline=job.pipeline, config=job.config, seed=job.seed,
-                   status=job.status, progress=job.progress, error=job.error, note=job.note, attempts=job.attempts,
+                   status=job.status, progress=job.progress, error=job.error, note=job.note, name=job.name,
+                   tags=list(job.tags), attempts=job.attempts,
                    created_at=_time(job.created), started_at=_maybe_time(job.started),
                    finished_at=_maybe_time(job.finished),
                    duration_s=duration, metrics=metrics, manifest=manifest, links=links)

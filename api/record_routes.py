@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from fastapi import APIRouter, Depends, FastAPI, Response
-from pydantic import BaseModel, ConfigDict, Field, create_model
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, StrictStr, create_model
 from starlette.concurrency import run_in_threadpool
 
 from slamreplay.api.deps import ERRORS, RecordingsDep, require_token
@@ -30,7 +30,9 @@ from slamreplay.api.models import RecordingOut
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.sources import Importer, get_importer, importer_plugins
 
-_SCALARS: dict[str, Any] = {"int": int, "float": float, "bool": bool, "str": str}
+# Strict types: in lax mode pydantic reads JSON true as the number 1 (a fuzzer's sensor_range_m: true made a
+# recording); a float option takes a JSON integer too.
+_SCALARS: dict[str, Any] = {"int": StrictInt, "float": StrictFloat | StrictInt, "bool": StrictBool, "str": StrictStr}
 
 
 class OptionOut(BaseModel):
@@ -105,9 +107,9 @@ def _body_model(importer: Importer) -> type[BaseModel]:
     """The JSON body of ``importer``'s route: one optional field per option, typed like the option."""
     fields: dict[str, Any] = {}
     for action, key in _options(importer):
-        tp = _SCALARS.get(getattr(action.type, "__name__", "str") if action.type else "str", str)
+        tp = _SCALARS.get(getattr(action.type, "__name__", "str") if action.type else "str", StrictStr)
         if action.choices is not None:
-            tp = str
+            tp = StrictStr
         fields[key] = (tp | None, Field(default=None, description=f"{action.option_strings[-1]}: {action.help}"))
     model: type[BaseModel] = create_model(  # type: ignore[call-overload]
         f"Record{''.join(w.title() for w in importer.name.replace('_', '-').split('-'))}In",

@@ -17,6 +17,9 @@
 | ``SLAMREPLAY_JOB_MEMORY_MIB`` | unset | resident memory limit of a job's process (its imports included, about |
 | | | 200 MiB); a job past it fails with "job exceeded its memory limit of N MiB" |
 | ``SLAMREPLAY_JOB_TIMEOUT_S`` | unset | wall-time limit of a job, from its start in a worker |
+| ``SLAMREPLAY_ALLOWED_HOSTS`` | unset | host names served besides 127.0.0.1, localhost, ::1 and the address |
+| | | ``serve`` is bound to, comma-separated: ``slam.lan,10.0.0.5``, ``*.example.org``, ``*`` for |
+| | | any (slamreplay.api.siteguard); another ``Host`` is a 400 |
 """
 
 from __future__ import annotations
@@ -27,13 +30,14 @@ from pathlib import Path
 from typing import Any, Literal
 
 from fastapi import Request
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from slamreplay.api.limits import JobLimits
 
 ENV_PREFIX = "SLAMREPLAY_"
 ENV_FIELDS = ("data_dir", "token", "workers", "max_upload_bytes", "executor", "ray_address", "storage_url",
-              "job_memory_mib", "job_timeout_s")
+              "job_memory_mib", "job_timeout_s", "allowed_hosts")
+LIST_FIELDS = ("allowed_hosts",)  # comma-separated in the environment
 
 
 class Settings(BaseModel):
@@ -50,6 +54,16 @@ class Settings(BaseModel):
     storage_url: str | None = Field(default=None, min_length=1)
     job_memory_mib: int | None = Field(default=None, ge=64)
     job_timeout_s: float | None = Field(default=None, gt=0)
+    allowed_hosts: tuple[str, ...] = ()
+
+    @field_validator("allowed_hosts")
+    @classmethod
+    def _host_names(cls, hosts: tuple[str, ...]) -> tuple[str, ...]:
+        for host in hosts:
+            if not host or any(c.isspace() or c in "/@?#," for c in host):
+                raise ValueError(f"{host!r} is not a host name: give names or addresses such as slam.lan, 10.0.0.5, "
+                                 "*.example.org or *, not URLs")
+        return hosts
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None, **overrides: Any) -> Settings:
@@ -62,7 +76,7 @@ class Settings(BaseModel):
         for name in ENV_FIELDS:
             raw = env.get(ENV_PREFIX + name.upper())
             if raw is not None and raw != "":
-                values[name] = raw
+                values[name] = tuple(v.strip() for v in raw.split(",") if v.strip()) if name in LIST_FIELDS else raw
         values.update({k: v for k, v in overrides.items() if v is not None})
         return cls(**values)
 

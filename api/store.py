@@ -7,6 +7,11 @@ opens its own short connection, so the store is safe to use from any thread or p
 Job states: ``queued`` -> ``running`` -> ``succeeded`` | ``failed`` | ``cancelled``; a job
 found ``running`` at start-up was cut off by a server stop: it is re-queued once, and
 marked ``interrupted`` when that happens a second time.
+
+Besides what ran, a job carries what people say of it (``name``, ``note``, tags in
+``job_tags``) and its metric values (``metrics``, copied from ``metrics.json`` when it ends),
+so the runs table sorts and filters by them without opening a file. An older database is
+upgraded in place when a store opens it (``_migrate``).
 """
 
 from __future__ import annotations
@@ -21,9 +26,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled", "interrupted"]
-JOB_STATUSES: tuple[JobStatus, ...] = ("queued", "running", "succeeded", "failed", "cancelled", "interrupted")
-ACTIVE: tuple[JobStatus, ...] = ("queued", "running")
+# JobRow and the job statuses live with the runs-table queries; imported from here as they always were.
+from slamreplay.api.store_runs import ACTIVE as ACTIVE
+from slamreplay.api.store_runs import JOB_COLUMNS, RunsTableMixin
+from slamreplay.api.store_runs import JOB_STATUSES as JOB_STATUSES
+from slamreplay.api.store_runs import JobRow as JobRow
+from slamreplay.api.store_runs import JobStatus as JobStatus
+from slamreplay.api.store_runs import job_row as _job
+
 MAX_ATTEMPTS = 2  # the first run, and one re-queue after a server stop
 
 SCHEMA = """
@@ -51,10 +61,27 @@ CREATE TABLE IF NOT EXISTS jobs (
     attempts INTEGER NOT NULL DEFAULT 0,
     created REAL NOT NULL,
     started REAL,
-    finished REAL
+    finished REAL,
+    name TEXT,                      -- given on the page; NULL: none
+    metrics TEXT                    -- JSON {metric: value} of a succeeded job; NULL: not read yet
 );
 CREATE INDEX IF NOT EXISTS jobs_status ON jobs (status, seq);
 CREATE INDEX IF NOT EXISTS jobs_recording ON jobs (recording_id);
+"""
+# Columns added since the first schema: (name, declaration), added by ALTER TABLE to an older file.
+ADDED_COLUMNS = (("name", "TEXT"), ("metrics", "TEXT"))
+# Run after the columns exist (an index on a column an old file lacks would fail in SCHEMA).
+SCHEMA_AFTER = """
+CREATE TABLE IF NOT EXISTS job_tags (
+    job_id TEXT NOT NULL,
+    tag TEXT NOT NULL,
+    PRIMARY KEY (job_id, tag)
+);
+CREATE INDEX IF NOT EXISTS job_tags_tag ON job_tags (tag, job_id);
+CREATE INDEX IF NOT EXISTS jobs_pipeline ON jobs (pipeline, seq);
+CREATE INDEX IF NOT EXISTS jobs_name ON jobs (name);
+-- succeeded jobs whose metrics were never copied (jobs of an older server): found without a scan
+CREATE INDEX IF NOT EXISTS jobs_unscored ON jobs (seq) WHERE status = 'succeeded' AND metrics IS NULL;
 """
 
 
@@ -68,23 +95,6 @@ class RecordingRow:
     start_ns: int
     end_ns: int
     created: float
-
-
-@dataclass(frozen=True, slots=True)
-class JobRow:
-    id: str
-    recording_id: str
-    pipeline: str
-    config: dict[str, Any]
-    seed: int
-    status: JobStatus
-    progress: float
-    error: str | None
-    note: str | None
-    attempts: int
-    created: float
-    started: float | None
-    finished: float | None
 
 
 def _connect(path: Path) -> sqlite3.Connection:
@@ -113,10 +123,20 @@ def _recording(row: sqlite3.Row) -> RecordingRow:
                         row["start_ns"], row["end_ns"], row["created"])
 
 
-def _job(row: sqlite3.Row) -> JobRow:
-    return JobRow(row["id"], row["recording_id"], row["pipeline"], json.loads(row["config"]), row["seed"],
-                  row["status"], row["progress"], row["error"], row["note"], row["attempts"], row["created"],
-                  row["started"], row["finished"])
+def _migrate(conn: sqlite3.Connection) -> None:
+    """Upgrade a database made by an older version in place: add the columns it lacks, then the new tables
+    and indexes. Idempotent, and safe against another process doing the same (one write transaction)."""
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        have = {r["name"] for r in conn.execute("PRAGMA table_info(jobs)")}
+        for column, decl in ADDED_COLUMNS:
+            if column not in have:
+                conn.execute(f"ALTER TABLE jobs ADD COLUMN {column} {decl}")
+        conn.execute("COMMIT")
+    except BaseException:
+        conn.execute("ROLLBACK")
+        raise
+    conn.executescript(SCHEMA_AFTER)
 
 
 def set_progress(db_path: str | Path, job_id: str, fraction: float) -> None:
@@ -130,7 +150,7 @@ def set_progress(db_path: str | Path, job_id: str, fraction: float) -> None:
         pass
 
 
-class Store:
+class Store(RunsTableMixin):
     """Recordings and jobs in one SQLite file (created, in WAL mode, when missing).
 
     Each thread keeps one connection for the life of the store: opening one per call cost
@@ -140,11 +160,12 @@ class Store:
     """
 
     def __init__(self, path: Path) -> None:
-        self.path = path
+        self.path = path  # its runs-table queries are in RunsTableMixin (api/store_runs.py)
         self._local = threading.local()
         with self._read() as conn:
             conn.execute("PRAGMA journal_mode = WAL")
             conn.executescript(SCHEMA)
+            _migrate(conn)
 
     def _conn(self) -> sqlite3.Connection:
         conn: sqlite3.Connection | None = getattr(self._local, "conn", None)
@@ -226,7 +247,7 @@ class Store:
 
     def get_job(self, job_id: str) -> JobRow | None:
         with self._read() as conn:
-            row = conn.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            row = conn.execute(f"SELECT {JOB_COLUMNS} FROM jobs j WHERE id = ?", (job_id,)).fetchone()
         return None if row is None else _job(row)
 
     def list_jobs(self, *, recording_id: str | None = None, pipeline: str | None = None,
@@ -237,7 +258,8 @@ class Store:
             if value is not None:
                 where.append(f"{column} = ?")
                 args.append(value)
-        sql = "SELECT * FROM jobs" + (" WHERE " + " AND ".join(where) if where else "") + " ORDER BY seq DESC LIMIT ?"
+        sql = (f"SELECT {JOB_COLUMNS} FROM jobs j" + (" WHERE " + " AND ".join(where) if where else "")
+               + " ORDER BY seq DESC LIMIT ?")
         with self._read() as conn:
             rows = conn.execute(sql, (*args, limit)).fetchall()
         return [_job(r) for r in rows]
@@ -253,12 +275,16 @@ class Store:
                                (time.time(), row["seq"])).fetchone()
         return _job(job)
 
-    def finish_job(self, job_id: str, status: JobStatus, error: str | None) -> bool:
-        """Record how a running job ended; False when it is no longer running (e.g. cancelled meanwhile)."""
+    def finish_job(self, job_id: str, status: JobStatus, error: str | None,
+                   metrics: dict[str, float] | None = None) -> bool:
+        """Record how a running job ended, and the metric values of a succeeded one (None: read them later,
+        see `unscored`); False when it is no longer running (e.g. cancelled meanwhile)."""
         progress = "1.0" if status == "succeeded" else "progress"
+        values = None if metrics is None else json.dumps(metrics)
         with self._tx() as conn:
-            cur = conn.execute(f"UPDATE jobs SET status = ?, error = ?, finished = ?, progress = {progress} "
-                               "WHERE id = ? AND status = 'running'", (status, error, time.time(), job_id))
+            cur = conn.execute(f"UPDATE jobs SET status = ?, error = ?, finished = ?, progress = {progress}, "
+                               "metrics = ? WHERE id = ? AND status = 'running'",
+                               (status, error, time.time(), values, job_id))
         return cur.rowcount == 1
 
     def cancel_job(self, job_id: str) -> tuple[JobRow | None, JobStatus | None]:

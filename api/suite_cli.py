@@ -16,16 +16,21 @@ from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from slamreplay.api.executor import Outcome, Report, Task, run_task
-from slamreplay.api.progress import progress_bar
+from slamreplay.api.progress import progress_bar, say
+from slamreplay.recorder.options import did_you_mean
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.suite_run import CellJob
+
+if TYPE_CHECKING:  # imported where used: the command line builds its parser from this module, and starts fast
+    from slamreplay.api.executor import Outcome, Report, Task
+    from slamreplay.replay.suite_run import CellJob
 
 
 def suite_job(task: Task, report: Report | None = None) -> Outcome:
     """What a suite's worker runs: ``run_task`` with progress kept in the worker (no job store)."""
+    from slamreplay.api.executor import run_task
+
     del report
     return run_task(task, lambda fraction: None)
 
@@ -62,6 +67,7 @@ def _one_blas_thread() -> Iterator[None]:
 
 def executor_runner(kind: str, jobs: int) -> Any:
     """``run_cells`` for ``slamreplay.replay.suite_run.run_suite`` on a local process pool or Ray."""
+    from slamreplay.api.executor import Task
 
     def run_cells(todo: list[CellJob]) -> Iterator[tuple[CellJob, str | None]]:
         if not todo:
@@ -86,8 +92,11 @@ def executor_runner(kind: str, jobs: int) -> Any:
 
 
 def run_suite_at(suite_path: str, out: Path, rev: str | None, executor: str, jobs: int, quiet: bool,
-                 repo: Path | None = None) -> list[dict[str, Any]]:
-    """Run a suite with the running code (``rev`` None) or at revision ``rev``; the results rows."""
+                 repo: Path | None = None, label: str | None = None) -> list[dict[str, Any]]:
+    """Run a suite with the running code (``rev`` None) or at revision ``rev``; the results rows.
+
+    ``label`` starts the progress lines and notes (default: ``suite NAME``, with ``@REV`` at a revision).
+    """
     from slamreplay.replay.revisions import find_repo, prepare_revision, run_cells
     from slamreplay.replay.suite import load_suite
     from slamreplay.replay.suite_run import cache_dir, code_version, run_suite
@@ -96,17 +105,18 @@ def run_suite_at(suite_path: str, out: Path, rev: str | None, executor: str, job
         raise ReplayError(f"--jobs must be >= 1, got {jobs}")
     suite = load_suite(suite_path)
     cache = cache_dir()
+    label = label or f"suite {suite.name}" + (f" @{rev}" if rev is not None else "")
     if rev is None:
         runner, code = executor_runner(executor, jobs), code_version()
     else:
         if executor != "local":
             raise ReplayError("--rev runs cells in the revision's own environment: use --executor local")
-        revision = prepare_revision(repo or find_repo(), rev, cache)
+        revision = prepare_revision(repo or find_repo(), rev, cache, note=lambda text: say(f"{label}: {text}", quiet))
         code = revision.sha
 
         def runner(todo: list[CellJob]) -> Iterable[tuple[CellJob, str | None]]:
             return run_cells(revision, todo, jobs)
-    with progress_bar(f"suite {suite.name}", quiet) as update:
+    with progress_bar(label, quiet, unit="cells", reused="reused") as update:
         return run_suite(suite, out, code, runner, cache=cache, rev=rev, progress=update)
 
 
@@ -140,7 +150,8 @@ def _side(spec: str, suite: str | None, args: argparse.Namespace) -> Any:
     rev = spec[4:]
     sha = resolve(find_repo(), rev)
     out = cache_dir() / "results" / sha
-    run_suite_at(suite, out, rev, "local", args.jobs, args.quiet)
+    shown = f"rev:{sha[:10]}" if rev == sha else spec  # bisect names commits by their full sha
+    run_suite_at(suite, out, rev, "local", args.jobs, args.quiet, label=f"{args.command} {shown}")
     return load_side(out, label=spec, kind="rev", sha=sha)
 
 
@@ -187,7 +198,8 @@ def cmd_bisect(args: argparse.Namespace) -> int:
     base = _side(f"rev:{good}", args.suite, args)
     known = {m for r in base.rows for m in r.get("metrics", {})}
     if args.metric not in known:
-        raise ReplayError(f"--metric {args.metric!r} is not a metric of this suite; it has: {', '.join(sorted(known))}")
+        raise ReplayError(f"--metric {args.metric!r} is not a metric of this suite"
+                          f"{did_you_mean(args.metric, known, True)}; it has: {', '.join(sorted(known))}")
     tested: dict[str, bool] = {}
 
     def regressed(sha: str) -> bool:

@@ -4,6 +4,8 @@ Server-rendered Jinja2 templates (``api/templates/``) over the same services as 
 only JavaScript (``api/static/web.js``, a dozen lines) refreshes the parts of a page that hold
 a queued or running job. "Open in Rerun" opens a job's ``.rrd`` in the Rerun web viewer, which
 this service serves itself from the files of the installed rerun-sdk (``slamreplay.api.viewer_assets``).
+The runs table (``/``, ``/runs``) is in ``api/runs_web.py``, a job's page in ``api/job_web.py``, and what
+every page shares (templates, session, error page) in ``api/pages.py``.
 
 With ``SLAMREPLAY_TOKEN`` set the page asks for the token once (``/login``) and keeps a session
 cookie derived from it (HttpOnly, SameSite=Strict, so another site cannot post forms with it);
@@ -12,11 +14,8 @@ the API routes keep requiring the bearer token and do not accept the cookie.
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
 import hmac
 import json
-import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 from urllib.parse import urlencode
@@ -24,44 +23,26 @@ from urllib.parse import urlencode
 from fastapi import APIRouter, Depends, FastAPI, Query, Request
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, Response
-from fastapi.templating import Jinja2Templates
 from starlette.concurrency import run_in_threadpool
 
-from slamreplay.api.deps import JobsDep, RecordingsDep, SettingsDep, get_jobs, rrd_key, viewer_href
+from slamreplay.api.deps import JobsDep, RecordingsDep, SettingsDep, rrd_key
 from slamreplay.api.errors import ApiError, UnauthorizedError
+from slamreplay.api.job_web import install_job_files
+from slamreplay.api.job_web import job_ctx as _job_ctx  # the job page's parts (api/job_web.py)
 from slamreplay.api.models import JOB_ID
 from slamreplay.api.multipart import form_file, is_form
+from slamreplay.api.pages import COOKIE, HERE, PAGE_ERRORS, LoginRequiredError, session_value, templates, web_session
+from slamreplay.api.pages import error_response as _error
+from slamreplay.api.pages import page_lists as _lists
+from slamreplay.api.pages import page_response as _page
+from slamreplay.api.runs_web import router as runs_router  # the runs table at / and /runs
 from slamreplay.api.settings import Settings
-from slamreplay.api.suites import ENDED, SuiteService
+from slamreplay.api.suites import SuiteService
 from slamreplay.api.suites_routes import SuitesDep, comparison
 from slamreplay.api.suites_routes import router as suites_router
-from slamreplay.recorder.errors import RecorderError
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.pipeline import all_pipelines
 
-HERE = Path(__file__).parent
-COOKIE = "slamreplay_session"
-templates = Jinja2Templates(directory=HERE / "templates")
 JobPath = Annotated[str, PathParam(pattern=JOB_ID)]
-PAGE_ERRORS = (ApiError, ReplayError, RecorderError)
-
-
-class LoginRequiredError(Exception):
-    """A page request without a valid session while the server has a token."""
-
-
-def session_value(token: str) -> str:
-    """The session cookie's value: a MAC of a fixed text under the token (the token itself never leaves)."""
-    return hmac.new(token.encode(), b"slamreplay web session v1", hashlib.sha256).hexdigest()
-
-
-def web_session(request: Request, settings: SettingsDep) -> None:
-    """Pages need the session cookie when the server has a token."""
-    if settings.token is None:
-        return
-    got = request.cookies.get(COOKIE, "")
-    if not got or not hmac.compare_digest(got, session_value(settings.token)):
-        raise LoginRequiredError
 
 
 async def login_required(request: Request, exc: Exception) -> Response:
@@ -69,48 +50,6 @@ async def login_required(request: Request, exc: Exception) -> Response:
         return RedirectResponse("/login?" + urlencode({"next": request.url.path + (
             f"?{request.url.query}" if request.url.query else "")}), 303)
     return JSONResponse({"detail": "log in at /login with the server's token first"}, 401)
-
-
-def _fmt(v: Any) -> str:
-    if isinstance(v, float):
-        return "-" if not math.isfinite(v) else f"{v:.6g}"
-    return str(v)
-
-
-templates.env.filters["num"] = _fmt
-templates.env.filters["short"] = lambda s: str(s)[:8]
-
-
-def _page(request: Request, name: str, status_code: int = 200, **ctx: Any) -> HTMLResponse:
-    settings: Settings = request.app.state.settings
-    ctx.setdefault("guarded", settings.token is not None)
-    return templates.TemplateResponse(request, name, ctx, status_code=status_code)
-
-
-def _error(request: Request, exc: Exception) -> HTMLResponse:
-    status = exc.status if isinstance(exc, ApiError) else 422
-    return _page(request, "error.html", status, message=str(exc), status=status)
-
-
-def _metrics(run_dir: Path) -> list[dict[str, Any]]:
-    try:
-        doc = json.loads((run_dir / "metrics.json").read_text())
-    except (OSError, json.JSONDecodeError):
-        return []
-    return [{"name": k, **v} for k, v in sorted(doc.get("metrics", {}).items())]
-
-
-def _job_ctx(request: Request, jobs: Any, job_id: str) -> dict[str, Any]:
-    job = jobs.get(job_id)
-    run_dir = jobs.run_dir(job_id)
-    ctx: dict[str, Any] = {"job": job, "active": job.status not in ENDED, "metrics": [], "manifest": None}
-    if job.status == "succeeded":
-        ctx["metrics"] = _metrics(run_dir)
-        ctx["rerun"] = viewer_href(str(request.base_url), request.app.state.settings.token,
-                                   f"/jobs/{job_id}/run.rrd")
-    with contextlib.suppress(OSError, json.JSONDecodeError):
-        ctx["manifest"] = json.loads((run_dir / "manifest.json").read_text())
-    return ctx
 
 
 def _suite_ctx(suites: SuiteService, suite_id: str) -> dict[str, Any]:
@@ -123,21 +62,6 @@ def _suite_ctx(suites: SuiteService, suite_id: str) -> dict[str, Any]:
     progress = suites.progress(cells)
     return {"suite": row, "text": text, "tables": tables, "progress": progress,
             "active": progress["ended"] < progress["cells"]}
-
-
-JOBS_SHOWN = 12  # the newest; a suite's page lists its own, GET /jobs all of them
-
-
-def _lists(request: Request) -> dict[str, Any]:
-    jobs = get_jobs(request)
-    suites: SuiteService = request.app.state.suites
-    recs = jobs.store.list_recordings()
-    job_rows = jobs.store.list_jobs(limit=JOBS_SHOWN)
-    suite_rows = [(s, suites.progress(suites.get(s.id)[2])) for s in suites.recent(50)]
-    return {"recordings": recs, "jobs": job_rows, "suites": suite_rows, "rec_names": {r.id: r.filename for r in recs},
-            "jobs_total": sum(jobs.store.count_by_status().values()),
-            "jobs_active": any(j.status not in ENDED for j in job_rows),
-            "suites_active": any(p["ended"] < p["cells"] for _, p in suite_rows)}
 
 
 page = APIRouter(dependencies=[Depends(web_session)], include_in_schema=False)
@@ -163,27 +87,18 @@ async def login(request: Request, settings: SettingsDep) -> Response:
     return resp
 
 
+@public.get("/favicon.ico")
+def favicon() -> FileResponse:
+    """The page's icon (an SVG; browsers that ask for /favicon.ico take it too)."""
+    return FileResponse(HERE / "static" / "favicon.svg", media_type="image/svg+xml",
+                        headers={"Cache-Control": "max-age=86400"})
+
+
 @public.get("/logout")
 def logout() -> Response:
     resp = RedirectResponse("/login", 303)
     resp.delete_cookie(COOKIE, path="/")
     return resp
-
-
-@page.get("/")
-def index(request: Request, uploaded: Annotated[str | None, Query(max_length=64)] = None) -> HTMLResponse:
-    example = None
-    lists = _lists(request)
-    if lists["recordings"]:
-        example = (f'seeds = [1, 2, 3]\n\n[recordings.{_name(lists["recordings"][0].filename)}]\n'
-                   f'id = "{lists["recordings"][0].id}"\n\n[pipelines.odometry]\n\n[pipelines.dslam]\n')
-    return _page(request, "index.html", **lists, uploaded=uploaded, pipelines=sorted(all_pipelines()),
-                 example=example)
-
-
-def _name(filename: str) -> str:
-    stem = "".join(ch if ch.isalnum() or ch in "_-" else "_" for ch in Path(filename).stem)[:40]
-    return stem if stem and stem[0].isalnum() else f"r{stem}"
 
 
 @page.get("/ui/part/lists")
@@ -346,5 +261,7 @@ def install_web(app: FastAPI) -> None:
     app.add_exception_handler(LoginRequiredError, login_required)
     app.include_router(suites_router)
     app.include_router(public)
+    app.include_router(runs_router)  # the runs table at / and /runs (api/runs_web.py)
+    app.include_router(install_job_files([web_session]))  # a run's files, for its page
     app.include_router(page)
     app.mount("/static", StaticFiles(directory=HERE / "static"), name="static")

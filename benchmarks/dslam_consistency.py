@@ -146,7 +146,7 @@ def run_one(args: tuple[int, str, Path, float]) -> dict[str, Any]:
     rot = np.kron(np.eye(n), se2.rot(pipe.T[2]))
     result = {"seed": seed, "estimator": name,
               **{k: v for k, v in stats.metrics.items() if k in ("landmark_rmse_m", "landmark_nees_mean",
-                                                                 "robot_nees_mean", "robot_ate_rmse_m",
+                                                                 "robot_nees_mean", "ape_rmse_m",
                                                                  "landmarks_mapped", "steps")},
               **consistency(err, rot @ p @ rot.T, truth - pipe.T[:2])}
     cache.write_text(json.dumps(result))

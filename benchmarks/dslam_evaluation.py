@@ -30,7 +30,7 @@ from slamreplay.replay.reader import RecordingReader
 from slamreplay.replay.run import run_recording
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "mrclam-dataset6"
-KEYS = ("landmark_rmse_m", "landmark_nees_mean", "robot_ate_rmse_m", "robot_nees_mean", "landmarks_mapped",
+KEYS = ("landmark_rmse_m", "landmark_nees_mean", "ape_rmse_m", "robot_nees_mean", "landmarks_mapped",
         "landmarks_true", "false_landmarks", "data_association_errors")
 
 
@@ -115,7 +115,7 @@ def main() -> None:
                 rows.append((name, m))
                 summary["mrclam"][name] = m
                 print(f"{name}: " + " ".join(f"{k}={fmt(m.get(k, '-'))}" for k in KEYS), flush=True)
-        table("MRCLAM Dataset 6", rows, ("robot_ate_rmse_m", "robot_final_error_m", *KEYS[:2], "robot_nees_mean",
+        table("MRCLAM Dataset 6", rows, ("ape_rmse_m", "robot_final_error_m", *KEYS[:2], "robot_nees_mean",
                                          "landmarks_mapped", "scan_step_mean_ms"))
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True))
 

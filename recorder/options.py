@@ -10,14 +10,26 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import difflib
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from typing import Any, Literal
 
 from slamreplay.recorder.errors import RecorderError
 
 TRUE, FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
+
+
+def did_you_mean(word: str, known: Iterable[str], quote: bool = False) -> str:
+    """``" (did you mean X?)"`` (or ``X or Y``) naming the known words closest to a mistyped ``word``, else ``""``:
+    what follows the name in every "unknown NAME" error (config keys, pipelines, metrics, options), as git says it."""
+    close = difflib.get_close_matches(word, list(known), n=2, cutoff=0.6)
+    if not close:
+        return ""
+    ratios = [difflib.SequenceMatcher(None, word, c).ratio() for c in close]
+    close = [c for c, r in zip(close, ratios, strict=True) if r >= ratios[0] - 0.05]  # a second only if as close
+    return " (did you mean " + " or ".join(repr(c) if quote else c for c in close) + "?)"
 
 
 def type_name(tp: Any) -> str:
@@ -91,11 +103,20 @@ def add_dataclass_options(parser: argparse.ArgumentParser, config_cls: type, pre
     typed by :func:`parse_value`, its help from the field's metadata and its default."""
     kinds = field_types(config_cls)
     for f in dataclasses.fields(config_cls):
-        default = f.default if f.default is not dataclasses.MISSING else None
         name = type_name(kinds[f.name])
         parser.add_argument(f"--{option_prefix}{f.name.replace('_', '-')}", dest=f"{prefix}{f.name}", default=None,
                             type=_argparse_type(kinds[f.name]), metavar=name.upper() if "|" not in name else name,
-                            help=f"{help_prefix}{f.metadata.get('help', '') or f.name} (default: {default})")
+                            help=help_prefix + field_help(f).replace("%", "%%"))  # argparse %-formats help
+
+
+def field_help(f: dataclasses.Field[Any]) -> str:
+    """The help line of a config field: its ``help`` metadata and its default (a ``None`` default is
+    explained by the help itself); the bare field name when the field has no help."""
+    text = f.metadata.get("help", "") or f.name.replace("_", " ")
+    if f.default is dataclasses.MISSING or f.default is None:
+        return text
+    default = f.default if not isinstance(f.default, str) else (repr(f.default) if not f.default else f.default)
+    return f"{text} (default: {default})"
 
 
 def dataclass_from_options(options: Mapping[str, Any], config_cls: type, prefix: str = "cfg_",

@@ -35,14 +35,16 @@ from mcap.records import Channel, Chunk, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from slamreplay.recorder.codec import READABLE_SCHEMAS, TopicDecoder
-from slamreplay.recorder.codec.mcap_io import MAGIC, McapFile, chunk_records, decompress, parse_record, record_name
+from slamreplay.recorder.codec.bounds import shown
+from slamreplay.recorder.codec.mcap_io import MAGIC, MAX_CHUNK_BYTES, McapFile, chunk_records, decompress
+from slamreplay.recorder.codec.mcap_records import Body, parse_record, record_name
 from slamreplay.recorder.codec.ros2 import canonical_ros_type
 from slamreplay.recorder.errors import CodecError, DamageError, RecorderError
 from slamreplay.recorder.messages import TOPIC_TYPES
 from slamreplay.recorder.version import version
 from slamreplay.recorder.writer import CHUNK_SIZE, partial_path
 
-_CHUNK_FIXED = 8 + 8 + 8 + 4 + 4  # start, end, uncompressed size, crc, compression length
+RESYNC_BYTES_PER_BYTE = 64  # see _Salvage.budget
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,7 +86,8 @@ class _Copier:
     def _decoder(self, channel: Channel) -> TopicDecoder | str | None:
         schema = self.schemas.get(channel.schema_id) if channel.schema_id else None
         if channel.schema_id and schema is None:
-            return f"topic {channel.topic}: its Schema record ({channel.schema_id}) was lost with the damaged bytes"
+            return (f"topic {shown(channel.topic)}: its Schema record ({channel.schema_id}) was lost with the damaged "
+                    f"bytes")
         name = canonical_ros_type(schema.name) if schema is not None else ""
         # slamreplay's own topics, and schemas it reads on any topic: kept only when they decode
         kind = TOPIC_TYPES.get(channel.topic) or next((k for k, names in READABLE_SCHEMAS.items() if name in names),
@@ -122,7 +125,7 @@ class _Copier:
                 dec(record.data, record.log_time)
             except CodecError as err:
                 cause = type(err.__cause__).__name__ if err.__cause__ is not None else "CodecError"
-                self._reject(f"{err} (the first of them)", key=f"{channel.topic}: {cause}")
+                self._reject(f"{err} (the first of them)", key=f"{shown(channel.topic)}: {cause}")
                 return
         channel_id = self.channel_ids.get(record.channel_id)
         if channel_id is None:
@@ -151,16 +154,23 @@ class _Copier:
 
 def _records_of_cut_chunk(tail: bytes) -> list[Any]:
     """Complete schema/channel/message records of a chunk record cut short by the end of the file
-    (``tail`` starts at its opcode); the zstd stream is decompressed as far as it goes."""
-    if len(tail) < 9 + _CHUNK_FIXED or tail[0] != Opcode.CHUNK:
+    (``tail`` starts at its opcode); the zstd stream is decompressed as far as it goes, never past the
+    size the chunk claims nor MAX_CHUNK_BYTES."""
+    if not tail or tail[0] != Opcode.CHUNK:
         return []
-    body = tail[9:]
-    (uncompressed_size,) = struct.unpack_from("<Q", body, 16)
-    (compression_length,) = struct.unpack_from("<I", body, 28)
-    if 32 + compression_length + 8 > len(body):
+    head = Body(tail, "the cut Chunk record", 9)
+    try:
+        head.u64("message start time")
+        head.u64("message end time")
+        uncompressed_size = head.u64("uncompressed size")
+        head.u32("uncompressed CRC")
+        compression = head.string("compression")
+        head.u64("records length")  # runs past the end of the file: that is why the chunk is cut
+    except DamageError:
         return []
-    compression = body[32:32 + compression_length].decode(errors="replace")
-    data = body[32 + compression_length + 8:]
+    if uncompressed_size > MAX_CHUNK_BYTES:
+        return []  # a size no chunk of a recorder has: the header itself is damaged
+    data = tail[head.pos:]
     if compression == "zstd":
         out = bytearray()
         try:
@@ -203,6 +213,9 @@ class _Salvage:
         self.chunk_offsets: list[int] = []
         self.end = f.size
         self.summary_damage: str | None = None
+        # Work the search for the next clean chunk may do (bytes read plus bytes decompressed, over the file): a
+        # hostile file can put a plausible Chunk at every 0x06 byte; this keeps recover linear in the file's size.
+        self.budget = RESYNC_BYTES_PER_BYTE * f.size + MAX_CHUNK_BYTES
         try:
             summary = f.summary()
         except DamageError as err:
@@ -304,8 +317,13 @@ class _Salvage:
                 at = data.find(bytes([Opcode.CHUNK]), at + 1)
         for offset in candidates:
             try:
+                opcode, length = self.f.frame_at(offset, self.end)
+                self.budget -= length  # bytes read, then (below) bytes decompressed, for candidates that fail
+                if opcode != Opcode.CHUNK or self.budget < 0:
+                    continue
                 _, record, _ = self.f.record_at(offset, self.end)
-                if isinstance(record, Chunk) and record.uncompressed_crc != 0:
+                self.budget -= record.uncompressed_size
+                if isinstance(record, Chunk) and record.uncompressed_crc != 0 and self.budget >= 0:
                     decompress(record, offset)
                     return offset
             except DamageError:

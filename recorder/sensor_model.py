@@ -19,6 +19,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from slamreplay.recorder.codec.bounds import MAX_JSON_DEPTH, json_depth
 from slamreplay.recorder.errors import RecorderError
 
 METADATA_KEY = "sensor_model"  # key of the JSON object inside the ``slamreplay.recording`` metadata record
@@ -107,6 +108,10 @@ class SensorModel:
         text = record.get(sensor_model_key(namespace))
         if not text:
             return None
+        if json_depth(text) > MAX_JSON_DEPTH:  # json.loads would recurse once per level
+            raise RecorderError(f"the recording's sensor model nests {json_depth(text):,} deep (at most "
+                                f"{MAX_JSON_DEPTH}): it is damaged; re-record it or pass every noise setting "
+                                f"with --set")
         try:
             data = json.loads(text)
         except ValueError as err:

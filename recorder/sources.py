@@ -4,7 +4,8 @@
 ``slamreplay.importers`` (:mod:`slamreplay.recorder.plugins`); the built-ins below are declared there in
 slamreplay's pyproject.toml, the same way as a user's. An importer declares its command-line
 arguments (``add_arguments``) and writes one recording from their values (``record``); the
-heavy modules it needs are imported only when it records.
+heavy modules it needs are imported only when it records: ``add_arguments`` reads the simulators'
+config dataclasses from their light ``*_config`` modules, so that ``--help`` starts fast.
 """
 
 from __future__ import annotations
@@ -90,7 +91,9 @@ def get_importer(name: str) -> Importer:
 
 def _out_and_seed(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help=OUT_HELP)
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the simulation's random generator: the same seed and options make the same "
+                             "recording (default: 0)")
 
 
 # ---------------------------------------------------------------------------------------
@@ -106,7 +109,7 @@ class SimLandmarks:
     progress_label = "simulating"
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
-        from slamreplay.recorder.sim.landmarks import LandmarkSimConfig
+        from slamreplay.recorder.sim.landmarks_config import LandmarkSimConfig
 
         _out_and_seed(parser)
         add_dataclass_options(parser, LandmarkSimConfig)
@@ -131,7 +134,7 @@ class SimSeabed:
     progress_label = "simulating"
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
-        from slamreplay.recorder.sim.seabed import SeabedSimConfig
+        from slamreplay.recorder.sim.seabed_config import SeabedSimConfig
 
         _out_and_seed(parser)
         add_dataclass_options(parser, SeabedSimConfig)
@@ -155,7 +158,7 @@ class SimCorridor:
     progress_label = "simulating"
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
-        from slamreplay.recorder.sim.corridor import CorridorConfig
+        from slamreplay.recorder.sim.corridor_config import CorridorConfig
 
         _out_and_seed(parser)
         add_dataclass_options(parser, CorridorConfig)
@@ -233,7 +236,7 @@ class Ros2Bag:
     progress_label = "importing ROS 2 bag"
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
-        from slamreplay.recorder.importers.poles import PoleConfig
+        from slamreplay.recorder.importers.pole_config import PoleConfig
 
         parser.add_argument("bag", help="the bag folder, or its .db3 or .mcap file")
         parser.add_argument("--out", required=True, help=OUT_HELP)
@@ -251,7 +254,7 @@ class Ros2Bag:
                               help_prefix="pole extractor (recorder/importers/poles.py): ")
 
     def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str:
-        from slamreplay.recorder.importers.poles import PoleConfig
+        from slamreplay.recorder.importers.pole_config import PoleConfig
         from slamreplay.recorder.importers.ros2bag import import_ros2_bag
 
         poles = dataclass_from_options(options, PoleConfig, prefix="pole_", what="pole extractor option")

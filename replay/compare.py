@@ -39,8 +39,10 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from slamreplay.replay.diff import judge_metric
+from slamreplay.recorder.options import did_you_mean
+from slamreplay.replay.diff import direction_verdict, judge_metric
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.metric_registry import direction_label, target_distance
 from slamreplay.replay.suite_run import add_metrics, read_results, unfinished
 
 ALPHA = 0.05
@@ -69,6 +71,12 @@ class MetricResult:
     p_value: float | None
     test: str
     verdict: str  # regression | improvement | noise | unchanged | changed | failed | missing
+    target: float | None = None  # the consistent value, with better="target"
+
+    @property
+    def direction(self) -> str:
+        """lower, higher, ~2 (closest to 2 is better) or none."""
+        return direction_label(self.better, self.target)
 
 
 @dataclass
@@ -193,15 +201,27 @@ def _sd(x: Sequence[float]) -> float | None:
 
 
 def judge(a: Sequence[float], b: Sequence[float], better: str, default_tolerance: float,
-          tolerance_spec: str | None = None, rel_tolerance: float = 0.0
+          tolerance_spec: str | None = None, rel_tolerance: float = 0.0, target: float | None = None
           ) -> tuple[float, float | None, float | None, str, str]:
     """(tolerance, delta of the means, p-value, test, verdict) of paired samples of one metric.
 
-    ``default_tolerance`` and ``rel_tolerance`` are the metric's own (metrics.json), as ``diff`` uses them."""
+    ``default_tolerance`` and ``rel_tolerance`` are the metric's own (metrics.json), as ``diff`` uses them.
+    A ``target`` metric (a NEES) is judged on each seed's distance from its target
+    (``metric_registry.target_distance``): worse when B is further from it on average, and the paired
+    test runs on those distances, so a filter that turns overconfident on every seed is a regression
+    even where the raw values spread widely."""
     ma, mb = float(np.mean(a)), float(np.mean(b))
     entry = {"tolerance": default_tolerance, "rel_tolerance": rel_tolerance}
-    tol, delta, by_tol = judge_metric(ma, mb, better, entry, tolerance_spec)
-    p, test = paired_test(a, b)
+    plain = better if better != "target" else "lower" if target is not None else "none"  # "lower": a placeholder
+    tol, delta, by_tol = judge_metric(ma, mb, plain, entry, tolerance_spec)
+    if better == "target" and target is not None:
+        da = [target_distance(x, target) for x in a]
+        db = [target_distance(x, target) for x in b]
+        if by_tol != "same":
+            by_tol = direction_verdict(mb - ma, "target", float(np.mean(db)) - float(np.mean(da)))
+        p, test = paired_test(da, db)
+    else:
+        p, test = paired_test(a, b)
     if by_tol == "same":
         return tol, delta, p, test, "unchanged"
     if by_tol == "changed":
@@ -239,7 +259,8 @@ def compare(a: Side, b: Side, tolerances: Mapping[str, str] | None = None) -> Co
     known = {m for r in (*a.rows, *b.rows) for m in r.get("metrics", {})}
     unknown = set(tolerances) - known - {"*"}
     if unknown:
-        raise ReplayError(f"--tolerance names unknown metrics: {', '.join(sorted(unknown))}; "
+        hint = "".join(did_you_mean(name, known, quote=True) for name in sorted(unknown))
+        raise ReplayError(f"--tolerance names unknown metrics: {', '.join(sorted(unknown))}{hint}; "
                           f"the runs have: {', '.join(sorted(known))}")
     out = Comparison(a, b, [], [], only_a=["/".join(k) for k in ga if k not in gb],
                      only_b=["/".join(k) for k in gb if k not in ga])
@@ -272,12 +293,13 @@ def compare(a: Side, b: Side, tolerances: Mapping[str, str] | None = None) -> Co
                 continue
             va = [float(ra[s]["metrics"][name]) for s in pairs]
             vb = [float(rb[s]["metrics"][name]) for s in pairs]
+            target = spec.get("targets", {}).get(name)
             tol, delta, p, test, verdict = judge(va, vb, better, float(spec["tolerance"].get(name, 0.0)),
                                                  tolerances.get(name, tolerances.get("*")),
-                                                 float(spec.get("rel_tolerance", {}).get(name, 0.0)))
+                                                 float(spec.get("rel_tolerance", {}).get(name, 0.0)), target)
             out.results.append(MetricResult(*key, name, better, unit, [list(s) for s in pairs], va, vb,
                                             float(np.mean(va)), _sd(va), float(np.mean(vb)), _sd(vb), delta, tol,
-                                            p, test, verdict))
+                                            p, test, verdict, target))
     for lib in sorted(set(a.libraries) | set(b.libraries)):
         if a.libraries.get(lib) != b.libraries.get(lib):
             out.changes.append({"field": f"library {lib}", "a": a.libraries.get(lib), "b": b.libraries.get(lib)})
@@ -333,11 +355,12 @@ def variants_table(rows: list[dict[str, Any]]) -> str:
                 vals = vals[np.isfinite(vals)]
                 cells.append("-" if not vals.size else fmt_ms(float(vals.mean()),
                                                                float(vals.std(ddof=1)) if vals.size > 1 else None))
-            arrow = {"lower": "l", "higher": "h"}.get(better[m], " ")
+            arrow = {"lower": "l", "higher": "h", "target": "t"}.get(better[m], " ")
             lines.append(f"  {m:<30} {arrow} " + " ".join(f"{c:>{width}}" for c in cells))
         lines.append("")
     if lines:
-        lines.append("(l: lower is better, h: higher, blank: neither, e.g. a NEES; mean ± sd over the seeds; "
+        lines.append("(l: lower is better, h: higher, t: closest to its target, e.g. a NEES; blank: neither; "
+                     "mean ± sd over the seeds; "
                      "`slamreplay compare` tests A against B)")
     return "\n".join(lines)
 

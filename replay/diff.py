@@ -2,7 +2,8 @@
 
 - Manifests: pipeline, recording, configuration (key by key), seed, code version and
   commit, library versions.
-- Metrics: a delta per metric, judged by its direction (lower or higher is better) and a
+- Metrics: a delta per metric, judged by its direction (lower or higher is better, or closer
+  to a target value such as a NEES's degrees of freedom, on a log scale) and a
   tolerance (``metric_tolerance``: by default relative to run A's value with an absolute floor,
   so numerical noise between environments is "same"; a user's absolute value or ``N%`` of run
   A's value replaces it); ``worse`` lists those that regressed.
@@ -22,7 +23,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from slamreplay.recorder.options import did_you_mean
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.metric_registry import direction_label, normalize, target_distance
 
 MANIFEST_FIELDS = ("pipeline", "recording.sha256", "seed", "config_hash", "slamreplay.version",
                    "slamreplay.git_commit", "window_ns", "status")
@@ -37,6 +40,12 @@ class MetricDelta:
     better: str
     tolerance: float
     verdict: str  # better | worse | same | changed | added | removed
+    target: float | None = None  # the consistent value, with better="target"
+
+    @property
+    def direction(self) -> str:
+        """The ``better`` column of a table: lower, higher, ~2 (closest to 2), or none."""
+        return direction_label(self.better, self.target)
 
 
 @dataclass
@@ -74,6 +83,7 @@ def load_run(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
         metrics = json.loads((run_dir / "metrics.json").read_text())
     except (FileNotFoundError, json.JSONDecodeError) as err:
         raise ReplayError(f"{run_dir}/metrics.json is missing or unreadable: {err}") from err
+    metrics["metrics"] = normalize(metrics.get("metrics", {}))  # names and directions of older runs
     return manifest, metrics
 
 
@@ -119,7 +129,18 @@ def metric_tolerance(entry: Mapping[str, Any], a: float | None, override: str | 
     return max(floor, rel * abs(a or 0.0))
 
 
-def _verdict(a: float | None, b: float | None, better: str, tol: float) -> tuple[float | None, str]:
+def direction_verdict(delta: float, better: str, distance_delta: float = 0.0) -> str:
+    """better | worse | changed for a change beyond the tolerance: by its sign, or for a ``target`` metric by
+    ``distance_delta``, how much further from the target B is than A (``metric_registry.target_distance``)."""
+    if better == "target":
+        return "worse" if distance_delta > 0 else "better" if distance_delta < 0 else "changed"
+    if better not in ("lower", "higher"):
+        return "changed"
+    return "better" if (delta < 0 if better == "lower" else delta > 0) else "worse"
+
+
+def _verdict(a: float | None, b: float | None, better: str, tol: float, target: float | None = None
+             ) -> tuple[float | None, str]:
     if a is None and b is None:
         return None, "same"
     if a is None:
@@ -129,22 +150,20 @@ def _verdict(a: float | None, b: float | None, better: str, tol: float) -> tuple
     delta = b - a
     if abs(delta) <= tol:
         return delta, "same"
-    if better == "none":
-        return delta, "changed"
-    improved = delta < 0 if better == "lower" else delta > 0
-    return delta, "better" if improved else "worse"
+    away = target_distance(b, target) - target_distance(a, target) if better == "target" and target else 0.0
+    return delta, direction_verdict(delta, better, away)
 
 
 def judge_metric(a: float, b: float, better: str, entry: Mapping[str, Any], tolerance_spec: str | None = None
                  ) -> tuple[float, float | None, str]:
     """(tolerance, B - A, verdict) of one metric, judged exactly as ``diff_runs`` judges it.
 
-    ``entry`` holds the metric's own ``tolerance`` and ``rel_tolerance`` (metrics.json);
-    ``tolerance_spec`` is a ``--tolerance`` value (absolute, or ``N%`` of A) that replaces them.
-    Verdicts: better | worse | same | changed.
+    ``entry`` holds the metric's own ``tolerance``, ``rel_tolerance`` and, for ``better="target"``, its
+    ``target`` (metrics.json); ``tolerance_spec`` is a ``--tolerance`` value (absolute, or ``N%`` of A) that
+    replaces the tolerances. Verdicts: better | worse | same | changed.
     """
     tol = metric_tolerance(entry, a, tolerance_spec)
-    delta, verdict = _verdict(a, b, better, tol)
+    delta, verdict = _verdict(a, b, better, tol, entry.get("target"))
     return tol, delta, verdict
 
 
@@ -163,7 +182,8 @@ def diff_runs(a_dir: str | Path, b_dir: str | Path, tolerances: Mapping[str, str
     known = set(xa.get("metrics", {})) | set(xb.get("metrics", {}))
     unknown = set(tolerances) - known - {"*"}
     if unknown:
-        raise ReplayError(f"--tolerance names unknown metrics: {', '.join(sorted(unknown))}; "
+        hint = "".join(did_you_mean(name, known, quote=True) for name in sorted(unknown))
+        raise ReplayError(f"--tolerance names unknown metrics: {', '.join(sorted(unknown))}{hint}; "
                           f"the runs have: {', '.join(sorted(known))}")
     out = RunDiff(str(a_dir), str(b_dir))
     for key in MANIFEST_FIELDS:
@@ -184,14 +204,17 @@ def diff_runs(a_dir: str | Path, b_dir: str | Path, tolerances: Mapping[str, str
         ea, eb = xa["metrics"].get(name), xb["metrics"].get(name)
         spec = eb or ea
         if ea is None:
-            out.metrics.append(MetricDelta(name, None, eb["value"], None, spec["better"], 0.0, "added"))
+            out.metrics.append(MetricDelta(name, None, eb["value"], None, spec["better"], 0.0, "added",
+                                           spec.get("target")))
             continue
         if eb is None:
-            out.metrics.append(MetricDelta(name, ea["value"], None, None, spec["better"], 0.0, "removed"))
+            out.metrics.append(MetricDelta(name, ea["value"], None, None, spec["better"], 0.0, "removed",
+                                           spec.get("target")))
             continue
         tol = metric_tolerance(spec, ea["value"], tolerances.get(name, tolerances.get("*")))
-        delta, verdict = _verdict(ea["value"], eb["value"], spec["better"], tol)
-        out.metrics.append(MetricDelta(name, ea["value"], eb["value"], delta, spec["better"], tol, verdict))
+        delta, verdict = _verdict(ea["value"], eb["value"], spec["better"], tol, spec.get("target"))
+        out.metrics.append(MetricDelta(name, ea["value"], eb["value"], delta, spec["better"], tol, verdict,
+                                       spec.get("target")))
     if compare_rrd:
         out.rrd_equal, out.rrd_detail = rrd_content_equal(a_dir / "run.rrd", b_dir / "run.rrd")
     return out
@@ -242,7 +265,7 @@ def format_table(diff: RunDiff) -> str:
     for m in diff.metrics:
         fa, fb, fd = formatted(m)
         mark = {"worse": "WORSE", "better": "better"}.get(m.verdict, m.verdict)
-        lines.append(f"  {m.name:<{width}}  {fa:>14}  {fb:>14}  {fd:>12}  {m.better:<6}  {mark}")
+        lines.append(f"  {m.name:<{width}}  {fa:>14}  {fb:>14}  {fd:>12}  {m.direction:<6}  {mark}")
     lines.append("")
     rrd = {True: "identical content", False: f"content differs ({diff.rrd_detail})", None: diff.rrd_detail}
     lines.append(f"run.rrd: {rrd[diff.rrd_equal]}")

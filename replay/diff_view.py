@@ -118,7 +118,7 @@ def _markdown(diff: RunDiff, a: _RunContent, b: _RunContent) -> str:
     for m in diff.metrics:
         fa, fb, fd = formatted(m)
         verdict = {"worse": "**WORSE**", "better": "better"}.get(m.verdict, m.verdict)
-        lines.append(f"| `{m.name}` | {fa} | {fb} | {fd} | {m.better} | {verdict} |")
+        lines.append(f"| `{m.name}` | {fa} | {fb} | {fd} | {m.direction} | {verdict} |")
     lines += ["", f"**{len(diff.worse)} metric(s) worse**" + (f": {', '.join(diff.worse)}" if diff.worse else ""),
               "", "#### What changed"]
     if diff.changes:

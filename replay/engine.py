@@ -20,8 +20,9 @@ from slamreplay.algorithms.observe import Text
 from slamreplay.recorder.messages import TOPIC_GROUND_TRUTH_POSE
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.evaluate import TRAJECTORY_METRICS, trajectory_metrics
+from slamreplay.replay.metric_registry import MetricSpec
 from slamreplay.replay.metrics import truth_at
-from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext, ReplayObserver
+from slamreplay.replay.pipeline import Pipeline, ReplayContext, ReplayObserver, pipelines_fitting
 from slamreplay.replay.reader import Envelope, RecordingReader
 from slamreplay.replay.trajectory import TRUTH_TUM_ARTIFACT, to_tum, trajectory_artifacts
 
@@ -39,15 +40,24 @@ class ReplayStats:
 
 
 def metric_specs(pipeline: type[Pipeline]) -> dict[str, MetricSpec]:
-    """The pipeline's own metrics and the trajectory metrics the engine adds (`replay.evaluate`) when the
-    pipeline exports a trajectory and reads ground truth; a pipeline's own spec of the same name wins."""
-    return {**TRAJECTORY_METRICS, **pipeline.metrics}
+    """Every metric a run of ``pipeline`` may report: its own, and the trajectory metrics the engine adds
+    (`replay.evaluate`) when it exports a trajectory (``Pipeline.trajectory_metrics``) and the recording has
+    ground truth; a pipeline's own spec of the same name wins."""
+    return {**(TRAJECTORY_METRICS if pipeline.trajectory_metrics else {}), **pipeline.metrics}
 
 
 def check_topics(reader: RecordingReader, pipeline: type[Pipeline]) -> list[str]:
     """The pipeline's topics present in the recording; ReplayError when a required one is missing or unreadable."""
     present = reader.info.logical_topics()
     for topic in pipeline.required_topics:
+        if topic not in present:  # the reader's error says how to map it; and which pipelines fit as it is
+            try:
+                reader.decoder(topic)
+            except ReplayError as err:
+                counts = {t: info.message_count for t, info in present.items()}
+                fitting = [name for name in pipelines_fitting(counts) if name != pipeline.name]
+                raise ReplayError(f"{err}; or replay it through a pipeline its topics fit: "
+                                  f"{', '.join(fitting)}" if fitting else str(err)) from None
         reader.decoder(topic)  # raises with what is missing and how to map it
         if present[topic].message_count == 0:
             msg = f"{reader.path.name}: topic {topic}, which pipeline {pipeline.name} needs, has no messages"

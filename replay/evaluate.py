@@ -31,13 +31,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamreplay.algorithms.common import se2
+from slamreplay.replay.metric_registry import RPE_METRE_DELTA_M, specs
 from slamreplay.replay.pipeline import MetricSpec
 
 F64 = NDArray[np.float64]
 Alignment = Literal["none", "origin", "se2"]
 DeltaUnit = Literal["step", "m"]
 ALIGNMENTS: tuple[Alignment, ...] = ("none", "origin", "se2")
-RPE_METRE_DELTA_M = 1.0  # the per-distance RPE of every run: segments of 1 m of true path
 
 
 @dataclass(frozen=True, slots=True)
@@ -129,22 +129,13 @@ def rpe(est: F64, ref: F64, delta: float = 1, unit: DeltaUnit = "step") -> tuple
     return ErrorStats.of(np.hypot(e[:, 0], e[:, 1])), ErrorStats.of(np.degrees(np.abs(se2.wrap_angle(e[:, 2]))))
 
 
-def _spec(what: str, unit: str = "m") -> MetricSpec:
-    return MetricSpec.measured("lower", unit, what)
-
-
 # The trajectory metrics every pipeline with an estimated trajectory and ground truth reports, one name each
-TRAJECTORY_METRICS: dict[str, MetricSpec] = {
-    "ape_rmse_m": _spec("absolute position error RMSE, no alignment (the estimate starts at the true pose)"),
-    "ape_origin_rmse_m": _spec("absolute position error RMSE, first poses aligned (evo --align_origin)"),
-    "ape_se2_rmse_m": _spec("absolute position error RMSE after the best rigid alignment (evo --align)"),
-    "ape_rot_rmse_deg": _spec("absolute heading error RMSE, no alignment", "deg"),
-    "rpe_step_trans_rmse_m": _spec("relative pose error between consecutive poses, translation RMSE"),
-    "rpe_step_rot_rmse_deg": _spec("relative pose error between consecutive poses, rotation RMSE", "deg"),
-    "rpe_m_trans_rmse_m": _spec(f"relative pose error over {RPE_METRE_DELTA_M:g} m of true path, translation RMSE"),
-    "rpe_m_rot_rmse_deg": _spec(f"relative pose error over {RPE_METRE_DELTA_M:g} m of true path, rotation RMSE",
-                                "deg"),
-}
+# (replay.metric_registry). Runs start at the true pose, so evo's --align_origin would repeat ape_rmse_m:
+# it is not among them (`slamreplay trajectory` prints it for estimates made elsewhere).
+TRAJECTORY_METRICS: dict[str, MetricSpec] = specs(
+    "ape_rmse_m", "ape_se2_rmse_m", "ape_rot_rmse_deg", "rpe_step_trans_rmse_m", "rpe_step_rot_rmse_deg",
+    "rpe_m_trans_rmse_m", "rpe_m_rot_rmse_deg")
+RUN_ALIGNMENTS: tuple[Alignment, ...] = ("none", "se2")
 
 
 def trajectory_metrics(est: F64, ref: F64) -> dict[str, float]:
@@ -154,7 +145,7 @@ def trajectory_metrics(est: F64, ref: F64) -> dict[str, float]:
     if len(ref) == 0:
         return {}
     out: dict[str, float] = {}
-    for alignment in ALIGNMENTS:
+    for alignment in RUN_ALIGNMENTS:
         trans, rot = ape(est, ref, alignment)
         out["ape_rmse_m" if alignment == "none" else f"ape_{alignment}_rmse_m"] = trans.rmse
         if alignment == "none":

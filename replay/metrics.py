@@ -74,12 +74,17 @@ def format_metrics(pipeline: str, values: Mapping[str, float], specs: Mapping[st
     return {
         "format": METRICS_FORMAT,
         "pipeline": pipeline,
-        "metrics": {
-            name: {"value": float(v), "better": specs[name].better, "unit": specs[name].unit,
-                   "tolerance": specs[name].tolerance, "rel_tolerance": specs[name].rel_tolerance}
-            for name, v in sorted(values.items())
-        },
+        "metrics": {name: metric_entry(float(v), specs[name]) for name, v in sorted(values.items())},
     }
+
+
+def metric_entry(value: float, spec: MetricSpec) -> dict[str, Any]:
+    """One metric in metrics.json: its value, direction (and target value), unit and diff tolerance."""
+    out: dict[str, Any] = {"value": value, "better": spec.better, "unit": spec.unit, "tolerance": spec.tolerance,
+                           "rel_tolerance": spec.rel_tolerance}
+    if spec.target is not None:
+        out["target"] = spec.target
+    return out
 
 
 def dumps(doc: Mapping[str, Any]) -> str:
@@ -90,6 +95,13 @@ def dumps(doc: Mapping[str, Any]) -> str:
 _ARROW = {"lower": "lower is better", "higher": "higher is better", "none": ""}
 
 
+def better_text(better: str, target: float | None = None) -> str:
+    """Which way a metric is better, in words ("lower is better", "closest to 2 is better", "")."""
+    if better == "target":
+        return f"closest to {target:g} is better"
+    return _ARROW.get(better, "")
+
+
 def metrics_markdown(title: str, values: Mapping[str, float], specs: Mapping[str, MetricSpec]) -> str:
     """The metrics of a run as a markdown table (value, unit, which way is better, meaning)."""
     lines = [f"### {title}", "", "Map: ground truth grey, estimate blue (several robots: each in its series' "
@@ -98,7 +110,8 @@ def metrics_markdown(title: str, values: Mapping[str, float], specs: Mapping[str
     for name, value in sorted(values.items()):
         spec = specs[name]
         shown = f"{value:,.0f}" if float(value).is_integer() and abs(value) < 1e15 else f"{value:.4g}"
-        lines.append(f"| `{name}` | {shown} | {spec.unit} | {_ARROW[spec.better]} | {spec.description} |")
+        better = better_text(spec.better, spec.target)
+        lines.append(f"| `{name}` | {shown} | {spec.unit} | {better} | {spec.description} |")
     if not values:
         lines.append("| (no metric applies to this run) | | | | |")
     return "\n".join(lines) + "\n"

@@ -15,19 +15,24 @@ import typing
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar, Literal, Protocol
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 import rerun.blueprint as rrb
 
 from slamreplay.algorithms.observe import Observation
 from slamreplay.recorder.errors import RecorderError
-from slamreplay.recorder.options import parse_value, type_name
+from slamreplay.recorder.options import did_you_mean, parse_value, type_name
 from slamreplay.recorder.plugins import Plugin, discover, missing_builtins_hint
 from slamreplay.recorder.sensor_model import SensorModel
 from slamreplay.recorder.writer import METADATA_NAME
 from slamreplay.replay import views
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.metric_registry import (  # noqa: F401  (MetricSpec's import path for plugins)
+    MEASURED_ABS_TOLERANCE,
+    MEASURED_REL_TOLERANCE,
+    MetricSpec,
+)
 from slamreplay.replay.reader import ROBOT_NAMESPACE, Envelope, RecordingInfo, topic_type
 
 
@@ -41,40 +46,6 @@ class ReplayObserver(Protocol):
     def log(self, path: str, item: Observation) -> None: ...
     def log_static(self, path: str, item: Observation) -> None: ...
     def send_series(self, path: str, steps: np.ndarray, times_ns: np.ndarray, values: np.ndarray) -> None: ...
-
-
-# Default diff tolerance of a measured (floating-point) metric: a change within
-# max(MEASURED_ABS_TOLERANCE, MEASURED_REL_TOLERANCE * |A|) is "same" (replay.diff.metric_tolerance).
-# Why these values: the same recording, code and seed on another Python/numpy/scipy/BLAS sums in
-# another order, and iterative solvers (Gauss-Newton, PCG) that stop at a relative decrease of
-# 1e-6 then stop at slightly different points: differences of 1e-7..1e-5 relative were seen
-# (chi2_final +6.2e-6 on 22.2 between Python 3.11 and 3.12). 0.1 % is 100x above that and 10x
-# below a 1 % change, which a diff must still call worse (an ATE of 0.400 m -> 0.404 m is WORSE).
-# The absolute floor (1e-6 of the unit: 1 um, 1e-6 px or degree) covers values near zero,
-# where a relative tolerance vanishes.
-MEASURED_REL_TOLERANCE = 1e-3
-MEASURED_ABS_TOLERANCE = 1e-6
-
-
-@dataclass(frozen=True, slots=True)
-class MetricSpec:
-    """How to read a metric: which direction is better, its unit, and the default diff tolerance.
-
-    A change of at most ``max(tolerance, rel_tolerance * |A|)`` is "same". Counts keep the
-    defaults (0, 0): any change of a count is reported. ``MetricSpec.measured`` gives the
-    tolerance of floating-point measurements (see MEASURED_REL_TOLERANCE).
-    """
-
-    better: Literal["lower", "higher", "none"]
-    unit: str
-    description: str
-    tolerance: float = 0.0  # absolute floor
-    rel_tolerance: float = 0.0  # relative to run A's value
-
-    @classmethod
-    def measured(cls, better: Literal["lower", "higher", "none"], unit: str, description: str) -> MetricSpec:
-        """A floating-point metric: numerical noise between environments is "same", a 1 % change is not."""
-        return cls(better, unit, description, MEASURED_ABS_TOLERANCE, MEASURED_REL_TOLERANCE)
 
 
 @dataclass
@@ -111,6 +82,9 @@ class Pipeline(ABC):
     start_topic: ClassVar[str]
     Config: ClassVar[type]
     metrics: ClassVar[dict[str, MetricSpec]]
+    # Whether the engine scores a trajectory this pipeline exports (``trajectory()``) with the trajectory
+    # metrics (ape_*, rpe_*: replay.evaluate); False where it exports none (several robots, mosaic pixels).
+    trajectory_metrics: ClassVar[bool] = True
     summary_skip: ClassVar[tuple[str, ...]] = views.SUMMARY_SKIP  # map entities left out of the static summary
     # Named sets of config values (`--preset NAME`). ``paper`` turns off every extra over the paper the
     # pipeline implements (each such key's help says what it adds); empty when the defaults are the paper's.
@@ -206,8 +180,8 @@ def get_pipeline(name: str) -> type[Pipeline]:
     if name not in plugins:
         if not plugins:
             raise ReplayError(missing_builtins_hint(PIPELINE_GROUP))
-        raise ReplayError(f"unknown pipeline {name!r}; known pipelines: {', '.join(plugins)} "
-                          f"(see `slamreplay pipelines`)") from None
+        raise ReplayError(f"unknown pipeline {name!r}{did_you_mean(name, plugins, quote=True)}; known pipelines: "
+                          f"{', '.join(plugins)} (see `slamreplay pipelines`)") from None
     try:
         cls: type[Pipeline] = plugins[name].load()
     except RecorderError as err:
@@ -224,6 +198,13 @@ def pipeline_origin(name: str) -> dict[str, str]:
 def all_pipelines() -> dict[str, type[Pipeline]]:
     """The pipelines that load, by name (a broken plugin is left out: `slamreplay pipelines` reports it)."""
     return {name: p.load() for name, p in pipeline_plugins().items() if p.error is None}
+
+
+def pipelines_fitting(message_counts: Mapping[str, int]) -> list[str]:
+    """The pipelines whose required topics a recording has, with messages (``message_counts``: logical topic ->
+    count): what an error about a missing topic offers instead."""
+    return [name for name, cls in all_pipelines().items()
+            if all(message_counts.get(t, 0) > 0 for t in cls.required_topics)]
 
 
 # ---------------------------------------------------------------------------------------
@@ -268,8 +249,9 @@ def parse_values(pipeline: type[Pipeline], values: Mapping[str, Any] | None) -> 
     kwargs = {}
     for key, value in (values or {}).items():
         if key not in known:
-            raise ReplayError(f"unknown config key {key!r} for pipeline {pipeline.name}; "
-                              f"its keys are: {', '.join(sorted(known)) or '(none)'}")
+            raise ReplayError(f"unknown config key {key!r} for pipeline {pipeline.name}"
+                              f"{did_you_mean(key, known, quote=True)}; its keys are: "
+                              f"{', '.join(sorted(known)) or '(none)'} (see `slamreplay pipelines {pipeline.name}`)")
         kwargs[key] = _parse(key, hints[key], value)
     return kwargs
 
@@ -347,7 +329,8 @@ def resolve_layers(pipeline: type[Pipeline], user: Mapping[str, Any] | None = No
         sources.update(dict.fromkeys(from_model, "recording"))
     if preset is not None:
         if preset not in pipeline.presets:
-            raise ReplayError(f"pipeline {pipeline.name} has no preset {preset!r}; its presets: "
+            raise ReplayError(f"pipeline {pipeline.name} has no preset {preset!r}"
+                              f"{did_you_mean(preset, pipeline.presets, quote=True)}; its presets: "
                               f"{', '.join(sorted(pipeline.presets)) or '(none)'} (see `slamreplay pipelines`)")
         values.update(pipeline.presets[preset])
         sources.update(dict.fromkeys(pipeline.presets[preset], f"preset {preset}"))

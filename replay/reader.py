@@ -22,13 +22,17 @@ from mcap.records import Channel, Chunk, ChunkIndex, Metadata, Schema
 from mcap.records import Message as McapMessage
 
 from slamreplay.recorder.codec import TopicDecoder
+from slamreplay.recorder.codec.bounds import shown
 from slamreplay.recorder.codec.mcap_io import McapFile, Summary, chunk_messages, chunk_records, decompress, record_name
 from slamreplay.recorder.codec.ros2 import canonical_ros_type
 from slamreplay.recorder.errors import CodecError, DamageError
 from slamreplay.recorder.messages import TOPIC_TYPES, Message
 from slamreplay.replay.errors import ReplayError
-
-MCAP_MAGIC = b"\x89MCAP0\r\n"
+from slamreplay.replay.recording_file import (  # noqa: F401  (also imported from here: inspect, navigate, api)
+    MCAP_MAGIC,
+    check_framing,
+    resolve_mcap_path,
+)
 
 # In a ROS 2 bag, a message type found on exactly one unmapped topic is mapped here.
 ROS2_AUTO_MAP = {
@@ -81,39 +85,6 @@ class RecordingInfo:
         return {t.logical_topic: t for t in self.topics if t.logical_topic is not None}
 
 
-def resolve_mcap_path(path: Path) -> Path:
-    """The MCAP file of ``path``: the file itself, or the one .mcap in a ROS 2 bag directory."""
-    if not path.exists():
-        raise ReplayError(f"{path}: no such file or directory")
-    if path.is_dir():
-        mcaps = sorted(path.glob("*.mcap"))
-        if len(mcaps) == 1:
-            return mcaps[0]
-        if not mcaps and list(path.glob("*.db3")):
-            raise ReplayError(f"{path} is a ROS 2 bag in sqlite3 storage; import it first: "
-                              f"`slamreplay record ros2 {path} --out FILE.mcap`, then run FILE.mcap")
-        what = "no .mcap file" if not mcaps else f"{len(mcaps)} .mcap files (split bag)"
-        raise ReplayError(f"{path} is a directory with {what}; give one .mcap file, or import the bag with "
-                          f"`slamreplay record ros2 {path} --out FILE.mcap`")
-    return path
-
-
-def check_framing(path: Path) -> None:
-    """Raise ReplayError when ``path`` is empty, not an MCAP file, or truncated."""
-    size = path.stat().st_size
-    if size == 0:
-        raise ReplayError(f"{path} is empty (0 bytes): nothing was recorded")
-    with open(path, "rb") as f:
-        head = f.read(8)
-        if head != MCAP_MAGIC:
-            raise ReplayError(f"{path} is not an MCAP file (it starts with {head[:8]!r}); slamreplay reads "
-                              f"MCAP recordings and ROS 2 bags in MCAP storage")
-        f.seek(max(0, size - 8))
-        if size < 16 or f.read(8) != MCAP_MAGIC:
-            raise ReplayError(f"{path} is truncated: it has no MCAP footer, so it was not closed cleanly. "
-                              f"Salvage its messages with `slamreplay recover {path} --out FIXED.mcap`")
-
-
 ROBOT_NAMESPACE = re.compile(r"/robot\d+(?=/)")  # a robot of a multi-robot recording: /robot2/odom
 
 
@@ -138,7 +109,7 @@ def resolve_topic_map(channels: Iterable[tuple[str, str]], explicit: Mapping[str
             raise ReplayError(f"topic map target {logical} is not a slamreplay topic; use one of {known}")
         if file_topic not in chans:
             raise ReplayError(f"topic map names {file_topic}, which is not in the recording; "
-                              f"its topics are: {', '.join(sorted(chans)) or '(none)'}")
+                              f"its topics are: {', '.join(sorted(shown(c) for c in chans)) or '(none)'}")
         result[file_topic] = logical
     taken = set(result.values())
     for file_topic in chans:
@@ -265,7 +236,7 @@ class RecordingReader:
         topics = self.info.logical_topics()
         info = topics.get(logical_topic)
         if info is None:
-            have = ", ".join(sorted(t.file_topic for t in self.info.topics)) or "(none)"
+            have = ", ".join(sorted(shown(t.file_topic) for t in self.info.topics)) or "(none)"
             raise ReplayError(f"{self.path.name} has no {logical_topic} topic; its topics are: {have}. "
                               f"If the data is there under another name, map it with "
                               f"--topic-map FILE_TOPIC={logical_topic}")
@@ -273,8 +244,8 @@ class RecordingReader:
         kind = topic_type(logical_topic)
         assert kind is not None  # the topic map only maps onto typed topics
         if channel.schema_id and channel.schema_id not in self._schemas:
-            err = DamageError(f"the Channel record of {channel.topic} refers to schema {channel.schema_id}, which "
-                              f"no Schema record defines")
+            err = DamageError(f"the Channel record of {shown(channel.topic)} refers to schema {channel.schema_id}, "
+                              f"which no Schema record defines")
             raise self._damaged(err, f"topic {logical_topic}")
         try:
             return TopicDecoder(logical_topic, kind, self._schemas.get(channel.schema_id),

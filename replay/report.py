@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from slamreplay.replay.compare import Comparison, MetricResult, fmt, fmt_ms
+from slamreplay.replay.compare import VERDICT_ORDER, Comparison, MetricResult, fmt, fmt_ms
 from slamreplay.replay.run import atomic_write
 from slamreplay.replay.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, paired_with_truth, read_tum
 
@@ -171,6 +171,14 @@ def _href(path: str, base: Path) -> str:
         return path
 
 
+def _inside(href: str | None) -> str | None:
+    """``href`` when it stays inside the report's folder; None for ``../...`` (a run in the user's cache, say):
+    in a CI job summary such a link is dead wherever it is read."""
+    if href is None or href == ".." or href.startswith("../") or href.startswith("/") or ":" in href:
+        return None
+    return href
+
+
 def _run_href(row: Row, base: Path, links: Links) -> str | None:
     if links.run is not None:
         return links.run(row)
@@ -286,7 +294,7 @@ def render_html(c: Comparison, base: Path, links: Links | None = None) -> str:
     for r in c.results:
         cell_links = _cell_links(c, r, base, links) if _links_here(r, shown) else ""
         out.append(f"<tr class='{r.verdict}'><td class='l'>{e(r.recording)}/{e(r.pipeline)}/{e(r.variant)}</td>"
-                   f"<td class='l'>{e(_named(r.metric, r.unit))}</td><td>{e(r.better)}</td>"
+                   f"<td class='l'>{e(_named(r.metric, r.unit))}</td><td>{e(r.direction)}</td>"
                    f"<td>{e(fmt_ms(r.a_mean, r.a_sd))}</td><td>{e(fmt_ms(r.b_mean, r.b_sd))}</td>"
                    f"<td>{e(fmt(r.delta, signed=True))}</td><td>{e(fmt(r.tolerance))}</td>"
                    f"<td>{e(fmt(r.p_value, 3))}</td><td class='l'>{e(r.test)}</td>"
@@ -310,9 +318,28 @@ def render_html(c: Comparison, base: Path, links: Links | None = None) -> str:
     return "\n".join(out)
 
 
-def render_markdown(c: Comparison, base: Path, links: Links | None = None) -> str:
-    """The same table in GitHub-flavoured markdown (regressions marked with a red circle)."""
+FOLDED = ("unchanged", "noise")  # rows a CI summary folds away: nothing to act on
+
+
+def render_markdown(c: Comparison, base: Path, links: Links | None = None, base_url: str | None = None) -> str:
+    """The same table in GitHub-flavoured markdown, for a CI job summary: regressions (red circle) and failures
+    first, then improvements and changes; unchanged and noise rows folded into a closed ``<details>``.
+
+    Links are relative to the summary's folder ``base``, or ``base_url`` + that relative path (where CI
+    publishes that folder); files outside ``base`` are not linked."""
     links = links or Links()
+    prefix = base_url.rstrip("/") + "/" if base_url else ""
+    inner = links
+
+    def run(row: Row) -> str | None:
+        href = _inside(_run_href(row, base, inner))
+        return None if href is None else prefix + href
+
+    def pair(ra: Row, rb: Row) -> str | None:
+        href = _inside(inner.pair(ra, rb) if inner.pair is not None else None)
+        return None if href is None else prefix + href
+
+    links = Links(run=run, pair=pair if inner.pair is not None else None)
     mark = {"regression": "🔴 **regression**", "failed": "🔴 **failed**", "improvement": "🟢 improvement"}
     reg = c.regressions
     lines = [f"### slamreplay compare: {len(reg)} regression(s)", "",
@@ -323,10 +350,18 @@ def render_markdown(c: Comparison, base: Path, links: Links | None = None) -> st
         lines += [f"Commits A..B: {len(c.commits)}", "", *[f"- `{x}`" for x in c.commits[:30]], ""]
     for ch in c.changes:
         lines.append(f"- changed `{ch['field']}`: `{ch['a']!r}` → `{ch['b']!r}`")
-    lines += ["", "| cell | metric | A mean ± sd | B mean ± sd | B - A | p | verdict | runs |",
-              "| --- | --- | ---: | ---: | ---: | ---: | --- | --- |"]
+    head = ["| cell | metric | A mean ± sd | B mean ± sd | B - A | p | verdict | runs |",
+            "| --- | --- | ---: | ---: | ---: | ---: | --- | --- |"]
+    order = {v: i for i, v in enumerate(VERDICT_ORDER)}
+    ranked = sorted(c.results, key=lambda r: order.get(r.verdict, len(order)))  # stable: cells keep their order
+    quiet = [r for r in ranked if r.verdict in FOLDED]
+    loud = [r for r in ranked if r.verdict not in FOLDED]
+    lines += ["", *head]
     shown: set[tuple[str, str, str]] = set()
-    for r in c.results:
+    for r in loud + quiet:
+        if r is (quiet[0] if quiet else None):
+            what = ", ".join(f"{n} {v}" for v, n in verdict_counts(quiet).items())
+            lines += ["", f"<details><summary>{len(quiet)} more rows: {what}</summary>", "", *head]
         here = _links_here(r, shown)
         runs = " ".join(f"[{s}{i + 1}]({href})" for s in ("A", "B")
                         for i, x in enumerate(_group_rows(c, r, s)) if here and (href := _run_href(x, base, links)))
@@ -336,20 +371,25 @@ def render_markdown(c: Comparison, base: Path, links: Links | None = None) -> st
         lines.append(f"| {r.recording}/{r.pipeline}/{r.variant} | {r.metric} | {fmt_ms(r.a_mean, r.a_sd)} | "
                      f"{fmt_ms(r.b_mean, r.b_sd)} | {fmt(r.delta, signed=True)} | {fmt(r.p_value, 3)} | "
                      f"{mark.get(r.verdict, r.verdict)} | {runs} |")
+    if quiet:
+        lines += ["", "</details>"]
     for f in c.failures:
         lines.append(f"\n- failed in {f['side']}: {f['cell']} seeds {f['seeds']}: {f['error']}")
     return "\n".join(lines) + "\n"
 
 
 def write_reports(c: Comparison, html_path: str | Path | None, md_path: str | Path | None,
-                  pair_links: Callable[[Path], Links] | None = None) -> None:
-    """Write the requested files, each whole or not at all; ``pair_links(base)`` adds comparison .rrd links."""
-    for path, render in ((html_path, render_html), (md_path, render_markdown)):
-        if path is None:
-            continue
-        p = Path(path)
+                  pair_links: Callable[[Path], Links] | None = None, base_url: str | None = None) -> None:
+    """Write the requested files, each whole or not at all; ``pair_links(base)`` adds comparison .rrd links;
+    ``base_url``: where CI publishes the markdown summary's folder (its links then start with it)."""
+    if html_path is not None:
+        p = Path(html_path)
         base = p.resolve().parent
-        atomic_write(p, render(c, base, pair_links(base) if pair_links else None))
+        atomic_write(p, render_html(c, base, pair_links(base) if pair_links else None))
+    if md_path is not None:
+        p = Path(md_path)
+        base = p.resolve().parent
+        atomic_write(p, render_markdown(c, base, pair_links(base) if pair_links else None, base_url))
 
 
 def verdict_counts(results: Sequence[MetricResult]) -> dict[str, int]:

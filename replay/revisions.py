@@ -21,7 +21,7 @@ import os
 import shutil
 import subprocess
 import sys
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -119,14 +119,31 @@ def _remove_build(repo: Path, root: Path) -> None:
     subprocess.run(["git", "worktree", "prune"], cwd=repo, capture_output=True, timeout=120)
 
 
-def prepare_revision(repo: Path, rev: str, cache: Path) -> Revision:
-    """Worktree and environment of ``rev``, built once per commit; ReplayError if it does not build."""
+# What each build step is, for the note printed before it (a build is minutes of silence otherwise).
+STEP_NOTES = {"git worktree add": "git worktree add (a checkout of it)",
+              "python -m venv": "python -m venv (its own virtual environment)",
+              "pip install -e": "pip install -e (it and its dependencies: about a minute)"}
+
+
+def prepare_revision(repo: Path, rev: str, cache: Path, note: Callable[[str], None] | None = None) -> Revision:
+    """Worktree and environment of ``rev``, built once per commit; ReplayError if it does not build.
+
+    ``note(text)`` is told before the build and each of its slow steps, and when a finished build is
+    reused; the command line prints it (a build is a minute or more of silence otherwise).
+    """
+    note = note or (lambda text: None)
     sha = resolve(repo, rev)
     root = cache / "revs" / sha
     src, venv = root / "src", root / "venv"
     override = os.environ.get("SLAMREPLAY_REV_PYTHON")
-    with _locked(cache / "revs" / f".{sha}.lock"):
-        if not (root / "ready").is_file():
+    lock = cache / "revs" / f".{sha}.lock"
+    shown = sha[:10] if rev == sha else f"{rev} ({sha[:10]})"
+    if not (root / "ready").is_file():
+        note(f"building the environment of {shown}, once per commit; log: {root / 'build.log'}")
+    with _locked(lock):
+        if (root / "ready").is_file():
+            note(f"using the environment of {shown} built before ({root})")
+        else:
             _remove_build(repo, root)
             root.mkdir(parents=True, exist_ok=True)
             log = root / "build.log"
@@ -137,6 +154,7 @@ def prepare_revision(repo: Path, rev: str, cache: Path) -> Revision:
                                               str(src)])]
             with open(log, "w") as out:
                 for name, step in steps:
+                    note(STEP_NOTES[name])
                     out.write(f"$ {' '.join(step)}\n")
                     out.flush()
                     try:

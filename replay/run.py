@@ -49,6 +49,7 @@ from slamreplay.replay.pipeline import (
     robots_in,
 )
 from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.recording_file import check_recording
 
 MANIFEST_FORMAT = 1
 LIBRARIES = ("rerun-sdk", "numpy", "scipy", "opencv-contrib-python-headless", "mcap", "protobuf")
@@ -183,13 +184,15 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
     Raises
     ------
     ReplayError
-        For bad input. When the pipeline name, config or output directory is wrong nothing
-        is written; once the run directory exists, a failed run still writes its manifest
-        (``status: failed``, ``error``) and log before the error is raised.
+        For bad input. When the pipeline name, config or output directory is wrong, or the
+        recording is missing, empty, not an MCAP file or truncated, nothing is written; once
+        the run directory exists, a failed run still writes its manifest (``status: failed``,
+        ``error``) and log before the error is raised.
     """
     recording, out_dir = Path(recording), Path(out_dir)
     pipeline_cls = get_pipeline(pipeline)
     resolve_layers(pipeline_cls, config, preset=preset)  # bad keys, values and presets fail before anything is written
+    check_recording(recording)  # so does an input that is missing or not a recording: no failed run dir for a typo
     prepare_run_dir(out_dir)
     run_id = run_id or uuid.uuid4().hex
     started = datetime.now(timezone.utc)

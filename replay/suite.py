@@ -43,7 +43,7 @@ if sys.version_info >= (3, 11):
 else:  # Python 3.10: the same parser, as the tomli package
     import tomli as tomllib
 
-from slamreplay.recorder.options import typed_fields
+from slamreplay.recorder.options import did_you_mean, typed_fields
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.pipeline import get_pipeline, resolve_config
 
@@ -314,8 +314,9 @@ def _pipeline(chk: _Checker, name: str, doc: Any) -> dict[str, dict[str, Any]]:
         if preset is not None:
             if not isinstance(preset, str) or preset not in cls.presets:
                 have = ", ".join(sorted(cls.presets)) or "(none)"
-                raise chk.fail(at, f"pipeline {name} has no preset {preset!r}; its presets: {have} "
-                                   f"(see `slamreplay pipelines`)")
+                near = did_you_mean(preset, cls.presets, quote=True) if isinstance(preset, str) else ""
+                raise chk.fail(at, f"pipeline {name} has no preset {preset!r}{near}; its presets: {have} "
+                                   f"(see `slamreplay pipelines {name}`)")
             values = {**cls.presets[preset], **values}
         try:
             resolve_config(cls, values)

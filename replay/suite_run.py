@@ -34,13 +34,14 @@ from typing import Any
 from slamreplay.recorder.files import atomic_write, replacing
 from slamreplay.recorder.version import SOURCE_ROOT, git_commit, version
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.metric_registry import normalize
 from slamreplay.replay.run import sha256_file
 from slamreplay.replay.suite import Cell, RecordingSpec, Suite, canonical, sim_config_class, sim_kwargs
 
 RESULTS_FORMAT = 1
 SIM_MODULES = {sim: tuple(f"slamreplay.recorder.sim.{m}" for m in modules) for sim, modules in {
-    "sim-landmarks": ("landmarks", "unicycle", "wheel_odometry"),
-    "sim-seabed": ("seabed", "unicycle"),
+    "sim-landmarks": ("landmarks", "landmarks_config", "unicycle", "wheel_odometry"),
+    "sim-seabed": ("seabed", "seabed_config", "unicycle"),
     "sim-corridor": ("corridor", "corridor_config", "corridor_plan", "corridor_render", "unicycle", "wheel_odometry"),
 }.items()}
 WRITER_MODULES = tuple(f"slamreplay.recorder.{m}" for m in ("writer", "messages", "codec.protobuf", "codec.schemas"))
@@ -248,16 +249,36 @@ def row(job: CellJob, code: str, error: str | None = None, cached: bool = False)
     return out
 
 
+ROW_METRIC_KEYS = ("metrics", "better", "tolerance", "rel_tolerance", "units", "targets")
+
+
 def add_metrics(row: dict[str, Any], metrics: dict[str, Any]) -> None:
-    """Copy a metrics.json ``metrics`` mapping into a results row: values, directions, tolerances, units."""
-    for key in ("metrics", "better", "tolerance", "rel_tolerance", "units"):
+    """Copy a metrics.json ``metrics`` mapping into a results row: values, directions (and targets), tolerances,
+    units; under the current names (``metric_registry.normalize``)."""
+    for key in ROW_METRIC_KEYS:
         row.setdefault(key, {})
-    for name, m in sorted(metrics.items()):
+    for name, m in sorted(normalize(metrics).items()):
         row["metrics"][name] = m["value"]
         row["better"][name] = m.get("better", "none")
         row["tolerance"][name] = m.get("tolerance", 0.0)
         row["rel_tolerance"][name] = m.get("rel_tolerance", 0.0)
         row["units"][name] = m.get("unit", "")
+        if m.get("target") is not None:
+            row["targets"][name] = m["target"]
+
+
+def normalized_row(row: dict[str, Any]) -> dict[str, Any]:
+    """A results row of any version with its metrics under the current names and directions."""
+    values = row.get("metrics") or {}
+    entries = {name: {"value": v, "better": row.get("better", {}).get(name, "none"),
+                      "tolerance": row.get("tolerance", {}).get(name, 0.0),
+                      "rel_tolerance": row.get("rel_tolerance", {}).get(name, 0.0),
+                      "unit": row.get("units", {}).get(name, ""),
+                      **({"target": row["targets"][name]} if name in row.get("targets", {}) else {})}
+               for name, v in values.items()}
+    out = {k: v for k, v in row.items() if k not in ROW_METRIC_KEYS}
+    add_metrics(out, entries)
+    return out
 
 
 def write_results(out: Path, rows: Iterable[dict[str, Any]]) -> None:
@@ -277,7 +298,7 @@ def read_results(out: Path) -> list[dict[str, Any]]:
     rows = []
     for i, line in enumerate(lines, 1):
         try:
-            rows.append(json.loads(line))
+            rows.append(normalized_row(json.loads(line)))
         except json.JSONDecodeError as err:
             raise ReplayError(f"{path}:{i}: not a JSON row: {err}") from None
     return rows

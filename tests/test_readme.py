@@ -200,3 +200,18 @@ def test_blocks_leave_the_repository_clean(doc: Path, workspaces: dict[Path, Pat
     status = subprocess.run(["git", "status", "--porcelain"], cwd=workspaces[doc], capture_output=True,
                             text=True, check=True).stdout
     assert status == "", f"{doc.name}'s blocks left files in the repository:\n{status}"
+
+
+@pytest.mark.docs
+def test_figures_quoted_from_the_demo_match_a_fresh_demo(tmp_path: Path) -> None:
+    """Every ``<!-- demo: ... -->`` figure of README.md and docs/ equals what a fresh `slamreplay demo` gives
+    (docs/demo_figures.py; `make readme-figures` rewrites them on purpose). About 2 minutes."""
+    demo = tmp_path / "demo"
+    exe = Path(sys.executable).parent / "slamreplay"
+    proc = subprocess.run([str(exe), "demo", "--out", str(demo), "--quiet"], capture_output=True, text=True,
+                          timeout=900, stdin=subprocess.DEVNULL)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    check = subprocess.run([sys.executable, str(REPO / "docs" / "demo_figures.py"), "--demo", str(demo), "--check"],
+                           capture_output=True, text=True)
+    assert check.returncode == 0, check.stdout + check.stderr
+    assert " 0 differ" in check.stdout and "0 figure(s)" not in check.stdout

@@ -22,6 +22,7 @@ from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
 from mcap_ros2._vendor.rosidl_adapter.parser import InvalidSpecification, InvalidValue
 from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 
+from slamreplay.recorder.codec.bounds import check_protobuf_schema, check_ros2_schema, shown
 from slamreplay.recorder.codec.protobuf import READABLE_SCHEMAS, encode, proto_converter, schema_data, schema_name
 from slamreplay.recorder.codec.ros2 import canonical_ros_type, from_ros2
 from slamreplay.recorder.errors import CodecError
@@ -33,8 +34,8 @@ __all__ = ["READABLE_SCHEMAS", "TopicDecoder", "encode", "schema_data", "schema_
 # (DecodeError), whose files do not build (TypeError from the descriptor pool), a ros2msg text
 # that is not UTF-8 (UnicodeDecodeError, a ValueError) or not message definitions (rosidl's
 # InvalidSpecification family, NameError for a bad field name).
-_BAD_SCHEMA = (DecodeError, TypeError, ValueError, KeyError, IndexError, NameError, McapError, InvalidSpecification,
-               InvalidValue, RecursionError)
+_BAD_SCHEMA = (CodecError, DecodeError, TypeError, ValueError, KeyError, IndexError, NameError, McapError,
+               InvalidSpecification, InvalidValue)
 # What damaged message bytes raise: protobuf's DecodeError, CDR reads past the end (struct.error,
 # IndexError), bad UTF-8 or values the message model refuses (ValueError), an image OpenCV cannot take,
 # and a damaged schema that still parses but lost a field the message model reads (AttributeError).
@@ -54,7 +55,8 @@ class TopicDecoder:
         name = "" if schema is None else schema.name
         readable = READABLE_SCHEMAS[kind]
         if canonical_ros_type(name) not in readable:
-            msg = (f"topic {topic} has schema {name or '(none)'} with encoding {message_encoding!r}; "
+            msg = (f"topic {shown(topic)} has schema {shown(name) or '(none)'} with encoding "
+                   f"{shown(message_encoding)!r}; "
                    f"a {kind.__name__} is read from one of: {', '.join(readable)}")
             raise CodecError(msg)
         assert schema is not None
@@ -62,10 +64,12 @@ class TopicDecoder:
         self._raw: Callable[[bytes], Any] | None
         try:
             if message_encoding == "protobuf" and schema.encoding == "protobuf":
+                check_protobuf_schema(schema.data)  # bounded before the library builds (and recurses)
                 self._raw = ProtobufDecoderFactory().decoder_for(message_encoding, schema)
                 self._ros = False
                 self._convert = proto_converter(kind, name)
             elif message_encoding == "cdr" and schema.encoding == "ros2msg":
+                check_ros2_schema(schema.data.decode(), name)  # bounded before the library builds (and recurses)
                 # rosidl's parser prints each bad line to stderr before it raises: the error below says it once
                 with contextlib.redirect_stderr(io.StringIO()):
                     self._raw = Ros2DecoderFactory().decoder_for(message_encoding, schema)
@@ -73,12 +77,14 @@ class TopicDecoder:
             else:
                 self._raw = None
         except _BAD_SCHEMA as err:
-            msg = (f"topic {topic}: its schema {name} ({schema.encoding}, {len(schema.data)} bytes) is damaged "
+            msg = (f"topic {shown(topic)}: its schema {shown(name)} ({shown(schema.encoding)}, {len(schema.data)} "
+                   f"bytes) is damaged "
                    f"and cannot be parsed: {type(err).__name__}: {_one_line(err)}")
             raise CodecError(msg) from err
         if self._raw is None:
-            msg = (f"topic {topic}: schema {name} with schema encoding {schema.encoding!r} and message "
-                   f"encoding {message_encoding!r} is not supported (use protobuf, or ROS 2 ros2msg/cdr)")
+            msg = (f"topic {shown(topic)}: schema {shown(name)} with schema encoding {shown(schema.encoding)!r} and "
+                   f"message encoding {shown(message_encoding)!r} is not supported (use protobuf, or ROS 2 "
+                   f"ros2msg/cdr)")
             raise CodecError(msg)
 
     def __call__(self, data: bytes, log_time_ns: int) -> Message:
@@ -92,7 +98,7 @@ class TopicDecoder:
             _check_plausible(decoded)
             return decoded
         except _BAD_MESSAGE as err:
-            msg = (f"{self.topic} message at log_time {log_time_ns} ns is invalid ({len(data)} bytes): "
+            msg = (f"{shown(self.topic)} message at log_time {log_time_ns} ns is invalid ({len(data)} bytes): "
                    f"{_one_line(err) or type(err).__name__}")
             raise CodecError(msg) from err
 

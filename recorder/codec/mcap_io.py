@@ -4,9 +4,11 @@ The ``mcap`` library trusts the lengths it reads: a record length, a string leng
 chunk's ``uncompressed_size`` flipped by one bit becomes an allocation of gigabytes
 (``MemoryError``), a seek before the start of the file (``OSError``) or a ``KeyError`` on a
 channel id. Here every length is checked against the bytes that are really there before
-anything is read or allocated; record bodies are parsed with the library's record classes
-from an exact, bounded buffer; chunks are decompressed as a stream, never into a buffer
-sized by the file, and checked against their CRC.
+anything is read or allocated: record framing here, every field inside a record by the
+bounds-checked parser of :mod:`slamreplay.recorder.codec.mcap_records`. A chunk's declared
+uncompressed size is checked against MAX_CHUNK_BYTES and what its compression can give
+(MAX_RATIO) before it is decompressed; it is decompressed as a stream, never into a buffer
+sized by the file, stopped at the declared size, and checked against its CRC.
 """
 
 from __future__ import annotations
@@ -22,81 +24,44 @@ from typing import IO, Any
 
 import lz4.frame  # type: ignore[import-untyped]  # no stubs, no py.typed
 import zstandard
-from mcap.data_stream import ReadDataStream
-from mcap.exceptions import EndOfFile, McapError
 from mcap.opcode import Opcode
-from mcap.records import (
-    Channel,
-    Chunk,
-    ChunkIndex,
-    Footer,
-    Header,
-    Message,
-    MessageIndex,
-    Metadata,
-    MetadataIndex,
-    Schema,
-    Statistics,
-)
+from mcap.records import Channel, Chunk, ChunkIndex, Footer, Header, Message, MetadataIndex, Schema, Statistics
 
+from slamreplay.recorder.codec.mcap_records import MESSAGE_FIXED, parse_record, record_name
 from slamreplay.recorder.errors import DamageError
 
 MAGIC = b"\x89MCAP0\r\n"
 FOOTER_RECORD = 1 + 8 + 20  # opcode, length, summary_start, summary_offset_start, summary_crc
-MESSAGE_FIXED = 2 + 4 + 8 + 8  # channel_id, sequence, log_time, publish_time
 _MESSAGE_HEAD = struct.Struct("<HIQQ")
 _LENGTH = struct.Struct("<Q")
 _PIECE = 1 << 20  # decompression output is taken in pieces of this size, never sized by the file
-_CLASSES: dict[int, Any] = {
-    Opcode.HEADER: Header, Opcode.FOOTER: Footer, Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel,
-    Opcode.MESSAGE: Message, Opcode.CHUNK: Chunk, Opcode.MESSAGE_INDEX: MessageIndex,
-    Opcode.CHUNK_INDEX: ChunkIndex, Opcode.STATISTICS: Statistics, Opcode.METADATA: Metadata,
-    Opcode.METADATA_INDEX: MetadataIndex,
-}
+# The most a chunk may hold uncompressed: its records are held in memory at once (twice, for a moment, while
+# they are handed over), so this is the reader's memory bound per chunk. Writers use far smaller chunks
+# (slamreplay 1 MiB, rosbag2 768 KiB by default); a chunk outgrows that only to hold one large message, and
+# the largest slamreplay decodes is a raw rgb8 frame of MAX_IMAGE_PIXELS (96 MiB).
+MAX_CHUNK_BYTES = 128 << 20
+# The most records one chunk may hold: each message becomes a Python tuple and bytes (~200 B) before it is
+# sorted, and the loop over them is Python. A 1 MiB chunk of the smallest messages holds ~30,000; a 128 MiB
+# chunk of 31-byte empty messages (a bomb of repeated records compresses to nothing) would hold 4.3 million.
+MAX_CHUNK_RECORDS = 1_000_000
+# The most output one byte of compressed data can give: zstd's densest block is a 4-byte RLE block for up to
+# 128 KiB (ratio 32,768), lz4's a match length extended by 255 per byte (ratio ~255). A chunk claiming more
+# than its compressed size times this is refused before it is decompressed.
+MAX_RATIO = {"zstd": 1 << 15, "lz4": 255, "": 1}
+_RATIO_SLACK = 1 << 10  # frame headers: a tiny compressed chunk may decompress to a little more than ratio x size
 
 
-def record_name(opcode: int) -> str:
-    """``Chunk``, ``MessageIndex``..., or ``unknown (opcode 0x42)``."""
-    try:
-        return "".join(part.title() for part in Opcode(opcode).name.split("_"))
-    except ValueError:
-        return f"unknown (opcode 0x{opcode:02x})"
-
-
-class _Exact(ReadDataStream):
-    """A ReadDataStream that refuses to hand back fewer bytes than asked for."""
-
-    def read(self, length: int) -> bytes:
-        if length < 0:
-            raise EndOfFile()
-        data = super().read(length)
-        if len(data) != length:
-            raise EndOfFile()
-        return data
-
-
-def parse_record(opcode: int, body: bytes, where: str) -> Any:
-    """The record of ``opcode`` in ``body`` (exactly its bytes); None for an opcode read as opaque.
-
-    Raises DamageError naming the record and ``where`` when a field runs past the body or
-    holds bytes that are not what the field is (a string that is not UTF-8...).
-    """
-    cls = _CLASSES.get(opcode)
-    if cls is None:
-        return None
-    stream = _Exact(io.BytesIO(body))
-    try:
-        if cls is Message:
-            if len(body) < MESSAGE_FIXED:
-                raise EndOfFile()
-            return Message.read(stream, len(body))
-        return cls.read(stream)
-    except (EndOfFile, struct.error) as err:
-        msg = f"{record_name(opcode)} record {where} is damaged: a field runs past its {len(body)} bytes"
-        raise DamageError(msg) from err
-    except (UnicodeDecodeError, ValueError, McapError) as err:
-        msg = f"{record_name(opcode)} record {where} is damaged: {err}"
-        raise DamageError(msg) from err
+def check_chunk_size(compression: str, compressed: int, uncompressed: int, where: str) -> None:
+    """DamageError when a chunk's ``uncompressed`` size is above MAX_CHUNK_BYTES or more than its
+    compression could give from ``compressed`` bytes; checked before anything is decompressed."""
+    if uncompressed > MAX_CHUNK_BYTES:
+        raise DamageError(f"{where} claims {uncompressed:,} bytes uncompressed, above slamreplay's limit of "
+                          f"{MAX_CHUNK_BYTES:,} bytes per chunk: the chunk is damaged or not from a recorder")
+    ratio = MAX_RATIO.get(compression)
+    if ratio is not None and uncompressed > compressed * ratio + (_RATIO_SLACK if ratio > 1 else 0):
+        raise DamageError(f"{where} claims {uncompressed:,} bytes uncompressed from {compressed:,} compressed "
+                          f"bytes, more than {compression or 'no compression'} can give (at most {ratio:,} to 1): "
+                          f"its sizes are damaged")
 
 
 @dataclass
@@ -231,6 +196,7 @@ def decompress(chunk: Chunk, offset: int, *, validate_crc: bool = True) -> bytes
     """The records of a chunk, uncompressed; DamageError when they do not decompress to
     ``uncompressed_size`` bytes or fail the chunk's CRC. Output grows as it is produced."""
     where = f"Chunk record at byte {offset}"
+    check_chunk_size(chunk.compression, len(chunk.data), chunk.uncompressed_size, where)
     if chunk.compression == "":
         data = bytes(chunk.data)
     elif chunk.compression == "zstd":
@@ -253,6 +219,10 @@ def decompress(chunk: Chunk, offset: int, *, validate_crc: bool = True) -> bytes
 def _zstd(data: bytes, limit: int, where: str) -> bytes:
     out = bytearray()
     try:
+        declared = zstandard.frame_content_size(data)  # -1: the frame does not say
+        if declared > limit:
+            raise DamageError(f"{where} holds a zstd frame of {declared:,} bytes, more than the {limit:,} it "
+                              f"records")
         reader = zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data), read_across_frames=True)
         while len(out) <= limit:
             piece = reader.read(_PIECE)
@@ -284,10 +254,18 @@ def _lz4(data: bytes, limit: int, where: str) -> bytes:
     return bytes(out)
 
 
+def _too_many(offset: int) -> DamageError:
+    return DamageError(f"Chunk record at byte {offset} holds more than {MAX_CHUNK_RECORDS:,} records, above "
+                       f"slamreplay's limit per chunk: the chunk is damaged or not from a recorder")
+
+
 def chunk_records(data: bytes, offset: int) -> Iterator[Schema | Channel | Message]:
     """The Schema, Channel and Message records in a chunk's uncompressed ``data``, in order."""
-    pos = 0
+    pos, n = 0, 0
     while pos < len(data):
+        n += 1
+        if n > MAX_CHUNK_RECORDS:
+            raise _too_many(offset)
         if pos + 9 > len(data):
             raise DamageError(f"Chunk record at byte {offset}: a record at byte {pos} of its content is cut short")
         opcode, length = data[pos], struct.unpack_from("<Q", data, pos + 1)[0]
@@ -309,8 +287,11 @@ def chunk_messages(data: bytes, offset: int) -> list[tuple[int, int, int, int, b
     records are parsed, so that damage in them is found, and dropped). Tuples, not records: replay's hot path."""
     out: list[tuple[int, int, int, int, bytes]] = []
     append, unpack_head, unpack_len = out.append, _MESSAGE_HEAD.unpack_from, _LENGTH.unpack_from
-    pos, size, k = 0, len(data), 0
+    pos, size, k, n = 0, len(data), 0, 0
     while pos < size:
+        n += 1
+        if n > MAX_CHUNK_RECORDS:
+            raise _too_many(offset)
         if pos + 9 > size:
             raise DamageError(f"Chunk record at byte {offset}: a record at byte {pos} of its content is cut short")
         opcode, (length,) = data[pos], unpack_len(data, pos + 1)

@@ -32,6 +32,7 @@ from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame as PoseInFrame
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage as RawImageProto
 from mcap_protobuf.schema import build_file_descriptor_set
 
+from slamreplay.recorder.codec.bounds import MAX_IMAGE_PIXELS, MAX_PNG_CHUNKS, check_image_size
 from slamreplay.recorder.codec.schemas import (
     ImuYawRateProto,
     LandmarkMapProto,
@@ -177,8 +178,12 @@ def check_png(data: bytes) -> None:
     Checked before OpenCV sees the bytes: libpng reports damage on the process's stderr
     before it fails, which would break the one-line error a user gets.
     """
-    pos = len(PNG_SIGNATURE)
+    pos, chunks = len(PNG_SIGNATURE), 0
     while pos < len(data):
+        chunks += 1
+        if chunks > MAX_PNG_CHUNKS:
+            raise CodecError(f"PNG data holds more than {MAX_PNG_CHUNKS:,} chunks, above slamreplay's limit: the "
+                             f"image is damaged or hostile")
         if pos + 12 > len(data):
             raise CodecError(f"PNG data is cut short at byte {pos} of {len(data)}")
         length, kind = struct.unpack_from(">I4s", data, pos)
@@ -197,6 +202,7 @@ def decode_image_bytes(data: bytes, fmt: str) -> np.ndarray:
     """Decode PNG/JPEG bytes to mono8 (H, W) or rgb8 (H, W, 3) pixels."""
     if data.startswith(PNG_SIGNATURE):
         check_png(data)
+    check_image_size(data, fmt)  # before OpenCV allocates the pixels the header claims
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None:
         raise CodecError(f"image data is not a readable {fmt or 'PNG/JPEG'} file")
@@ -214,6 +220,9 @@ def raw_pixels(data: bytes, width: int, height: int, step: int, encoding: str) -
     channels = {"mono8": 1, "8UC1": 1, "rgb8": 3, "bgr8": 3, "8UC3": 3}.get(encoding)
     if channels is None:
         raise CodecError(f"image encoding {encoding!r} is not supported (use mono8, rgb8 or bgr8)")
+    if width * height > MAX_IMAGE_PIXELS:
+        raise CodecError(f"the raw image header claims {width:,} x {height:,} pixels; slamreplay decodes at most "
+                         f"{MAX_IMAGE_PIXELS:,} pixels per image: the image is damaged or hostile")
     if width <= 0 or height <= 0 or step < width * channels or len(data) < step * height:
         raise CodecError(f"raw image buffer of {len(data)} bytes does not fit {width}x{height} step {step}")
     rows = np.frombuffer(data, np.uint8, count=step * height).reshape(height, step)

@@ -19,9 +19,14 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.codec.bounds import check_image_size
+from slamreplay.recorder.errors import CodecError, RecorderError
 from slamreplay.recorder.messages import TOPIC_CAMERA_IMAGE, CameraImage
 from slamreplay.recorder.writer import Recorder
+
+# Bytes read to find an image's width and height: a PNG's IHDR is at byte 16; a JPEG's frame header follows
+# its APP segments (EXIF, at most 64 KiB each).
+HEADER_BYTES = 256 << 10
 
 IMPORTER: Final = "images"
 EPOCH_NS: Final = 1_000_000_000
@@ -76,6 +81,12 @@ def import_images(folder: Path, out: Path, rate_hz: float = 1.0, progress: Progr
     with Recorder(out, source={"importer": IMPORTER, "folder": Path(folder).name}, parameters={"rate_hz": rate_hz},
                   robot={"camera": "image sequence, no navigation"}) as rec:
         for k, path in enumerate(frames):
+            with open(path, "rb") as f:
+                head = f.read(HEADER_BYTES)
+            try:
+                check_image_size(head, path.suffix.lstrip(".").lower())  # before OpenCV allocates what it claims
+            except CodecError as err:
+                raise RecorderError(f"{path.name}: {err}") from err
             img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
             if img is None:
                 raise RecorderError(f"{path} is not an image OpenCV can read")

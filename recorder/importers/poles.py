@@ -30,42 +30,14 @@ References
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from slamreplay.recorder.importers.pole_config import PoleConfig as PoleConfig  # re-exported
+
 F64 = NDArray[np.float64]
-
-
-@dataclass(frozen=True, slots=True)
-class PoleConfig:
-    """Settings of the pole extractor; recorded in the recording's parameters."""
-
-    jump_m: float = 0.5  # range discontinuity that separates two segments
-    min_points: int = 3  # fewer readings than this: no circle can be told from a point
-    min_diameter_m: float = 0.05
-    max_diameter_m: float = 1.0  # wider: a wall, a car, a person, not a trunk
-    max_range_m: float = 30.0
-    circle_fit: bool = True  # False: the diameter-from-width estimate of [1] only
-    max_fit_rms_m: float = 0.05  # a fit whose points stray farther from the circle is not a pole
-    range_sigma_m: float = 0.05  # floor added to the fit's covariance (beam noise)
-    bearing_sigma_rad: float = 0.01
-
-    def __post_init__(self) -> None:
-        for name in ("jump_m", "min_diameter_m", "max_diameter_m", "max_range_m", "max_fit_rms_m"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"pole extractor: {name} must be > 0, got {getattr(self, name)}")
-        if self.min_diameter_m >= self.max_diameter_m:
-            raise ValueError("pole extractor: min_diameter_m must be < max_diameter_m")
-        if self.min_points < 2:
-            raise ValueError(f"pole extractor: min_points must be >= 2, got {self.min_points}")
-        if self.range_sigma_m < 0 or self.bearing_sigma_rad < 0:
-            raise ValueError("pole extractor: range_sigma_m and bearing_sigma_rad must be >= 0")
-
-    def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,5 +1,6 @@
-"""The parameters of ``sim-corridor`` (:class:`CorridorConfig`), apart from the simulator so that the renderer
-and the wheel odometry can take one without importing the simulator that uses them."""
+"""The parameters of ``sim-corridor`` (:class:`CorridorConfig`) and its tours, apart from the simulator so that
+the renderer and the wheel odometry can take one without importing the simulator that uses them, and the
+command line reads its options (``record sim-corridor --help``) without importing numpy."""
 
 from __future__ import annotations
 
@@ -7,14 +8,23 @@ import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any, Final
 
-import numpy as np
-from numpy.typing import NDArray
+if TYPE_CHECKING:
+    import numpy as np
+    from numpy.typing import NDArray
 
-from slamreplay.recorder.sim.corridor_plan import TOURS
+    F64 = NDArray[np.float64]
 
-F64 = NDArray[np.float64]
+# The tours (corridor_plan.py's docstring draws them): waypoints on the corridor centrelines, metres.
+TOURS: Final[dict[str, tuple[tuple[float, float], ...]]] = {
+    "outer": ((0, 0), (16, 0), (16, 10), (0, 10), (0, 0)),
+    "left": ((0, 0), (7, 0), (7, 10), (0, 10), (0, 0)),
+    "right": ((0, 0), (7, 0), (16, 0), (16, 10), (7, 10), (7, 0), (0, 0)),
+    "right-cw": ((0, 0), (7, 0), (7, 10), (16, 10), (16, 0), (7, 0), (0, 0)),
+    "rooms": ((0, 0), (12, 0), (12, -2.6), (12, 0), (16, 0), (16, 10), (4.3, 10), (4.3, 12.6), (4.3, 10),
+              (0, 10), (0, 5), (-2.9, 5), (0, 5), (0, 0)),
+}
 
 
 @dataclass(frozen=True, slots=True)
@@ -114,6 +124,8 @@ class CorridorConfig:
     @property
     def camera_matrix(self) -> F64:
         """The (3, 3) pinhole matrix K (pixel centres at integer coordinates)."""
+        import numpy as np  # here, not at the top: the command line imports this module without numpy
+
         f = self.focal_px
         return np.array([[f, 0.0, 0.5 * (self.image_width - 1)], [0.0, f, 0.5 * (self.image_height - 1)],
                          [0.0, 0.0, 1.0]])

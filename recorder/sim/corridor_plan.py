@@ -35,17 +35,11 @@ from typing import Final
 import numpy as np
 from numpy.typing import NDArray
 
+from slamreplay.recorder.sim.corridor_config import TOURS as TOURS  # re-exported
+
 F64 = NDArray[np.float64]
 Rect = tuple[float, float, float, float]  # x0, y0, x1, y1
 
-TOURS: Final[dict[str, tuple[tuple[float, float], ...]]] = {
-    "outer": ((0, 0), (16, 0), (16, 10), (0, 10), (0, 0)),
-    "left": ((0, 0), (7, 0), (7, 10), (0, 10), (0, 0)),
-    "right": ((0, 0), (7, 0), (16, 0), (16, 10), (7, 10), (7, 0), (0, 0)),
-    "right-cw": ((0, 0), (7, 0), (7, 10), (16, 10), (16, 0), (7, 0), (0, 0)),
-    "rooms": ((0, 0), (12, 0), (12, -2.6), (12, 0), (16, 0), (16, 10), (4.3, 10), (4.3, 12.6), (4.3, 10),
-              (0, 10), (0, 5), (-2.9, 5), (0, 5), (0, 0)),
-}
 SHARP_TURN_RAD: Final = math.radians(100.0)  # stop at the corner and turn on the spot
 SHORT_LEG_M: Final = 3.5  # legs into rooms: stop at the corner too, so as to pass doors straight
 TURN_IN_PLACE_RAD: Final = math.radians(40.0)

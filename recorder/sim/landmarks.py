@@ -58,13 +58,12 @@ from slamreplay.recorder.messages import (
     RangeBearingScan,
 )
 from slamreplay.recorder.sensor_model import SensorModel
+from slamreplay.recorder.sim.landmarks_config import LandmarkSimConfig as LandmarkSimConfig  # re-exported
 from slamreplay.recorder.sim.unicycle import arc_step, integrate, wrap_angle
 from slamreplay.recorder.writer import Recorder
 
 SIMULATOR: Final = "sim-landmarks"
 EPOCH_NS: Final = 1_000_000_000  # first stamp of every simulated recording: fixed, nonzero, not the wall clock
-PAPER_AREA_M: Final = 40.0
-GRID_BORDER_M: Final = 0.5  # 14 columns 3 m apart span 39 m: centred in the paper's 40 m square
 START_OFFSET_M: Final = 1.5  # start pose: this far from both walls of the bottom-left corner
 TURN_TAU_S: Final = 5.0  # correlation time of the turn-rate walk: a meandering path that covers the square
 TURN_STD_FRACTION: Final = 0.5  # stationary std of the turn-rate walk, as a fraction of the maximum
@@ -72,103 +71,6 @@ STEER_TOLERANCE_RAD: Final = math.radians(45.0)
 SCAN_BLOCK: Final = 1024  # scans per batched k-d tree query
 
 Progress = Callable[[int, int], None]
-
-
-@dataclass(frozen=True, slots=True)
-class LandmarkSimConfig:
-    """Parameters of ``sim-landmarks``; the defaults are the D-SLAM paper's section 4.2 scenario.
-
-    ``area_m`` is the side of the square world. When ``None`` it is the paper's 40 m, grown to
-    ``(columns - 1) * landmark_spacing_m + 1 m`` when the grid does not fit, where the landmarks
-    fill ``columns = ceil(sqrt(landmarks))`` columns row by row, centred in the square. An
-    explicit ``area_m`` must hold the grid at its spacing. ``odom_speed_bias`` is a scale error
-    (0.01 = odometry reads 1 % fast); sigmas are per odometry sample.
-    """
-
-    duration_s: float = 1800.0
-    landmarks: int = 196
-    area_m: float | None = None
-    landmark_spacing_m: float = 3.0
-    speed_mps: float = 0.2
-    max_turn_rate_radps: float = 0.1
-    sensor_range_m: float = 5.0
-    sensor_fov_deg: float = 180.0
-    range_sigma_m: float = 0.05
-    bearing_sigma_deg: float = 1.0
-    odom_speed_sigma_mps: float = 0.02
-    odom_turn_sigma_radps: float = 0.02
-    odom_speed_bias: float = 0.0
-    odom_turn_bias_radps: float = 0.0
-    stationary_s: float = 5.0
-    odom_rate_hz: float = 10.0
-    scan_rate_hz: float = 5.0
-
-    def __post_init__(self) -> None:
-        if isinstance(self.landmarks, bool) or not isinstance(self.landmarks, (int, np.integer)):
-            raise ValueError(f"landmarks must be an integer, got {self.landmarks!r}")
-        if self.landmarks < 1:
-            raise ValueError(f"landmarks must be >= 1, got {self.landmarks}")
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if f.name != "landmarks" and value is not None and not math.isfinite(value):
-                raise ValueError(f"{f.name} must be finite, got {value}")
-        positive = ("duration_s", "landmark_spacing_m", "speed_mps", "max_turn_rate_radps", "sensor_range_m",
-                    "odom_rate_hz", "scan_rate_hz")
-        for name in positive:
-            if getattr(self, name) <= 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("range_sigma_m", "bearing_sigma_deg", "odom_speed_sigma_mps", "odom_turn_sigma_radps",
-                     "stationary_s"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if not 0 < self.sensor_fov_deg <= 360:
-            raise ValueError(f"sensor_fov_deg must be in (0, 360], got {self.sensor_fov_deg}")
-        if not -0.5 < self.odom_speed_bias < 0.5:
-            raise ValueError(f"odom_speed_bias is a scale error and must be in (-0.5, 0.5), got {self.odom_speed_bias}")
-        if self.duration_s * self.odom_rate_hz < 1:
-            msg = f"duration_s must last at least one odometry period (1/odom_rate_hz), got {self.duration_s}"
-            raise ValueError(msg)
-        need = self.grid_extent_m + 2 * GRID_BORDER_M
-        if self.area_m is not None and self.area_m < need:
-            msg = (f"area_m {self.area_m} m cannot hold {self.landmarks} landmarks {self.landmark_spacing_m} m apart: "
-                   f"use area_m >= {need} m, fewer landmarks, a smaller landmark_spacing_m, or area_m None")
-            raise ValueError(msg)
-        if self.side_m < 4 * self.boundary_margin_m:
-            msg = (f"area_m {self.side_m} m is too small for a robot turning on a {self.turn_radius_m:.2f} m radius: "
-                   f"use area_m >= {4 * self.boundary_margin_m:.2f} m, or lower speed_mps / raise max_turn_rate_radps")
-            raise ValueError(msg)
-
-    @property
-    def odom_period_ns(self) -> int:
-        """Time between odometry (and ground-truth) samples, whole nanoseconds."""
-        return max(1, round(1e9 / self.odom_rate_hz))
-
-    @property
-    def columns(self) -> int:
-        """Landmarks per grid row."""
-        return math.isqrt(self.landmarks - 1) + 1
-
-    @property
-    def grid_extent_m(self) -> float:
-        """Width of the landmark grid (first to last column), metres."""
-        return (self.columns - 1) * self.landmark_spacing_m
-
-    @property
-    def side_m(self) -> float:
-        """Side of the square world, metres (``area_m`` or the rule in the class docstring)."""
-        if self.area_m is not None:
-            return float(self.area_m)
-        return max(PAPER_AREA_M, self.grid_extent_m + 2 * GRID_BORDER_M)
-
-    @property
-    def turn_radius_m(self) -> float:
-        """Tightest turning radius, metres."""
-        return self.speed_mps / self.max_turn_rate_radps
-
-    @property
-    def boundary_margin_m(self) -> float:
-        """Within this distance of a wall, the robot steers back toward the centre (module docstring)."""
-        return 2.0 * self.turn_radius_m + 0.5
 
 
 @dataclass(frozen=True, slots=True)

@@ -22,7 +22,8 @@ from slamreplay.algorithms.dslam import DSlam, DSlamConfig, ScanStatus
 from slamreplay.algorithms.dslam.localization import PoseStatus
 from slamreplay.algorithms.observe import CovarianceEllipses, Image, Points, Pose, Scalar, Segments, State
 from slamreplay.replay import views
-from slamreplay.replay.pipeline import MetricSpec, ReplayContext
+from slamreplay.replay.metric_registry import specs
+from slamreplay.replay.pipeline import ReplayContext
 from slamreplay.replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, LandmarkSlamPipeline
 
 
@@ -108,11 +109,7 @@ class DSlamPipeline(LandmarkSlamPipeline):
                                          "whose fit fails this chi-square gate or that disagrees with the "
                                          "prediction (a wrong association)",
     }
-    metrics = {
-        **METRICS,
-        "info_nnz_blocks": MetricSpec("none", "", "nonzero 2x2 blocks of the final information matrix"),
-        "info_nnz_blocks_per_landmark": MetricSpec.measured("none", "", "nonzero blocks per mapped feature"),
-    }
+    metrics = {**METRICS, **specs("info_nnz_blocks", "info_nnz_blocks_per_landmark")}
 
     def __init__(self, config: DSlamPipelineConfig, ctx: ReplayContext) -> None:
         super().__init__(config, ctx)

@@ -48,6 +48,7 @@ from slamreplay.recorder.messages import (
 )
 from slamreplay.replay import views
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.metric_registry import specs
 from slamreplay.replay.metrics import position_errors, rmse
 from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext, recording_sensor_model, robots_in
 from slamreplay.replay.pipelines.dslam import DSlamPipeline, DSlamPipelineConfig
@@ -118,18 +119,10 @@ class _Robot:
 
 def _metric_specs() -> dict[str, MetricSpec]:
     out = {k: v for k, v in METRICS.items() if k != "data_association_errors"}
-    out["robot_ate_rmse_m"] = MetricSpec.measured("lower", "m", "RMS position error of every robot's estimates "
-                                                  "against its ground truth, pooled, no alignment")
-    out["robot_nees_mean"] = MetricSpec.measured("none", "", "mean robot pose NEES at scans, all robots (3 when "
-                                                 "consistent)")
+    out.update(specs("ape_rmse_m"))  # every robot's estimates, pooled
     for k in range(1, MAX_ROBOTS + 1):
-        out[f"robot{k}_ate_rmse_m"] = MetricSpec.measured("lower", "m", f"robot {k}: RMS position error against its "
-                                                          f"ground truth, no alignment")
-        out[f"robot{k}_nees_mean"] = MetricSpec.measured("none", "", f"robot {k}: mean pose NEES at its scans")
-        out[f"robot{k}_scans"] = MetricSpec("none", "", f"robot {k}: scans processed")
-    out["robots"] = MetricSpec("none", "", "robots replayed")
-    out["info_nnz_blocks"] = DSlamPipeline.metrics["info_nnz_blocks"]
-    out["info_nnz_blocks_per_landmark"] = DSlamPipeline.metrics["info_nnz_blocks_per_landmark"]
+        out.update(specs(f"robot{k}_ape_rmse_m", f"robot{k}_nees_mean", f"robot{k}_scans"))
+    out.update(specs("robots", "info_nnz_blocks", "info_nnz_blocks_per_landmark"))
     return out
 
 
@@ -360,7 +353,7 @@ class DSlamMultiPipeline(Pipeline):
             err, _ = position_errors(np.asarray(robot.t_est, dtype=np.int64), np.asarray(robot.est).reshape(-1, 3),
                                      t_gt, gt)
             if len(err):
-                out[f"robot{robot.name}_ate_rmse_m"] = rmse(err)
+                out[f"robot{robot.name}_ape_rmse_m"] = rmse(err)
                 errors.append(err)
             nees = []
             for t, pose, cov in robot.scan_poses:
@@ -373,7 +366,7 @@ class DSlamMultiPipeline(Pipeline):
                 out[f"robot{robot.name}_nees_mean"] = float(np.mean(nees))
                 nees_all += nees
         if errors:
-            out["robot_ate_rmse_m"] = rmse(np.concatenate(errors))
+            out["ape_rmse_m"] = rmse(np.concatenate(errors))
         if nees_all:
             out["robot_nees_mean"] = float(np.mean(nees_all))
         return out
@@ -388,6 +381,8 @@ class DSlamMultiPipeline(Pipeline):
         out.update(landmark_scores(world_xy, self.truth_xy, pairs,
                                    lambda f: self._world_cov(self.slam.marginal_covariances()[f])))
         return out
+
+    trajectory_metrics = False  # several robots: ape_rmse_m and robot{k}_ape_rmse_m are its own
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray] | None:
         """None: several robots have no one trajectory file (each is drawn under ``world/trajectory/robotN``)."""

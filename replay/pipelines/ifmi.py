@@ -53,7 +53,8 @@ from slamreplay.algorithms.observe import CovarianceEllipses, Image, LineStrips,
 from slamreplay.recorder.messages import TOPIC_CAMERA_IMAGE, TOPIC_GROUND_TRUTH_POSE, CameraImage, GroundTruthPose
 from slamreplay.replay import views
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext
+from slamreplay.replay.metric_registry import specs
+from slamreplay.replay.pipeline import Pipeline, ReplayContext
 from slamreplay.replay.reader import Envelope
 
 SCALE_GATE = 10.83  # chi2 (1 dof) 99.9 % quantile: an edge's scale this far off is left out (calibrated only)
@@ -139,28 +140,10 @@ class IfmiPipeline(Pipeline):
                             "smaller shift errors, and the Skerki frames' translation NEES 4.2-4.3 -> 1.2-1.5 with the "
                             "calibrated covariance (docs/ifmi.md, \"The translation's band\")",
     }
-    metrics = {
-        "images": MetricSpec("none", "", "images (graph nodes)"),
-        "registrations": MetricSpec("none", "", "registrations tried (consecutive and loop candidates)"),
-        "registrations_accepted": MetricSpec("higher", "", "registrations with PNR >= min_pnr"),
-        "pnr_median": MetricSpec.measured("higher", "", "median PNR (eq. 13) of all registrations"),
-        "loop_closures": MetricSpec("none", "", "accepted non-consecutive edges"),
-        "chi2_initial": MetricSpec.measured("none", "", "squared Mahalanobis sum over all edges before optimization"),
-        "chi2_final": MetricSpec.measured("lower", "", "squared Mahalanobis sum over all edges after optimization"),
-        "chi2_per_dof": MetricSpec.measured("none", "", "chi2 after optimization over the edges the optimizer kept, "
-                                                        "per degree of freedom (3 per kept edge - 3 per free node); "
-                                                        "~1 when the edge covariances are calibrated"),
-        "mosaic_ncc": MetricSpec.measured("higher", "", "mean NCC of the image pairs overlapping by 30 % or more at "
-                                                        "the optimized poses (illumination flattened): the mosaic's "
-                                                        "agreement with itself"),
-        "edges_rejected": MetricSpec("none", "", "edges the optimizer's chi2 gate left out (covariance=calibrated)"),
-        "ate_rmse_px_initial": MetricSpec.measured("lower", "px",
-                                                   "node position RMSE before optimization (similarity-aligned)"),
-        "ate_rmse_px": MetricSpec.measured("lower", "px", "node position RMSE after optimization (similarity-aligned)"),
-        "rotation_error_deg_median": MetricSpec.measured("lower", "deg", "median |rotation error| of accepted edges"),
-        "translation_error_px_median": MetricSpec.measured("lower", "px", "median translation error of accepted edges "
-                                                                          "(scaled by the ATE alignment)"),
-    }
+    trajectory_metrics = False  # its poses are in mosaic pixels: ate_rmse_px
+    metrics = specs("images", "registrations", "registrations_accepted", "pnr_median", "loop_closures",
+                    "chi2_initial", "chi2_final", "chi2_per_dof", "mosaic_ncc", "edges_rejected", "ate_rmse_px_initial",
+                    "ate_rmse_px", "rotation_error_deg_median", "translation_error_px_median")
 
     summary_skip = (*views.SUMMARY_SKIP, "graph/before", "graph/estimate")
 

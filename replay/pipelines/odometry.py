@@ -14,8 +14,9 @@ import numpy as np
 from slamreplay.algorithms.deadreckoning import DeadReckoning
 from slamreplay.algorithms.observe import Pose
 from slamreplay.recorder.messages import TOPIC_GROUND_TRUTH_POSE, TOPIC_ODOM, GroundTruthPose, OdometryPose
-from slamreplay.replay.metrics import position_errors, rmse
-from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext
+from slamreplay.replay.metric_registry import specs
+from slamreplay.replay.metrics import position_errors
+from slamreplay.replay.pipeline import Pipeline, ReplayContext
 from slamreplay.replay.reader import Envelope
 from slamreplay.replay.trajectory import TrajectoryLog
 
@@ -32,14 +33,8 @@ class OdometryPipeline(Pipeline):
     optional_topics = (TOPIC_GROUND_TRUTH_POSE,)
     start_topic = TOPIC_ODOM
     Config = OdometryConfig
-    metrics = {
-        "robot_ate_rmse_m": MetricSpec.measured("lower", "m", "RMS position error against ground truth (no alignment)"),
-        "robot_final_error_m": MetricSpec.measured("lower", "m", "position error at the last scored pose"),
-        "robot_max_error_m": MetricSpec.measured("lower", "m", "largest position error"),
-        "robot_heading_rmse_deg": MetricSpec.measured("lower", "deg", "RMS heading error"),
-        "path_length_m": MetricSpec.measured("none", "m", "length of the estimated path"),
-        "poses_scored": MetricSpec("none", "", "estimates inside the ground truth's time span"),
-    }
+    # the ATE and the heading RMSE are ape_rmse_m and ape_rot_rmse_deg (replay.evaluate)
+    metrics = specs("robot_final_error_m", "robot_max_error_m", "path_length_m", "poses_scored")
 
     def __init__(self, config: OdometryConfig, ctx: ReplayContext) -> None:
         super().__init__(config, ctx)
@@ -76,7 +71,7 @@ class OdometryPipeline(Pipeline):
         gt = np.asarray(self.gt, np.float64).reshape(-1, 3)
         self.estimate.finish()
         self.truth.finish()
-        pos_err, yaw_err = position_errors(t_est, est, t_gt, gt)
+        pos_err, _ = position_errors(t_est, est, t_gt, gt)
         path = float(np.sum(np.hypot(*np.diff(est[:, :2], axis=0).T))) if len(est) > 1 else 0.0
         metrics = {"path_length_m": path, "poses_scored": float(len(pos_err))}
         if not len(pos_err):
@@ -87,8 +82,6 @@ class OdometryPipeline(Pipeline):
                                       t_est[inside], pos_err)
         return {
             **metrics,
-            "robot_ate_rmse_m": rmse(pos_err),
             "robot_final_error_m": float(pos_err[-1]),
             "robot_max_error_m": float(pos_err.max()),
-            "robot_heading_rmse_deg": float(np.degrees(rmse(yaw_err))),
         }

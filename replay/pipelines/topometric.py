@@ -48,7 +48,8 @@ from slamreplay.recorder.messages import (
     OdometryPose,
 )
 from slamreplay.replay import views
-from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext
+from slamreplay.replay.metric_registry import specs
+from slamreplay.replay.pipeline import Pipeline, ReplayContext
 from slamreplay.replay.reader import Envelope
 from slamreplay.replay.topomap_io import save_map
 
@@ -131,20 +132,9 @@ class TopometricPipeline(Pipeline):
         "sample_distance_m": "the paper: an image every 50 cm (section III-A); the default is the same",
         "sample_angle_deg": "the paper: an image every 10 degrees (section III-A); the default is the same",
     }
-    metrics = {
-        "images": MetricSpec("none", "", "images taken (every sample_distance_m or sample_angle_deg)"),
-        "locations": MetricSpec("none", "", "locations (graph nodes)"),
-        "loop_closures": MetricSpec("none", "", "accepted loop closures (without those the robust relaxation "
-                                    "rejected, relax_robust)"),
-        "loop_closures_rejected": MetricSpec("none", "", "validated loop closures the robust relaxation rejected "
-                                             "(only with relax_robust)"),
-        "loop_closure_precision": MetricSpec.measured("higher", "",
-                                                      "correct / accepted loop closures (truth rule in the "
-                                                      "module docstring)"),
-        "loop_closure_recall": MetricSpec.measured("higher", "", "images that closed a loop / images that should have"),
-        "trajectory_ate_rmse_m": MetricSpec.measured("lower", "m", "RMS position error of the relaxed locations"),
-        "odometry_ate_rmse_m": MetricSpec.measured("lower", "m", "RMS position error of odometry at the same images"),
-    }
+    # the relaxed locations' ATE is ape_rmse_m: they are the trajectory (replay.evaluate)
+    metrics = specs("images", "locations", "loop_closures", "loop_closures_rejected", "loop_closure_precision",
+                    "loop_closure_recall", "odometry_ate_rmse_m")
 
     def __init__(self, config: TopometricConfig, ctx: ReplayContext) -> None:
         super().__init__(config, ctx)
@@ -272,7 +262,7 @@ class TopometricPipeline(Pipeline):
         return loop & ~dropped
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """The relaxed locations, each at the time of the image that created it (what ``trajectory_ate_rmse_m``
+        """The relaxed locations, each at the time of the image that created it (what ``ape_rmse_m``
         scores); None before the first location."""
         created = np.flatnonzero(~np.asarray(self.taken_loop, bool))
         if not len(created):
@@ -313,13 +303,9 @@ class TopometricPipeline(Pipeline):
         self.ctx.observer.log("world/trajectory/truth", LineStrips((truth[inside, :2],)))
         metrics.update(self._loop_scores(truth, inside))
         created = np.flatnonzero(~np.asarray(self.taken_loop))
-        poses = self.mapper.poses
-        locs = np.asarray(self.taken_loc)[created]
         ok = inside[created]
-        est = poses[locs[ok], :2]
         odo = np.asarray(self.taken_odom)[created][ok, :2]
         tru = truth[created][ok, :2]
-        metrics["trajectory_ate_rmse_m"] = float(np.sqrt(np.mean(np.sum((est - tru) ** 2, axis=1))))
         metrics["odometry_ate_rmse_m"] = float(np.sqrt(np.mean(np.sum((odo - tru) ** 2, axis=1))))
         self.ctx.observer.log("world/trajectory/odometry", LineStrips((np.asarray(self.taken_odom)[:, :2],)))
         return metrics

@@ -57,6 +57,7 @@ from slamreplay.recorder.messages import (
 from slamreplay.recorder.writer import METADATA_NAME
 from slamreplay.replay import views
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.metric_registry import specs
 from slamreplay.replay.navigate import (
     SOURCE,
     MapLocalizer,
@@ -66,7 +67,7 @@ from slamreplay.replay.navigate import (
     nav_code_fingerprint,
     reference_path,
 )
-from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext
+from slamreplay.replay.pipeline import Pipeline, ReplayContext
 from slamreplay.replay.reader import Envelope
 from slamreplay.replay.trajectory import TrajectoryLog
 
@@ -131,32 +132,9 @@ class TopometricNavPipeline(Pipeline):
                          "closer to the path (docs/topometric.md)",
         "image_every_deg": "the paper: 10 degrees (section V); the same as the default",
     }
-    metrics = {
-        "goal_reached": MetricSpec("higher", "", "1 when the navigator stopped at the goal and the true position "
-                                   "is within goal_radius_m of the goal node"),
-        "goal_distance_m": MetricSpec.measured("lower", "m",
-                                               "true final position to the goal node's true pose (its map "
-                                               "pose when the map has no ground truth; the log says which)"),
-        "cross_track_error_m_mean": MetricSpec.measured("lower", "m",
-                                                        "mean distance of the true position to the true path "
-                                                        "(route nodes at their mapping ground-truth poses; the map "
-                                                        "path when the map has none, as the log says)"),
-        "cross_track_error_m_max": MetricSpec.measured("lower", "m",
-                                                       "largest distance of the true position to the true "
-                                                       "path (map path fallback, as for the mean)"),
-        "cross_track_error_m_final": MetricSpec.measured("lower", "m",
-                                                         "distance of the true final position to the true "
-                                                         "path (map path fallback, as for the mean)"),
-        "visual_corrections": MetricSpec("none", "", "loop closures that reset the position (section IV-B)"),
-        "loop_closure_rate": MetricSpec.measured("higher", "", "images with a loop closure / images"),
-        "images": MetricSpec("none", "", "images processed"),
-        "route_length_m": MetricSpec.measured("none", "m", "length of the planned route through the map's nodes"),
-        "estimate_error_m_mean": MetricSpec.measured("lower", "m", "mean position error of the estimate at the images"),
-        "replay_mismatches": MetricSpec("lower", "", "recorded localizations and commands the replay did not "
-                                        "reproduce exactly"),
-        "code_matches_recording": MetricSpec("none", "", "1 when this replay runs the navigation code that made "
-                                             "the recording (same fingerprint), else 0"),
-    }
+    metrics = specs("goal_reached", "goal_distance_m", "cross_track_error_m_mean", "cross_track_error_m_max",
+                    "cross_track_error_m_final", "visual_corrections", "loop_closure_rate", "images", "route_length_m",
+                    "estimate_error_m_mean", "replay_mismatches", "code_matches_recording")
 
     @classmethod
     def blueprint(cls, bounds: views.Bounds | None = None) -> rrb.Blueprint:

@@ -31,7 +31,8 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
     """A running app (scheduler on) over a fresh data directory."""
-    app = create_app(Settings(data_dir=tmp_path_factory.mktemp("data"), workers=1), executor=InlineExecutor())
+    app = create_app(Settings(allowed_hosts=("testserver",),
+                              data_dir=tmp_path_factory.mktemp("data"), workers=1), executor=InlineExecutor())
     with TestClient(app) as c:
         yield c
 
@@ -39,7 +40,8 @@ def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
 @pytest.fixture
 def idle(tmp_path: Path) -> TestClient:
     """An app whose scheduler never starts (no lifespan): submitted jobs stay queued."""
-    return TestClient(create_app(Settings(data_dir=tmp_path, workers=1), executor=InlineExecutor()))
+    return TestClient(create_app(Settings(allowed_hosts=("testserver",),
+                                          data_dir=tmp_path, workers=1), executor=InlineExecutor()))
 
 
 def upload(client: TestClient, data: bytes, **params: Any) -> Any:
@@ -98,7 +100,7 @@ def test_upload_answers_topics_counts_and_span(client: TestClient, recording: Pa
 def test_same_file_twice_is_one_recording(tmp_path: Path) -> None:
     """201 for a new file; the same bytes again answer 200 with the same body (as documented), one recording stored."""
     data = write_tiny_recording(tmp_path / "a.mcap").read_bytes()
-    c = TestClient(create_app(Settings(data_dir=tmp_path), executor=InlineExecutor()))
+    c = TestClient(create_app(Settings(allowed_hosts=("testserver",), data_dir=tmp_path), executor=InlineExecutor()))
     first, second = upload(c, data, filename="a.mcap"), upload(c, data, filename="b.mcap")
     assert (first.status_code, second.status_code) == (201, 200)
     assert first.json() == second.json() and len(c.get("/recordings").json()) == 1  # the first label stays
@@ -171,7 +173,8 @@ def test_damaged_index_upload_names_record_and_offset(client: TestClient) -> Non
 
 def test_oversized_upload_is_413(tmp_path: Path, recording: Path) -> None:
     """Over SLAMREPLAY_MAX_UPLOAD_BYTES: 413 whether the size is declared or found while streaming."""
-    c = TestClient(create_app(Settings(data_dir=tmp_path, max_upload_bytes=1000), executor=InlineExecutor()))
+    c = TestClient(create_app(Settings(allowed_hosts=("testserver",),
+                                       data_dir=tmp_path, max_upload_bytes=1000), executor=InlineExecutor()))
     data = recording.read_bytes()
     declared = upload(c, data)
     assert declared.status_code == 413 and "limit of 1000 bytes" in declared.json()["detail"]
@@ -209,7 +212,7 @@ def test_job_lifecycle_and_artifacts(client: TestClient, two_jobs: tuple[str, st
     assert job["manifest"]["recording"]["sha256"] == rid and job["attempts"] == 1
     rrd = client.get(f"/jobs/{a}/rrd")
     assert rrd.status_code == 200 and len(rrd.content) > 1000
-    assert client.get(f"/jobs/{a}/metrics").json()["metrics"]["robot_ate_rmse_m"]["better"] == "lower"
+    assert client.get(f"/jobs/{a}/metrics").json()["metrics"]["ape_rmse_m"]["better"] == "lower"
     assert client.get(f"/jobs/{a}/manifest").json()["status"] == "succeeded"
     assert "odometry" in client.get(f"/jobs/{a}/log").text
 
@@ -317,7 +320,7 @@ def test_malformed_ids_never_reach_the_filesystem(client: TestClient, path: str)
 @pytest.fixture(scope="module")
 def guarded(tmp_path_factory: pytest.TempPathFactory) -> TestClient:
     """An app with SLAMREPLAY_TOKEN set (no scheduler)."""
-    settings = Settings(data_dir=tmp_path_factory.mktemp("guarded"), token="s3cret")
+    settings = Settings(allowed_hosts=("testserver",), data_dir=tmp_path_factory.mktemp("guarded"), token="s3cret")
     return TestClient(create_app(settings, executor=InlineExecutor()))
 
 

@@ -46,7 +46,8 @@ class ParkedExecutor:
 @pytest.mark.slow
 def test_no_server_errors(tmp_path: Path) -> None:
     """Positive and negative requests generated for every operation get no 5xx and answers that match the schema."""
-    app = create_app(Settings(data_dir=tmp_path, max_upload_bytes=1 << 20, token=TOKEN), executor=ParkedExecutor())
+    app = create_app(Settings(allowed_hosts=("testserver",),
+                              data_dir=tmp_path, max_upload_bytes=1 << 20, token=TOKEN), executor=ParkedExecutor())
     client = TestClient(app, headers=AUTH)
     rec = write_tiny_recording(tmp_path / "tiny.mcap", n=20)
     rid = client.post("/recordings", content=rec.read_bytes()).json()["id"]

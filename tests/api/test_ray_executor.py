@@ -116,7 +116,8 @@ def test_service_with_the_ray_executor(tmp_path: Path, recording: Path) -> None:
     """`--executor ray` with a file:// storage URL: upload, submit, the job succeeds and its run is served."""
     data_dir, shared = tmp_path / "data", tmp_path / "shared"
     data_dir.mkdir()
-    settings = Settings(data_dir=data_dir, workers=2, executor="ray", storage_url=shared.as_uri())
+    settings = Settings(allowed_hosts=("testserver",),
+                        data_dir=data_dir, workers=2, executor="ray", storage_url=shared.as_uri())
     with TestClient(create_app(settings)) as c:
         rid = c.post("/recordings", content=recording.read_bytes()).json()["id"]
         jid = c.post("/jobs", json={"recording_id": rid, "pipeline": "odometry"}).json()["id"]

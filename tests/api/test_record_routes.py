@@ -21,7 +21,8 @@ from slamreplay.replay.run import sha256_file
 
 @pytest.fixture
 def client(tmp_path: Path) -> TestClient:
-    return TestClient(create_app(Settings(data_dir=tmp_path / "data", workers=1), executor=InlineExecutor()))
+    return TestClient(create_app(Settings(allowed_hosts=("testserver",),
+                                          data_dir=tmp_path / "data", workers=1), executor=InlineExecutor()))
 
 
 def test_importers_lists_every_importer_and_why_the_file_readers_are_not_offered(client: TestClient) -> None:
@@ -58,6 +59,8 @@ def test_a_simulation_made_on_the_server_equals_the_cli_one(client: TestClient, 
     ({"texture": "/etc"}, 422, "texture"),  # a file option is not offered: an unknown key
     ({"out": "/tmp/x.mcap"}, 422, "out"),
     ({"duration_s": -5}, 422, "duration_s must be > 0"),  # the simulator's own check, one line
+    ({"sensor_range_m": True}, 422, "sensor_range_m"),  # JSON true is not the number 1 (the fuzzer's case)
+    ({"seed": 2.5}, 422, "seed"),
 ])
 def test_bad_options_are_422_and_store_nothing(client: TestClient, body: dict, status: int, detail: str) -> None:  # type: ignore[type-arg]
     name = "sim-seabed" if "texture" in body else "sim-landmarks"

@@ -41,7 +41,8 @@ def served(tmp_path: Path) -> Iterator[tuple[TestClient, Path]]:
     """A running app over a fresh data directory, and that directory."""
     data = tmp_path / "data"
     data.mkdir()
-    with TestClient(create_app(Settings(data_dir=data, workers=1), executor=InlineExecutor())) as c:
+    with TestClient(create_app(Settings(allowed_hosts=("testserver",),
+                                        data_dir=data, workers=1), executor=InlineExecutor())) as c:
         yield c, data
 
 
@@ -162,7 +163,7 @@ def test_dropped_upload_leaves_nothing(tmp_path: Path, recording: Path) -> None:
 
 def test_start_up_removes_what_a_killed_server_left(tmp_path: Path, recording: Path) -> None:
     """Temporary uploads and recoveries cut off by a kill are removed at start-up; recordings stay."""
-    settings = Settings(data_dir=tmp_path, workers=1)
+    settings = Settings(allowed_hosts=("testserver",), data_dir=tmp_path, workers=1)
     with TestClient(create_app(settings, executor=InlineExecutor())) as c:
         rid = c.post("/recordings", content=recording.read_bytes()).json()["id"]
     rec_dir = tmp_path / "recordings"
@@ -211,7 +212,7 @@ def test_real_full_disk_tmpfs(tmp_path: Path) -> None:
     if not _can_mount_tmpfs(mnt):
         pytest.skip("cannot mount a tmpfs here (needs root); the simulated ENOSPC tests cover the same paths")
     try:
-        settings = Settings(data_dir=mnt, workers=1)
+        settings = Settings(allowed_hosts=("testserver",), data_dir=mnt, workers=1)
         with TestClient(create_app(settings, executor=InlineExecutor())) as c:
             stored: dict[str, bytes] = {}
             answer = None
@@ -275,7 +276,7 @@ def test_concurrent_uploads_and_jobs_none_lost_none_run_twice(tmp_path: Path) ->
     ex = CountingExecutor()
     data = tmp_path / "data"
     data.mkdir()
-    with TestClient(create_app(Settings(data_dir=data, workers=4), executor=ex)) as c:
+    with TestClient(create_app(Settings(allowed_hosts=("testserver",), data_dir=data, workers=4), executor=ex)) as c:
         with ThreadPoolExecutor(30) as pool:
             codes = list(pool.map(lambda b: c.post("/recordings", content=b).status_code, bodies))
         assert codes == [201] * 30

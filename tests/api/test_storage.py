@@ -95,7 +95,8 @@ def test_service_with_a_storage_url(tmp_path: Path, memory_root: str) -> None:
     data_dir = tmp_path / "data"
     data_dir.mkdir()
     rec = write_tiny_recording(tmp_path / "tiny.mcap")
-    app = create_app(Settings(data_dir=data_dir, storage_url=memory_root), executor=InlineExecutor())
+    app = create_app(Settings(allowed_hosts=("testserver",),
+                              data_dir=data_dir, storage_url=memory_root), executor=InlineExecutor())
     with TestClient(app) as c:
         rid = c.post("/recordings", content=rec.read_bytes()).json()["id"]
         jid = c.post("/jobs", json={"recording_id": rid, "pipeline": "odometry", "seed": 1}).json()["id"]

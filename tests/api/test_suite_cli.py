@@ -33,6 +33,15 @@ def tiny_suite(tmp_path: Path, extra: str = "") -> Path:
     return suite
 
 
+def assert_notes_then_error(code: int, err: str, pattern: str) -> list[str]:
+    """Notes and progress lines (no error, no traceback), then exit 2 with one error line matching pattern;
+    returns the notes."""
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert lines and not any(line.startswith("slamreplay: error") for line in lines[:-1]), err
+    assert_bad_input(code, lines[-1], pattern)
+    return lines[:-1]
+
+
 def manifests(rows: list[dict[str, Any]]) -> dict[str, str]:
     return {r["run_dir"]: json.loads((Path(r["run_dir"]) / "manifest.json").read_text())["run_id"] for r in rows}
 
@@ -46,7 +55,7 @@ def test_suite_run_then_cached(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert len(rows) == 2 * 3 * 2  # (tiny, sim seed 1) x (odometry, dslam default, dslam loose) x seeds 0, 1
     assert all(r["status"] == "succeeded" and not r["cached"] for r in rows), rows
     dslam = next(r for r in rows if r["pipeline"] == "dslam" and r["variant"] == "loose")
-    assert dslam["config"] == {"range_sigma_m": 0.3} and "robot_ate_rmse_m" in dslam["metrics"]
+    assert dslam["config"] == {"range_sigma_m": 0.3} and "ape_rmse_m" in dslam["metrics"]
     for key in ("recording_sha256", "config_hash", "code_version", "wall_s", "peak_rss_mib"):
         assert dslam[key], key
     assert dslam["code_version"] == suite_run.code_version()
@@ -183,6 +192,7 @@ def test_compare_run_directories(tmp_path: Path, capsys: pytest.CaptureFixture[s
     (["compare", "{a}", "rev:HEAD"], r"rev:HEAD needs --suite"),
     (["compare", "{a}", "{a}", "--tolerance", "x"], r"--tolerance expects NAME=VALUE"),
     (["compare", "{a}", "{a}", "--tolerance", "nope=1"], r"unknown metrics: nope"),
+    (["compare", "{a}", "{a}", "--tolerance", "landmark_rmse=1"], r"rmse \(did you mean 'landmark_rmse_m'\?\)"),
     (["compare", "{a}", "{a}", "--suite", "{tmp}/bad.toml"], r"bad\.toml:2: seeds: must be"),
     (["suite", "run", "{tmp}/bad.toml", "--out", "{tmp}/o"], r"bad\.toml:2: seeds: must be"),
     (["suite", "run", "{tmp}/none.toml", "--out", "{tmp}/o"], r"suite file .* does not exist"),
@@ -255,7 +265,12 @@ def test_revision_that_does_not_build(tmp_path: Path, capsys: pytest.CaptureFixt
     (tmp_path / "ok.toml").write_text('[recordings.x]\nsim = "sim-landmarks"\n[pipelines.odometry]\n')
     code, _out, err = run_cli(["suite", "run", str(tmp_path / "ok.toml"), "--out", str(tmp_path / "o"),
                               "--rev", "HEAD"], capsys)
-    assert_bad_input(code, err, r"revision HEAD \([0-9a-f]{10}\) does not build: .*pip install.*failed-build\.log")
+    notes = assert_notes_then_error(code, err, r"revision HEAD \([0-9a-f]{10}\) does not build: .*pip install.*"
+                                                r"failed-build\.log")
+    assert notes[0].startswith("suite ok @HEAD: building the environment of HEAD (") and "build.log" in notes[0]
+    assert [n.split(": ", 1)[1] for n in notes[1:]] == [
+        "git worktree add (a checkout of it)", "python -m venv (its own virtual environment)",
+        "pip install -e (it and its dependencies: about a minute)"]  # said before each slow step
     sha = git(repo, "rev-parse", "HEAD")
     assert not (tmp_path / "cache" / "revs" / sha).exists()
     assert len(git(repo, "worktree", "list").splitlines()) == 1  # the failed worktree is gone
@@ -294,11 +309,15 @@ def test_bisect_finds_the_degrading_commit(tmp_path: Path, capsys: pytest.Captur
     code, out, err = run_cli(["compare", "rev:HEAD~3", "rev:HEAD", "--suite", str(suite), "--markdown", str(report)],
                              capsys)
     assert code == 1 and "landmark_rmse_m" in report.read_text() and "degrade: ranges read 5% long" in out
+    for side in ("compare rev:HEAD~3: ", "compare rev:HEAD: "):  # stderr is not a terminal: plain lines
+        assert f"{side}using the environment of " in err and f"{side}done (1/1 cells, 1 reused in " in err, err
     code, out, err = run_cli(["bisect", "HEAD~3", "HEAD~2", "--suite", str(suite), "--metric", "landmark_rmse_m"],
                              capsys)
-    assert_bad_input(code, err, r"did not regress at HEAD~2")
-    code, out, err = run_cli(["bisect", "HEAD~3", "HEAD", "--suite", str(suite), "--metric", "nope"], capsys)
-    assert_bad_input(code, err, r"--metric 'nope' is not a metric of this suite")
+    assert_notes_then_error(code, err, r"did not regress at HEAD~2")
+    code, out, err = run_cli(["bisect", "HEAD~3", "HEAD", "--suite", str(suite), "--metric", "landmark_rmsee_m"],
+                             capsys)
+    assert_notes_then_error(code, err, r"--metric 'landmark_rmsee_m' is not a metric of this suite "
+                                       r"\(did you mean 'landmark_rmse_m'\?\)")
 
 
 @pytest.mark.ray

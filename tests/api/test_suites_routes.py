@@ -28,7 +28,8 @@ UNKNOWN = "0" * 32
 
 @pytest.fixture(scope="module")
 def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
-    app = create_app(Settings(data_dir=tmp_path_factory.mktemp("data"), workers=1), executor=InlineExecutor())
+    app = create_app(Settings(allowed_hosts=("testserver",),
+                              data_dir=tmp_path_factory.mktemp("data"), workers=1), executor=InlineExecutor())
     with TestClient(app) as c:
         yield c
 
@@ -81,7 +82,7 @@ def test_suite_runs_every_cell_as_a_job(client: TestClient, two_suites: tuple[st
     for c in doc["cells"]:
         job = client.get(f"/jobs/{c['job_id']}").json()
         assert job["status"] == "succeeded" and job["seed"] == c["seed"]
-        assert c["metrics"]["robot_ate_rmse_m"] == pytest.approx(job["metrics"]["robot_ate_rmse_m"])
+        assert c["metrics"]["ape_rmse_m"] == pytest.approx(job["metrics"]["ape_rmse_m"])
     assert two_suites[0] in [s["id"] for s in client.get("/suites").json()]
 
 
@@ -96,7 +97,8 @@ def test_suite_as_json(client: TestClient, recordings: tuple[str, str]) -> None:
 
 def test_queued_jobs_with_the_same_inputs_are_reused(tmp_path: Path) -> None:
     """A second suite over the same inputs while the first is queued adds no job."""
-    idle = TestClient(create_app(Settings(data_dir=tmp_path, workers=1), executor=InlineExecutor()))
+    idle = TestClient(create_app(Settings(allowed_hosts=("testserver",),
+                                          data_dir=tmp_path, workers=1), executor=InlineExecutor()))
     rid = idle.post("/recordings", content=write_tiny_recording(tmp_path / "t.mcap").read_bytes()).json()["id"]
     first = idle.post("/suites", content=suite_toml(rid)).json()
     second = idle.post("/suites", content=suite_toml(rid)).json()
@@ -144,8 +146,8 @@ def test_oversized_and_non_utf8_suites(client: TestClient) -> None:
 def test_compare_suites_finds_the_regression(client: TestClient, two_suites: tuple[str, str]) -> None:
     """8x the drift: robot ATE worse on both seeds, a regression; A against itself: none."""
     doc = client.get("/compare", params={"a": two_suites[0], "b": two_suites[1]}).json()
-    assert "tiny/odometry/default: robot_ate_rmse_m" in doc["regressions"]
-    ate = next(r for r in doc["results"] if r["metric"] == "robot_ate_rmse_m")
+    assert "tiny/odometry/default: ape_rmse_m" in doc["regressions"]
+    ate = next(r for r in doc["results"] if r["metric"] == "ape_rmse_m")
     assert ate["verdict"] == "regression" and ate["b_mean"] > 2 * ate["a_mean"] and len(ate["a"]) == 2
     same = client.get("/compare", params={"a": two_suites[0], "b": two_suites[0]}).json()
     assert same["regressions"] == [] and {r["verdict"] for r in same["results"]} == {"unchanged"}
@@ -158,7 +160,7 @@ def test_compare_html_by_accept_or_format(client: TestClient, two_suites: tuple[
                    {"params": {"a": a, "b": b}, "headers": {"accept": "text/html"}}):
         r = client.get("/compare", **kwargs)  # type: ignore[arg-type]
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
-        row = next(line for line in r.text.splitlines() if "robot_ate_rmse_m" in line and "<tr" in line)
+        row = next(line for line in r.text.splitlines() if "ape_rmse_m" in line and "<tr" in line)
         assert "class='regression'" in row
         assert "/ui/jobs/" in row and "/viewer/?url=" in row and "%2Fui%2Fshared%2F" in row and "%2Fdiff%2F" in row
     assert client.get("/compare", params={"a": a, "b": b, "format": "json"}).headers["content-type"].startswith(
@@ -171,7 +173,7 @@ def test_compare_jobs_and_errors(client: TestClient, two_suites: tuple[str, str]
     sa = client.get(f"/suites/{two_suites[0]}").json()["cells"][0]["job_id"]
     sb = client.get(f"/suites/{two_suites[1]}").json()["cells"][0]["job_id"]
     doc = client.get("/compare", params={"a": sa, "b": sb}).json()
-    assert any(r.endswith("robot_ate_rmse_m") for r in doc["regressions"])
+    assert any(r.endswith("ape_rmse_m") for r in doc["regressions"])
     r = client.get("/compare", params={"a": UNKNOWN, "b": sb})
     assert r.status_code == 404 and "neither a suite nor a job" in r.json()["detail"]
     r = client.get("/compare", params={"a": "../x", "b": sb})
@@ -195,7 +197,7 @@ def test_page_lists_recordings_jobs_and_suites(client: TestClient, two_suites: t
                    f"/ui/suites/{two_suites[0]}", 'src="/static/web.js"'):
         assert marker in r.text
     suite = client.get(f"/ui/suites/{two_suites[0]}")
-    assert suite.status_code == 200 and "robot_ate_rmse_m" in suite.text and 'id="suite-compare"' in suite.text
+    assert suite.status_code == 200 and "ape_rmse_m" in suite.text and 'id="suite-compare"' in suite.text
     part = client.get("/ui/part/lists", params={"part": "jobs"})
     assert part.status_code == 200 and 'id="jobs-table"' in part.text
 
@@ -212,7 +214,7 @@ def test_page_upload_job_and_compare(client: TestClient, tmp_path: Path, two_sui
     job_id = r.headers["location"].rsplit("/", 1)[1]
     assert wait_for(client, job_id)["status"] == "succeeded"
     page = client.get(f"/ui/jobs/{job_id}").text
-    assert 'id="metrics-table"' in page and "robot_ate_rmse_m" in page
+    assert 'id="metrics-table"' in page and "ape_rmse_m" in page
     key = rrd_key(None, f"/jobs/{job_id}/run.rrd")
     assert f"/viewer/?url=http%3A%2F%2Ftestserver%2Fui%2Fshared%2F{key}%2Fjobs%2F{job_id}%2Frun.rrd" in page
     for url in (f"/ui/jobs/{job_id}/run.rrd", f"/ui/shared/{key}/jobs/{job_id}/run.rrd"):
@@ -261,7 +263,8 @@ def test_viewer_is_served_from_rerun_sdk_files(client: TestClient) -> None:
 
 
 def test_token_page_asks_for_it_and_api_keeps_requiring_it(tmp_path: Path) -> None:
-    guarded = TestClient(create_app(Settings(data_dir=tmp_path, token="s3cret"), executor=InlineExecutor()))
+    guarded = TestClient(create_app(Settings(allowed_hosts=("testserver",),
+                                             data_dir=tmp_path, token="s3cret"), executor=InlineExecutor()))
     r = guarded.get("/", follow_redirects=False)
     assert r.status_code == 303 and r.headers["location"] == "/login?next=%2F"
     assert "This server needs its token" in guarded.get("/login").text

@@ -24,7 +24,8 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture
 def client(tmp_path: Path) -> TestClient:
-    return TestClient(create_app(Settings(data_dir=tmp_path, workers=1, max_upload_bytes=200_000),
+    return TestClient(create_app(Settings(allowed_hosts=("testserver",),
+                                          data_dir=tmp_path, workers=1, max_upload_bytes=200_000),
                                  executor=InlineExecutor()))
 
 

@@ -101,9 +101,9 @@ def test_plugin_runs_and_diffs_against_odometry(installed: Path, tmp_path: Path,
     odo, cv, loose = metrics(tmp_path / "odo"), metrics(tmp_path / "cv"), metrics(tmp_path / "loose")
     assert cv["speed_rmse_mps"] < 0.8 * cv["odom_speed_rmse_mps"]
     assert cv["yaw_rate_rmse_degps"] < 0.8 * cv["odom_yaw_rate_rmse_degps"]
-    assert 0.8 * odo["robot_ate_rmse_m"] < cv["robot_ate_rmse_m"] < 1.25 * odo["robot_ate_rmse_m"]
+    assert 0.8 * odo["ape_rmse_m"] < cv["ape_rmse_m"] < 1.25 * odo["ape_rmse_m"]
     # a filter that trusts odometry entirely is dead reckoning: the same trajectory, to a millimetre
-    assert abs(loose["robot_ate_rmse_m"] - odo["robot_ate_rmse_m"]) < 1e-3
+    assert abs(loose["ape_rmse_m"] - odo["ape_rmse_m"]) < 1e-3
     manifest = json.loads((tmp_path / "cv" / "manifest.json").read_text())
     assert manifest["config_sources"]["translation_sigma_per_sqrt_m"] == "recording"
     assert manifest["pipeline_origin"]["distribution"] == "slamreplay-my-pipeline"
@@ -113,8 +113,8 @@ def test_plugin_runs_and_diffs_against_odometry(installed: Path, tmp_path: Path,
     diff = json.loads(capsys.readouterr().out)
     changes = {c["field"]: c for c in diff["changes"]}
     assert changes["pipeline_origin.distribution"]["b"] == "slamreplay-my-pipeline"
-    ate = next(m for m in diff["metrics"] if m["name"] == "robot_ate_rmse_m")
-    assert ate["a"] == pytest.approx(odo["robot_ate_rmse_m"]) and ate["b"] == pytest.approx(cv["robot_ate_rmse_m"])
+    ate = next(m for m in diff["metrics"] if m["name"] == "ape_rmse_m")
+    assert ate["a"] == pytest.approx(odo["ape_rmse_m"]) and ate["b"] == pytest.approx(cv["ape_rmse_m"])
 
 
 def test_plugin_bad_config_is_one_line(installed: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -35,8 +35,10 @@ from mcap.writer import CompressionType, Writer
 REPO = Path(__file__).resolve().parents[2]
 MAGIC = b"\x89MCAP0\r\n"
 KINDS = ("landmarks", "seabed", "corridor", "images", "ros2")
-# The pipeline `run` uses per kind: one that decodes the kind's characteristic messages.
-RUN_PIPELINE = {"landmarks": "dslam", "seabed": "ifmi", "corridor": "ifmi", "images": "ifmi", "ros2": "odometry"}
+# The pipeline `run` uses per kind: one that decodes the kind's characteristic messages. ``landmarks30`` is the
+# outsider's base of issue 26 (a 30 s ``sim-landmarks`` recording with its defaults, ~50 KB), not in KINDS.
+RUN_PIPELINE = {"landmarks": "dslam", "seabed": "ifmi", "corridor": "ifmi", "images": "ifmi", "ros2": "odometry",
+                "landmarks30": "odometry"}
 
 
 def make_base(kind: str, folder: Path) -> Path:
@@ -49,6 +51,8 @@ def make_base(kind: str, folder: Path) -> Path:
         return out
     if kind == "landmarks":
         argv = ["record", "sim-landmarks", "--duration-s", "8", "--landmarks", "16", "--seed", "1"]
+    elif kind == "landmarks30":
+        argv = ["record", "sim-landmarks", "--duration-s", "30"]  # as an outsider types it: the default seed
     elif kind == "seabed":
         argv = ["record", "sim-seabed", "--legs", "1", "--leg-length-m", "1", "--image-px", "64", "--seed", "1"]
     elif kind == "corridor":
@@ -137,6 +141,8 @@ def _flip(buf: bytearray, rng: np.random.Generator, lo: int, hi: int, n: int) ->
     return done
 
 
+# Huge little-endian lengths an outsider writes at any offset (issue 26): near 2**64, 2**40, past 2**63...
+HUGE = (0xFFFF_FFFF_FFFF_FFF0, 1 << 40, 1 << 63, (1 << 64) - 1, 1 << 32, 0xFFFF_FFFF, 0x7FFF_FFFF, 1 << 48)
 LENGTHS = (0, 1, 7, 0xFF, 0xFFFF, 0x7FFF_FFFF, 0xFFFF_FFFF, 1 << 32, 1 << 40, 1 << 62, (1 << 63) - 1, (1 << 64) - 1)
 
 
@@ -179,6 +185,17 @@ def _byte_op(data: bytes, rng: np.random.Generator, op: str, records: list[tuple
             buf[to:to] = span
             how = "insert"
         return Mutant(bytes(buf), {"op": op, "from": [a, b], "to": to, "how": how})
+    if op == "overwrite8":  # 8 random bytes over whatever is at a random offset
+        at = int(rng.integers(0, max(1, n - 8)))
+        junk = rng.integers(0, 256, 8, dtype=np.uint8).tobytes()
+        buf[at:at + 8] = junk
+        return Mutant(bytes(buf[:n]), {"op": op, "at": at, "bytes": junk.hex()})
+    if op == "huge_length":  # a huge u64 (or u32) length at a random offset, record boundary or not
+        value = int(HUGE[int(rng.integers(0, len(HUGE)))])
+        width = 8 if value > 0xFFFF_FFFF or rng.random() < 0.5 else 4
+        at = int(rng.integers(0, max(1, n - width)))
+        struct.pack_into("<Q" if width == 8 else "<I", buf, at, value)
+        return Mutant(bytes(buf), {"op": op, "at": at, "value": value, "width": width})
     if op == "drop_record":
         at, opcode, total = records[int(rng.integers(0, len(records)))]
         del buf[at:at + total]
@@ -201,6 +218,8 @@ BYTE_OPS = ("bitflip", "zero_run", "truncate", "record_length", "field_length", 
             "random_body", "summary")
 CONTENT_OPS = ("schema_data", "message_data", "raw_inner")
 OPS = BYTE_OPS + CONTENT_OPS
+# The five kinds of the outsider's campaign of issue 26; only drawn when ``mutant(..., op=...)`` names one.
+OUTSIDER_OPS = ("splice", "zero_run", "truncate", "overwrite8", "huge_length")
 
 
 def mutant(base: bytes, seed: int, index: int, op: str | None = None) -> Mutant:
@@ -208,7 +227,7 @@ def mutant(base: bytes, seed: int, index: int, op: str | None = None) -> Mutant:
     rng = np.random.default_rng([seed, index])
     chosen = OPS[int(rng.integers(0, len(OPS)))]
     op = op or chosen
-    if op in BYTE_OPS:
+    if op in BYTE_OPS or op in OUTSIDER_OPS:
         m = _byte_op(base, rng, op, top_level_records(base))
     elif op == "schema_data":
         picks: dict[int, list[list[int]]] = {}

@@ -178,8 +178,8 @@ def _worker(conn: mpc.Connection, bases: dict[str, str], work: str, memory_headr
         task = conn.recv()
         if task is None:
             return
-        kind, seed, index, time_limit_s, keep = task
-        m = mutant(data[kind], seed, index)
+        kind, seed, index, op, time_limit_s, keep = task
+        m = mutant(data[kind], seed, index, op)
         path = root / f"{kind}-{seed}-{index}.mcap"
         path.write_bytes(m.data)
         t0 = time.perf_counter()
@@ -202,21 +202,23 @@ class Campaign:
 
     results: list[dict[str, Any]] = field(default_factory=list)
 
-    def counts(self) -> dict[tuple[str, str], Counter[str]]:
+    def counts(self, by: str = "kind") -> dict[tuple[str, str], Counter[str]]:
+        """Outcomes per (kind, command), or per (operator, command) with ``by="op"``."""
         table: dict[tuple[str, str], Counter[str]] = {}
         for r in self.results:
+            key = r["kind"] if by == "kind" else str(r["recipe"].get("op", "?"))
             for command, entry in r["results"].items():
-                table.setdefault((r["kind"], command), Counter())[entry["outcome"]] += 1
+                table.setdefault((key, command), Counter())[entry["outcome"]] += 1
         return table
 
     def findings(self) -> list[dict[str, Any]]:
         """Mutants with an internal error, a hang or a wrong recover."""
         return [r for r in self.results if any(e["outcome"] not in ("ok", "clean") for e in r["results"].values())]
 
-    def table(self) -> str:
-        rows = [f"| kind | command | mutants | {' | '.join(OUTCOMES)} |", "|" + " --- |" * (3 + len(OUTCOMES))]
+    def table(self, by: str = "kind") -> str:
+        rows = [f"| {by} | command | mutants | {' | '.join(OUTCOMES)} |", "|" + " --- |" * (3 + len(OUTCOMES))]
         totals: dict[str, Counter[str]] = {}
-        for (kind, command), c in sorted(self.counts().items()):
+        for (kind, command), c in sorted(self.counts(by).items()):
             rows.append(f"| {kind} | {command} | {sum(c.values())} | " + " | ".join(str(c[o]) for o in OUTCOMES) + " |")
             totals.setdefault(command, Counter()).update(c)
         for command, c in sorted(totals.items()):
@@ -225,15 +227,15 @@ class Campaign:
         return "\n".join(rows)
 
 
-def run_campaign(bases: dict[str, Path], tasks: list[tuple[str, int, int]], work: Path, *, workers: int = 2,
+def run_campaign(bases: dict[str, Path], tasks: list[tuple[Any, ...]], work: Path, *, workers: int = 2,
                  time_limit_s: int = 30, memory_headroom: int = 2 << 30, keep: Path | None = None,
                  progress: Any = None) -> Campaign:
-    """Run (kind, seed, index) mutants over ``workers`` processes; a worker that stops answering
-    within ``2 * time_limit_s + 10`` seconds per mutant is killed and replaced (the mutant counts
-    as a hang), one that dies counts as an internal error."""
+    """Run (kind, seed, index) or (kind, seed, index, operator) mutants over ``workers`` processes; a worker
+    that stops answering within ``2 * time_limit_s + 10`` seconds per mutant is killed and replaced (the
+    mutant counts as a hang), one that dies counts as an internal error."""
     ctx = mp.get_context("spawn")
     campaign = Campaign()
-    pending = list(reversed(tasks))
+    pending = [(*t, None)[:4] for t in reversed(tasks)]  # (kind, seed, index, forced operator or None)
     slots: list[dict[str, Any]] = []
 
     def spawn(n: int) -> dict[str, Any]:
@@ -248,8 +250,9 @@ def run_campaign(bases: dict[str, Path], tasks: list[tuple[str, int, int]], work
         return {"n": n, "proc": proc, "conn": parent, "task": None, "since": 0.0, "done": 0}
 
     def dead(slot: dict[str, Any], outcome: str, why: str) -> None:
-        kind, seed, index = slot["task"]
-        campaign.results.append({"kind": kind, "seed": seed, "index": index, "recipe": {}, "size": 0, "seconds": 0,
+        kind, seed, index, op = slot["task"]
+        campaign.results.append({"kind": kind, "seed": seed, "index": index, "recipe": {"op": op} if op else {},
+                                 "size": 0, "seconds": 0,
                                  "results": {c: {"outcome": outcome, "exit": None, "error": why} for c in COMMANDS}})
         slot["proc"].kill()
         slot["proc"].join()

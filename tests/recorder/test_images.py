@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import struct
+import zlib
 from pathlib import Path
 
 import cv2
@@ -39,3 +41,15 @@ def test_errors(tmp_path: Path) -> None:
     with pytest.raises(RecorderError, match="every frame must have one size"):
         import_images(tmp_path, tmp_path / "o.mcap")
     assert main(["record", "images", str(tmp_path / "none"), "--out", str(tmp_path / "p.mcap"), "-q"]) == 2
+
+
+def test_a_frame_claiming_40000_squared_pixels_is_refused_unread(tmp_path: Path) -> None:
+    """A PNG whose IHDR claims 40,000 x 40,000 pixels is refused from its header, before OpenCV decodes it."""
+    _, buf = cv2.imencode(".png", np.zeros((3, 4), np.uint8))
+    png = bytearray(buf.tobytes())
+    struct.pack_into(">II", png, 16, 40_000, 40_000)
+    struct.pack_into(">I", png, 29, zlib.crc32(bytes(png[12:29])))
+    (tmp_path / "frame_000.png").write_bytes(bytes(png))
+    with pytest.raises(RecorderError, match=r"^frame_000.png: the png header claims 40,000 x 40,000 pixels; "
+                                            r"slamreplay decodes at most 33,554,432 pixels per image"):
+        import_images(tmp_path, tmp_path / "o.mcap")

@@ -265,4 +265,4 @@ def test_all_robots_in_one_recording(tmp_path: Path) -> None:
     res = run_recording(tmp_path / "all.mcap", "odometry", tmp_path / "r3", robot="3")
     assert res.manifest["recording"]["robot"] == "3"
     assert res.manifest["recording"]["topic_map"]["/robot3/odom"] == TOPIC_ODOM
-    assert res.metrics["robot_ate_rmse_m"] < 1.0  # robot 3's own ground truth, not robot 1's (2 m away at the end)
+    assert res.metrics["ape_rmse_m"] < 1.0  # robot 3's own ground truth, not robot 1's (2 m away at the end)

@@ -12,6 +12,7 @@ from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.options import (
     add_dataclass_options,
     dataclass_from_options,
+    did_you_mean,
     parse_value,
     typed_fields,
 )
@@ -71,3 +72,25 @@ def test_typed_fields_names_the_field() -> None:
         typed_fields(Cfg, {"laps": "two"})
     with pytest.raises(ValueError, match="unknown field 'lap'"):
         typed_fields(Cfg, {"lap": 2})
+
+
+def test_help_lines_give_the_default_and_survive_a_percent_sign() -> None:
+    """A None default is left to the help text; a % in it does not break argparse's formatting."""
+
+    @dataclass(frozen=True)
+    class Pct:
+        gain: float = field(default=0.01, metadata={"help": "scale error (0.01: 1 % fast)"})
+        area_m: float | None = field(default=None, metadata={"help": "side, metres (default: from the grid)"})
+
+    parser = argparse.ArgumentParser(prog="record x")
+    add_dataclass_options(parser, Pct)
+    text = " ".join(parser.format_help().split())
+    assert "scale error (0.01: 1 % fast) (default: 0.01)" in text
+    assert "side, metres (default: from the grid)" in text and "(default: None)" not in text
+
+
+def test_did_you_mean_names_the_closest_or_nothing() -> None:
+    assert did_you_mean("rang_sigma_m", ["range_sigma_m", "bearing_sigma_deg"], quote=True) == \
+        " (did you mean 'range_sigma_m'?)"
+    assert did_you_mean("--sed", ["--seed", "--out"]) == " (did you mean --seed?)"
+    assert did_you_mean("zzz", ["range_sigma_m"]) == ""

@@ -134,7 +134,30 @@ def test_pair_rrds_are_written_once_and_linked(tmp_path: Path) -> None:
     write_reports(c, tmp_path / "out" / "r.html", tmp_path / "out" / "s.md", pair_file_links(files))
     html = (tmp_path / "out" / "r.html").read_text()
     assert 'href="../rrd/a0--b0.rrd"' in html and ">A/B r1s0</a>" in html and "a2--b2" not in html
-    assert "[A/B r2s0](../rrd/a1--b1.rrd)" in (tmp_path / "out" / "s.md").read_text()
+    # a CI summary links only what lies under its own folder: ../rrd would be dead where it is read
+    assert "../rrd" not in (tmp_path / "out" / "s.md").read_text()
+    write_reports(c, None, tmp_path / "s.md", pair_file_links(files))
+    assert "[A/B r2s0](rrd/a1--b1.rrd)" in (tmp_path / "s.md").read_text()
+    write_reports(c, None, tmp_path / "s.md", pair_file_links(files), base_url="https://ci.example/job/7/")
+    assert "[A/B r2s0](https://ci.example/job/7/rrd/a1--b1.rrd)" in (tmp_path / "s.md").read_text()
+
+
+def test_markdown_summary_lists_regressions_first_and_folds_the_unchanged() -> None:
+    """Regressions lead the summary's table; unchanged rows sit in a closed <details> after it."""
+    from slamreplay.replay.report import render_markdown
+
+    def two(rmse: list[float], ape: list[float], code: str) -> list[dict[str, Any]]:
+        out = rows(rmse, code=code)
+        for r, x in zip(out, rows(ape, metric="ape_rmse_m", code=code), strict=True):
+            for key in ("metrics", "better", "tolerance", "units"):
+                r[key].update(x[key])
+        return out
+
+    a, b = two(A, A, "a"), two(A, [0.075, 0.121, 0.089], "b")
+    text = render_markdown(compare(side("A", a), side("B", b)), Path("/nowhere"))
+    table = [line for line in text.splitlines() if line.startswith("| landmarks")]
+    assert "regression" in table[0] and "ape_rmse_m" in table[0]
+    assert "unchanged" in table[1] and text.index("<details>") < text.index(table[1])
 
 
 def test_variants_table_puts_each_variants_seeds_side_by_side() -> None:

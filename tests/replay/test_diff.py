@@ -38,11 +38,11 @@ def test_regression_is_found_and_explained(two_runs: tuple[Path, Path, Path]) ->
     """More drift: ATE is worse, the recording change is named, and the rrd differs."""
     a, b, _ = two_runs
     d = diff_runs(a, b)
-    assert "robot_ate_rmse_m" in d.worse and "path_length_m" not in d.worse
+    assert "ape_rmse_m" in d.worse and "path_length_m" not in d.worse
     assert any(c["field"] == "recording.sha256" for c in d.changes)
     assert d.rrd_equal is False
     back = diff_runs(b, a, compare_rrd=False)
-    assert back.worse == [] and {m.name for m in back.metrics if m.verdict == "better"} >= {"robot_ate_rmse_m"}
+    assert back.worse == [] and {m.name for m in back.metrics if m.verdict == "better"} >= {"ape_rmse_m"}
     table = format_table(d)
     assert "WORSE" in table and "recording.sha256" in table
     json.dumps(d.to_json())
@@ -53,8 +53,8 @@ def test_tolerances(two_runs: tuple[Path, Path, Path]) -> None:
     a, b, _ = two_runs
     lenient = diff_runs(a, b, parse_tolerances(["*=1000%"]), compare_rrd=False)
     assert lenient.worse == []
-    absolute = diff_runs(a, b, {"robot_ate_rmse_m": "100"}, compare_rrd=False)
-    assert "robot_ate_rmse_m" not in absolute.worse and "robot_final_error_m" in absolute.worse
+    absolute = diff_runs(a, b, {"ape_rmse_m": "100"}, compare_rrd=False)
+    assert "ape_rmse_m" not in absolute.worse and "robot_final_error_m" in absolute.worse
     with pytest.raises(ReplayError, match="unknown metrics: nope"):
         diff_runs(a, b, {"nope": "1"})
     with pytest.raises(ReplayError, match="NAME=VALUE"):

@@ -58,7 +58,7 @@ def test_numerical_noise_passes_the_gate(tmp_path: Path, capsys: pytest.CaptureF
     ma = json.loads((a / "metrics.json").read_text())["metrics"]
     mb = json.loads((b / "metrics.json").read_text())["metrics"]
     assert any(ma[k]["value"] != mb[k]["value"] for k in ma), "the perturbation should reach the metrics"
-    assert ma["robot_ate_rmse_m"]["rel_tolerance"] == MEASURED_REL_TOLERANCE
+    assert ma["ape_rmse_m"]["rel_tolerance"] == MEASURED_REL_TOLERANCE
     assert main(["diff", str(a), str(b)]) == 0
     out = capsys.readouterr().out
     assert "WORSE" not in out and "0 metric(s) worse" in out

@@ -32,8 +32,8 @@ def test_shared_map_against_single_robot_runs(multi: Path, tmp_path: Path) -> No
     assert 0.1 < m["landmark_nees_mean"] < 6.0
     for k in STARTS:
         assert m[f"robot{k}_scans"] == 200
-        assert 0.005 < m[f"robot{k}_ate_rmse_m"] < 0.15
-    assert m["robot_ate_rmse_m"] < 0.15 and m["info_nnz_blocks_per_landmark"] < 20
+        assert 0.005 < m[f"robot{k}_ape_rmse_m"] < 0.15
+    assert m["ape_rmse_m"] < 0.15 and m["info_nnz_blocks_per_landmark"] < 20
     first_only = run_recording(multi, "dslam-multi", tmp_path / "first", preset="paper").metrics
     assert max(s["landmarks_mapped"] for s in singles) < first_only["landmarks_mapped"] < m["landmarks_mapped"]
     manifest = json.loads((res.run_dir / "manifest.json").read_text())

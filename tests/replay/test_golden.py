@@ -26,7 +26,7 @@ from slamreplay.replay.reader import RecordingReader
 
 GOLDEN_DIR = Path(__file__).resolve().parents[1] / "golden"
 EVENTS = GOLDEN_DIR / "odometry_tiny.json"
-PIPELINES = ("odometry", "dslam", "ekfslam", "ifmi", "topometric", "topometric-nav", "dslam-multi")
+PIPELINES = ("odometry", "dslam", "ekfslam", "slsjf", "ifmi", "topometric", "topometric-nav", "dslam-multi")
 UPDATE = "pytest tests/replay/test_golden.py --update-golden"
 
 

@@ -42,7 +42,7 @@ def test_seeded_simulation_bounds(sim: Path, tmp_path: Path, pipeline: str) -> N
     m = res.metrics
     assert m["landmarks_true"] == 196 and m["landmarks_mapped"] >= 20 and m["false_landmarks"] == 0
     assert m["landmark_rmse_m"] < 0.08 and m["landmark_nees_mean"] <= 2.5
-    assert m["robot_ate_rmse_m"] < 0.1 and m["robot_nees_mean"] <= 3.5 and m["steps"] == 451
+    assert m["ape_rmse_m"] < 0.1 and m["robot_nees_mean"] <= 3.5 and m["steps"] == 451
     assert "data_association_errors" not in m  # known ids: not applicable
     if pipeline == "dslam":
         assert 1 < m["info_nnz_blocks_per_landmark"] < 20
@@ -134,7 +134,7 @@ def test_mrclam_robot1(shared_data: Path, tmp_path: Path) -> None:
     assert run.manifest["config_sources"]["range_sigma_m"] == "recording"
     assert 0.08 < run.manifest["config"]["range_sigma_m"] < 0.13  # README of the data: robust std 0.084, bias 0.038
     assert d["false_landmarks"] == 0 and d["landmarks_mapped"] >= 5  # a camera seeing 1-2 landmarks starves D-SLAM
-    assert d["robot_ate_rmse_m"] < 1.0
+    assert d["ape_rmse_m"] < 1.0
 
 
 def test_paper_preset_turns_every_extra_off() -> None:

@@ -76,7 +76,7 @@ def test_user_plugin_is_found_and_runs(plugins: Path, tmp_path: Path) -> None:
                                            "entry_point": "fakeplug.good:Good"}
     good = json.loads((tmp_path / "g" / "metrics.json").read_text())["metrics"]
     odom = json.loads((tmp_path / "o" / "metrics.json").read_text())["metrics"]
-    assert good["robot_ate_rmse_m"] == odom["robot_ate_rmse_m"]
+    assert good["ape_rmse_m"] == odom["ape_rmse_m"]
 
 
 @pytest.mark.parametrize(("name", "reason"), [

@@ -32,8 +32,8 @@ def test_dead_reckoning_known_answer(tmp_path: Path) -> None:
     m = result.metrics
     assert m["robot_final_error_m"] == pytest.approx(0.5, abs=1e-9)
     errors = 0.005 * np.arange(101)
-    assert m["robot_ate_rmse_m"] == pytest.approx(np.sqrt(np.mean(errors**2)), abs=1e-9)
-    assert m["robot_heading_rmse_deg"] == pytest.approx(0.0, abs=1e-9)
+    assert m["ape_rmse_m"] == pytest.approx(np.sqrt(np.mean(errors**2)), abs=1e-9)
+    assert m["ape_rot_rmse_deg"] == pytest.approx(0.0, abs=1e-9)
     assert m["path_length_m"] == pytest.approx(10.5, abs=1e-9) and m["poses_scored"] == 101
 
 
@@ -81,7 +81,7 @@ def test_run_directory_contents(tiny_recording: Path, tmp_path: Path) -> None:
     assert {"rerun-sdk", "numpy", "scipy", "opencv-contrib-python-headless"} <= set(man["libraries"])
     assert {"wall_s", "cpu_s", "replay_s", "started_at"} <= set(man["timings"])
     metrics = json.loads((res.run_dir / "metrics.json").read_text())
-    assert metrics["metrics"]["robot_ate_rmse_m"]["better"] == "lower"
+    assert metrics["metrics"]["ape_rmse_m"]["better"] == "lower"
 
 
 def test_bad_input_writes_nothing_or_a_failed_manifest(tiny_recording: Path, tmp_path: Path) -> None:
@@ -173,7 +173,7 @@ def test_window_and_no_ground_truth(tmp_path: Path) -> None:
             rec.write("/odom", OdometryPose(k + 1, k, 0, 0))
     res = run_recording(no_gt, "odometry", tmp_path / "n")
     doc = json.loads((res.run_dir / "metrics.json").read_text())
-    assert "robot_ate_rmse_m" not in doc["metrics"] and doc["metrics"]["path_length_m"]["value"] == 2.0
+    assert "ape_rmse_m" not in doc["metrics"] and doc["metrics"]["path_length_m"]["value"] == 2.0
 
 
 def test_ros2_bag_replayed(tmp_path: Path) -> None:

@@ -89,7 +89,8 @@ def _a_dslam_float_key() -> str:
     (GOOD.replace("seeds = [1, 2]  ", "seeds = [-1]    "), 1, r"seeds: must be a non-empty list of integers"),
     (GOOD + "[pipelines.odometry.extra]\n", 12, r"pipelines\.odometry\.extra: unknown key"),
     (GOOD.replace("tight = { range_gate_sigma = 2.0 }", 'tight = { preset = "papr" }'), 11,
-     r"pipelines\.dslam\.variants\.tight\.preset: pipeline dslam has no preset 'papr'; its presets: paper"),
+     r"pipelines\.dslam\.variants\.tight\.preset: pipeline dslam has no preset 'papr' \(did you mean 'paper'\?\); "
+     r"its presets: paper"),
     (GOOD.replace("[pipelines.odometry]", '[pipelines.odometry]\npreset = "fast"'), 9,
      r"pipelines\.odometry\.preset: pipeline odometry has no preset 'fast'; its presets: "),
 ])

@@ -46,7 +46,7 @@ def test_pipeline_maps_closes_loops_and_is_deterministic(runs: tuple[Path, Path]
     assert m["loop_closures"] >= 10 and m["locations"] < m["images"]
     assert m["loop_closure_precision"] == 1.0
     assert m["loop_closure_recall"] >= 0.8  # 0.878 measured (65 loop closures)
-    assert m["trajectory_ate_rmse_m"] < m["odometry_ate_rmse_m"]  # 0.218 m against 0.243 m: little drift on 68 m
+    assert m["ape_rmse_m"] < m["odometry_ate_rmse_m"]  # 0.218 m against 0.243 m: little drift on 68 m
     assert (a / "metrics.json").read_bytes() == (b / "metrics.json").read_bytes()
     manifest = json.loads((a / "manifest.json").read_text())
     assert manifest["timings"]["pipeline_image_mean_s"] > 0

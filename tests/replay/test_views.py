@@ -16,7 +16,7 @@ from slamreplay.replay.pipeline import get_pipeline
 from tests.replay.view_runs import blueprint_views, matches, rrd_entities
 
 pytestmark = pytest.mark.slow
-PIPELINES = ("odometry", "dslam", "ekfslam", "ifmi", "topometric", "topometric-nav")
+PIPELINES = ("odometry", "dslam", "ekfslam", "slsjf", "ifmi", "topometric", "topometric-nav")
 
 
 @pytest.fixture(scope="module")

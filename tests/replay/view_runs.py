@@ -26,7 +26,7 @@ def make_runs(out: Path) -> dict[str, Path]:
     out.mkdir(parents=True, exist_ok=True)
     runs: dict[str, Path] = {}
     simulate_landmarks(out / "lm.mcap", LandmarkSimConfig(duration_s=60.0), seed=1)
-    for name in ("odometry", "dslam", "ekfslam"):
+    for name in ("odometry", "dslam", "ekfslam", "slsjf"):
         runs[name] = run_recording(out / "lm.mcap", name, out / name, seed=1).run_dir
     simulate_seabed(out / "sea.mcap", SeabedSimConfig(legs=3, leg_length_m=3.0), seed=2)
     runs["ifmi"] = run_recording(out / "sea.mcap", "ifmi", out / "ifmi").run_dir

@@ -61,7 +61,7 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     return make_runs(tmp_path_factory.mktemp("render"))
 
 
-@pytest.mark.parametrize("pipeline", ["odometry", "dslam", "ekfslam", "ifmi", "topometric", "topometric-nav"])
+@pytest.mark.parametrize("pipeline", ["odometry", "dslam", "ekfslam", "slsjf", "ifmi", "topometric", "topometric-nav"])
 def test_no_view_is_blank_at_the_end(runs: dict[str, Path], pipeline: str, tmp_path: Path) -> None:
     """Every view of every tab draws something (more than 0.3 % of its pixels off its background)."""
     shots = snapshot(runs[pipeline], tmp_path, size=(1280, 720), per_view=True)

@@ -104,7 +104,7 @@ def upload_and_run(page: Any, server: str, recording: Path) -> str:
     # No reload: web.js swaps the live block until the job has ended.
     page.wait_for_function("document.querySelector('#job-status').textContent.trim() === 'succeeded'",
                            timeout=90_000)
-    assert "robot_ate_rmse_m" in page.inner_text("#metrics-table")
+    assert "ape_rmse_m" in page.inner_text("#metrics-table")
     return job_id
 
 
@@ -132,7 +132,7 @@ def test_upload_run_compare_and_view(page: Any, server: str, tmp_path: Path) -> 
     page.select_option("#compare-form select[name=b]", worse)
     page.click("#compare-form button")
     page.wait_for_url(re.compile(r"/ui/compare\?"))
-    row = page.locator("tr.regression", has_text="robot_ate_rmse_m").first
+    row = page.locator("tr.regression", has_text="ape_rmse_m").first
     assert row.is_visible()
     colour = row.evaluate("el => getComputedStyle(el).color")
     background = row.evaluate("el => getComputedStyle(el).backgroundColor")
@@ -166,3 +166,125 @@ def _distinct_colours(png: bytes) -> int:
 
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
     return len(np.unique(img.reshape(-1, 3) // 8, axis=0))
+
+
+# -- the runs table and the job page (issue 25) ------------------------------------------------------------
+
+LAPTOP, PHONE = {"width": 1366, "height": 768}, {"width": 390, "height": 844}
+
+
+def both_sizes(page: Any, name: str) -> None:
+    """Screenshots of the page at laptop and phone size (the phone one must not scroll sideways)."""
+    for size, tag in ((LAPTOP, "laptop"), (PHONE, "phone")):
+        page.set_viewport_size(size)
+        page.wait_for_timeout(100)
+        if tag == "phone":
+            width = page.evaluate("document.documentElement.scrollWidth")
+            assert width <= PHONE["width"], f"{name}: the page scrolls sideways at 390 px ({width} px wide)"
+        if SHOTS is not None:
+            SHOTS.mkdir(parents=True, exist_ok=True)
+            page.screenshot(path=str(SHOTS / f"{name}-{tag}.png"), full_page=False)
+    page.set_viewport_size(LAPTOP)
+
+
+def option_starting(page: Any, select: str, text: str) -> str:
+    """The value of the option of ``select`` whose label starts with ``text``."""
+    value: str = page.eval_on_selector(select, "(s, t) => [...s.options].find(o => o.text.startsWith(t)).value", text)
+    return value
+
+
+def listed_ids(page: Any) -> list[str]:
+    ids: list[str] = page.eval_on_selector_all("#runs-table input[name=sel]", "els => els.map(e => e.value)")
+    return ids
+
+
+def test_find_an_old_run_rename_and_tag_it(page: Any, server: str) -> None:
+    """Filter the table by recording, rename and tag the run found, then find it again by its tag."""
+    page.set_viewport_size(LAPTOP)
+    page.goto(server + "/runs")
+    assert len(listed_ids(page)) >= 2
+    sel = "#runs-filter select[name=recording]"
+    page.select_option(sel, option_starting(page, sel, "good.mcap"))
+    page.click("#runs-filter button[type=submit]")
+    page.wait_for_url(re.compile(r"/runs\?.*recording="))
+    (found,) = listed_ids(page)
+    page.click(f"#run-{found} .row-actions a:has-text('edit')")
+    page.fill("#edit-form input[name=name]", "baseline with little drift")
+    page.fill("#edit-form input[name=tags]", "paper, v1")
+    page.click("#edit-form button[type=submit]")
+    page.wait_for_url(re.compile(r"/runs\?.*recording="))  # back to the same view
+    row = page.inner_text(f"#run-{found}")
+    assert "baseline with little drift" in row and "paper" in row and "v1" in row
+    page.goto(server + "/runs?tag=paper")
+    assert listed_ids(page) == [found]
+    both_sizes(page, "runs-filtered")
+
+
+def test_select_two_runs_and_compare(page: Any, server: str) -> None:
+    """Two runs of different recordings lead to the comparison's URL and the diff; two of one kind to the report."""
+    page.goto(server + "/runs")
+    ids = listed_ids(page)
+    for job_id in ids[:2]:
+        page.check(f"#run-{job_id} input[name=sel]")
+    page.click("#compare-selected")
+    page.wait_for_url(re.compile(r"/ui/runs/compare\?"))
+    assert f"/compare?runs={ids[0]},{ids[1]}" in page.inner_text("#compare-selection")
+    assert page.get_attribute("#diff-link", "href") == f"/diff?a={ids[0]}&b={ids[1]}"
+    # The same inputs again: a run of one kind with the first, compared in the report page.
+    page.goto(server + f"/ui/jobs/{ids[-1]}")
+    recording = page.inner_text("#job-head strong")
+    page.goto(server + "/")
+    page.select_option("#job-form select[name=recording_id]",
+                       option_starting(page, "#job-form select[name=recording_id]", recording))
+    page.select_option("#job-form select[name=pipeline]", "odometry")
+    page.click("#job-form button")
+    page.wait_for_url(re.compile(r"/ui/jobs/[0-9a-f]{32}$"))
+    again = page.url.rsplit("/", 1)[1]
+    page.wait_for_function("document.querySelector('#job-status').textContent.trim() === 'succeeded'",
+                           timeout=90_000)
+    page.goto(server + "/runs")
+    page.check(f"#run-{again} input[name=sel]")
+    page.check(f"#run-{ids[-1]} input[name=sel]")
+    page.click("#compare-selected")
+    page.wait_for_url(re.compile(r"/ui/compare\?a="))
+    assert "ape_rmse_m" in page.inner_text("body")
+    both_sizes(page, "compare-selected")
+
+
+def test_failed_job_error_is_readable_at_every_width(page: Any, server: str) -> None:
+    """ifmi on a recording without a camera fails: its whole error is a block below the status, with the log."""
+    page.goto(server + "/")
+    page.select_option("#job-form select[name=pipeline]", "ifmi")
+    page.click("#job-form button")
+    page.wait_for_url(re.compile(r"/ui/jobs/[0-9a-f]{32}$"))
+    page.wait_for_function("document.querySelector('#job-status').textContent.trim() === 'failed'", timeout=90_000)
+    for size in (LAPTOP, PHONE):
+        page.set_viewport_size(size)
+        status, error = page.locator("#job-status").bounding_box(), page.locator("#job-error").bounding_box()
+        assert error["y"] >= status["y"] + status["height"], (status, error)  # below it, not over it
+        assert error["x"] + error["width"] <= size["width"]
+        # every line of the error is in the box, none cut off
+        assert page.evaluate("(e => e.scrollWidth <= e.clientWidth)(document.querySelector('#job-error'))")
+    assert page.is_visible("#log-link") and page.is_visible("#log-tail")
+    both_sizes(page, "job-failed")
+
+
+def test_phone_width_pages_do_not_scroll_sideways(page: Any, server: str) -> None:
+    """At 390x844 the runs table scrolls inside its own box; no page is wider than the screen."""
+    page.goto(server + "/runs")
+    job_id = listed_ids(page)[-1]
+    page.set_viewport_size(PHONE)
+    for path in ("/", "/runs", "/runs?cols=ape_rmse_m,rpe_step_trans_rmse_m&sort=-m.ape_rmse_m",
+                 f"/ui/jobs/{job_id}", f"/ui/jobs/{job_id}/edit", "/runs?where=ape_rmse_m+%3C%3C+1"):
+        page.goto(server + path)
+        width = page.evaluate("document.documentElement.scrollWidth")
+        assert width <= PHONE["width"], (path, width)
+    page.goto(server + "/runs")
+    inner = page.evaluate("(e => e.scrollWidth > e.clientWidth)(document.querySelector('#runs-table').parentElement)")
+    assert inner  # the table is wider than the phone and scrolls in its container
+    page.goto(server + f"/ui/jobs/{job_id}")
+    both_sizes(page, "job")
+    page.goto(server + "/runs?cols=ape_rmse_m,rpe_step_trans_rmse_m")
+    both_sizes(page, "runs")
+    page.goto(server + "/runs?where=ape_rmse_m+%3C%3C+1")
+    both_sizes(page, "runs-bad-condition")

@@ -19,6 +19,7 @@ from my_pipeline.filter import ConstantVelocityFilter, CvNoise, mean_velocity
 from slamreplay.algorithms.common.motion import between1
 from slamreplay.algorithms.observe import CovarianceEllipses, Pose, Scalar
 from slamreplay.recorder.messages import TOPIC_GROUND_TRUTH_POSE, TOPIC_ODOM, GroundTruthPose, OdometryPose
+from slamreplay.replay.metric_registry import specs
 from slamreplay.replay.metrics import position_errors, rmse
 from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext
 from slamreplay.replay.reader import Envelope
@@ -79,18 +80,18 @@ class CvFilterPipeline(Pipeline):
     optional_topics = (TOPIC_GROUND_TRUTH_POSE,)
     start_topic = TOPIC_ODOM
     Config = CvFilterConfig
-    # Metric names follow the built-ins' (robot_ate_rmse_m ...) so `slamreplay diff` lines them up with an
-    # odometry run's; each says which way is better, its unit, and (measured) the default diff tolerance.
+    # Metrics the built-ins also report come from slamreplay's registry, by name, so `slamreplay diff` lines
+    # them up with an odometry run's. The ATE and heading RMSE (ape_rmse_m, ape_rot_rmse_deg...) need no code:
+    # slamreplay computes them from the trajectory kept in self.t_est / self.est. Metrics of the plugin's own
+    # say which way is better (or the target value a consistent filter gives), the unit, and the tolerance.
     metrics = {
-        "robot_ate_rmse_m": MetricSpec.measured("lower", "m", "RMS position error against ground truth (no alignment)"),
-        "robot_final_error_m": MetricSpec.measured("lower", "m", "position error at the last scored pose"),
-        "robot_heading_rmse_deg": MetricSpec.measured("lower", "deg", "RMS heading error"),
+        **specs("robot_final_error_m", "poses_scored"),
         "speed_rmse_mps": MetricSpec.measured("lower", "m/s", "RMS error of the estimated speed against ground truth"),
         "yaw_rate_rmse_degps": MetricSpec.measured("lower", "deg/s", "RMS error of the estimated turn rate"),
         "odom_speed_rmse_mps": MetricSpec.measured("none", "m/s", "the same for raw odometry: the baseline"),
         "odom_yaw_rate_rmse_degps": MetricSpec.measured("none", "deg/s", "the same for raw odometry: the baseline"),
-        "mean_nis": MetricSpec.measured("none", "", "mean normalised innovation squared (2 when the noise is right)"),
-        "poses_scored": MetricSpec("none", "", "estimates inside the ground truth's time span"),
+        "mean_nis": MetricSpec.measured("target", "", "mean normalised innovation squared (2 when the noise is right)",
+                                        target=2.0),
     }
     # `--preset follow-odometry`: acceleration so loose that the filter reproduces dead reckoning.
     presets = {"paper": {}, "follow-odometry": {"accel_sigma_mps2": 1e3, "yaw_accel_sigma_radps2": 1e3}}
@@ -156,13 +157,12 @@ class CvFilterPipeline(Pipeline):
         est = np.asarray(self.est, np.float64).reshape(-1, 3)
         t_gt = np.asarray(self.t_gt, np.int64)
         gt = np.asarray(self.gt, np.float64).reshape(-1, 3)
-        pos_err, yaw_err = position_errors(t_est, est, t_gt, gt)
+        pos_err, _ = position_errors(t_est, est, t_gt, gt)
         metrics["poses_scored"] = float(len(pos_err))
         if not len(pos_err):
             self.ctx.log("no ground truth overlaps the odometry: the accuracy metrics do not apply")
             return metrics
-        metrics.update(robot_ate_rmse_m=rmse(pos_err), robot_final_error_m=float(pos_err[-1]),
-                       robot_heading_rmse_deg=math.degrees(rmse(yaw_err)))
+        metrics["robot_final_error_m"] = float(pos_err[-1])
         metrics.update(self._velocity_errors(t_est, t_gt, gt))
         return metrics
 

@@ -1,0 +1,259 @@
+"""SLSJF as a landmark-SLAM filter: small EKF-SLAM local maps, joined into the sparse global map.
+
+A local map is EKF-SLAM started at the robot's current pose with zero uncertainty in its own frame
+([1]_ section III): at that size the EKF's linearization errors stay small and its covariance honest.
+It ends after ``local_map_scans`` scans or ``local_map_distance_m`` of driving, whichever comes first;
+then its end pose and features, with their covariance, are joined into the global map
+(:class:`~slamreplay.algorithms.slsjf.joining.GlobalMap`) and the next local map starts at that end
+pose. Features are matched across local maps by their known ids (data association with the gates,
+for unknown ids, is not implemented: the filter refuses ``association="unknown"``).
+
+Between joins the robot's estimate is the global pose of the current local map's start frame
+composed with the local map's robot estimate; its covariance adds the start frame's marginal
+covariance (from the global information matrix) and the local one, independent of it because the
+local map starts with zero uncertainty ([1]_ eq. 13). A feature not yet joined is drawn the same way;
+one already in the global map keeps its global estimate until the local map that saw it again is joined.
+
+References
+----------
+.. [1] S. Huang, Z. Wang, G. Dissanayake, "Sparse local submap joining filter for building large-scale
+   maps", IEEE Transactions on Robotics 24(5), 2008.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.ekfslam import EkfSlam, EkfSlamConfig
+from slamreplay.algorithms.observe import NULL_OBSERVER, Observer, Scalar
+from slamreplay.algorithms.slsjf.joining import GlobalMap, Linearization
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+@dataclass(frozen=True, slots=True)
+class SlsjfConfig:
+    """The local maps' EKF, when a local map ends, and how the global map is linearized."""
+
+    local: EkfSlamConfig = field(default_factory=EkfSlamConfig)
+    local_map_scans: int = 100
+    local_map_distance_m: float = 30.0
+    linearization: Linearization = "iterated"
+    max_iterations: int = 10
+
+    def __post_init__(self) -> None:
+        if self.local.association != "known":
+            raise ValueError("SLSJF matches features across local maps by their ids: association must be 'known' "
+                             "(unknown ids across local maps are not implemented)")
+        if self.local_map_scans < 1 or not self.local_map_distance_m > 0:
+            raise ValueError(f"local_map_scans must be >= 1 and local_map_distance_m > 0, got "
+                             f"{self.local_map_scans} and {self.local_map_distance_m}")
+
+
+@dataclass(frozen=True, slots=True)
+class SlsjfScanResult:
+    """One scan in the global frame: the prediction, the updated pose, the global feature of each observation."""
+
+    prediction: F64
+    prediction_cov: F64
+    pose: F64
+    pose_cov: F64
+    features: I64  # (m,) global feature index per observation, -1 for none
+    new_features: tuple[int, ...]
+    joined: bool  # whether this scan ended its local map
+
+
+def compose_cov(a: F64, cov_a: F64, b: F64, cov_b: F64) -> F64:
+    """Covariance of ``a (+) b`` for independent ``a`` and ``b`` (first order)."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    ja = np.array([[1.0, 0.0, -s * b[0] - c * b[1]], [0.0, 1.0, c * b[0] - s * b[1]], [0.0, 0.0, 1.0]])
+    jb = np.eye(3)
+    jb[:2, :2] = [[c, -s], [s, c]]
+    return np.asarray(ja @ cov_a @ ja.T + jb @ cov_b @ jb.T, np.float64)
+
+
+def point_cov(a: F64, cov_a: F64, p: F64, cov_p: F64) -> F64:
+    """Covariance (2, 2) of the point ``a (+) p`` for independent pose ``a`` and point ``p``."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    ja = np.array([[1.0, 0.0, -s * p[0] - c * p[1]], [0.0, 1.0, c * p[0] - s * p[1]]])
+    r = np.array([[c, -s], [s, c]])
+    return np.asarray(ja @ cov_a @ ja.T + r @ cov_p @ r.T, np.float64)
+
+
+class Slsjf:
+    """Sparse Local Submap Joining Filter (module docstring), with EkfSlam's interface for the pipelines."""
+
+    def __init__(self, config: SlsjfConfig = SlsjfConfig(), observer: Observer = NULL_OBSERVER,
+                 clock: Callable[[], float] | None = None) -> None:
+        self.config = config
+        self.observer = observer
+        self.map = GlobalMap(config.linearization, config.max_iterations)
+        self.start = -1  # global pose index of the current local map's start frame (-1: the origin)
+        self._start_pose = np.zeros(3)
+        self._start_cov = np.zeros((3, 3))
+        self.local = EkfSlam(config.local)
+        self.local_scans = 0
+        self.local_distance_m = 0.0
+        self.feature_ids: list[int] = []  # known id of each global feature
+        self.by_id: dict[int, int] = {}
+        self.rejected_joined = 0
+        self.gated = 0  # local feature estimates left out at a join (outside the outlier gate)
+        self._clock = clock
+        self.profile: dict[str, list[float]] = {}
+
+    # -- the EkfSlam-like interface the landmark pipelines use
+    @property
+    def rejected(self) -> int:
+        return self.rejected_joined + self.local.rejected
+
+    @property
+    def pose(self) -> F64:
+        return se2.compose(self._start_pose, self.local.pose)
+
+    @property
+    def pose_cov(self) -> F64:
+        return compose_cov(self._start_pose, self._start_cov, self.local.pose, self.local.pose_cov)
+
+    @property
+    def n(self) -> int:
+        return len(self.feature_ids)
+
+    @property
+    def start_pose(self) -> F64:
+        """The current local map's start frame in the global frame."""
+        return self._start_pose.copy()
+
+    def estimates(self) -> F64:
+        """Every feature (N, 2) in the global frame: joined ones from the global map, the others from the
+        current local map."""
+        out = np.zeros((self.n, 2))
+        local = self.local.estimates()
+        for g, fid in enumerate(self.feature_ids):
+            if self.map.has_feature(g):
+                out[g] = self.map.feature(g)
+            else:
+                out[g] = se2.transform_points(self._start_pose, local[self.local.by_id[fid]][None])[0]
+        return out
+
+    def marginal_covariances(self, features: list[int] | None = None) -> F64:
+        """Marginal covariances (k, 2, 2) of ``features`` (default all) in the global frame."""
+        features = list(range(self.n)) if features is None else features
+        joined = [g for g in features if self.map.has_feature(g)]
+        glob = dict(zip(joined, self.map.feature_covariances(joined), strict=True))
+        out = np.zeros((len(features), 2, 2))
+        if len(joined) < len(features):
+            local_covs = self.local.marginal_covariances()
+            local_xy = self.local.estimates()
+        for k, g in enumerate(features):
+            if g in glob:
+                out[k] = glob[g]
+            else:
+                f = self.local.by_id[self.feature_ids[g]]
+                out[k] = point_cov(self._start_pose, self._start_cov, local_xy[f], local_covs[f])
+        return out
+
+    def joint_covariance(self, features: list[int]) -> F64 | None:
+        """The joint covariance (2k, 2k) of joined features; None when one of them is not joined yet."""
+        if not all(self.map.has_feature(g) for g in features):
+            return None
+        return self.map.joint_feature_covariance(features)
+
+    # -- filtering
+    def predict(self, increment: ArrayLike) -> None:
+        u = np.asarray(increment, np.float64)
+        self.local.predict(u)
+        self.local_distance_m += float(math.hypot(u[0], u[1]))
+        if self.local_distance_m >= self.config.local_map_distance_m:
+            self.join()
+
+    def observe(self, ranges: ArrayLike, bearings: ArrayLike, ids: ArrayLike | None = None,
+                range_sigma: float = 0.0, bearing_sigma: float = 0.0) -> SlsjfScanResult:
+        """Update the local map with one scan (EkfSlam.observe's arguments); join it when it is full."""
+        if ids is None:
+            raise ValueError("SLSJF needs landmark ids (association='known')")
+        pred, pred_cov = self.pose, self.pose_cov
+        res = self.local.observe(ranges, bearings, ids, range_sigma, bearing_sigma)
+        self.local_scans += 1
+        ids_arr = np.asarray(ids, np.int64).reshape(-1)
+        features = np.full(len(ids_arr), -1, np.int64)
+        new: list[int] = []
+        for j, f in enumerate(res.features.tolist()):
+            if f < 0:
+                continue
+            fid = int(ids_arr[j])
+            if fid not in self.by_id:
+                self.by_id[fid] = len(self.feature_ids)
+                self.feature_ids.append(fid)
+                new.append(self.by_id[fid])
+            features[j] = self.by_id[fid]
+        pose, pose_cov = self.pose, self.pose_cov
+        joined = self.local_scans >= self.config.local_map_scans
+        if joined:
+            self.join()
+        return SlsjfScanResult(pred, pred_cov, pose, pose_cov, features, tuple(new), joined)
+
+    def _gate(self, features: I64, z: F64, P: F64) -> NDArray[np.bool_]:
+        """Which local features to join: a feature already in the global map whose local estimate is outside the
+        known-id outlier gate (``outlier_probability``, chi2 with 2 dof) of its global estimate is left out.
+
+        Each local map initialises its features from their first sighting in it, where no gate can apply, so a
+        wrong sighting would otherwise enter the global map as a confident local estimate (MRCLAM's outliers
+        did). Leaving a feature out of a local map is marginalizing it: its rows and columns of P go."""
+        keep = np.ones(len(features), bool)
+        gate = self.config.local.association_params.outlier_gate
+        if not np.isfinite(gate) or not len(self.map.maps):
+            return keep
+        s = self._start_pose
+        rt = se2.rot(s[2]).T
+        drt = np.array([[-math.sin(s[2]), math.cos(s[2])], [-math.cos(s[2]), -math.sin(s[2])]])
+        for j, g in enumerate(features.tolist()):
+            if not self.map.has_feature(g):
+                continue
+            f = self.map.feature(g)
+            if self.start >= 0:
+                joint = self._pose_feature_covariance(g)
+                jac = np.hstack([-rt, (drt @ (f - s[:2]))[:, None], rt])
+            else:
+                joint = self.map.covariance_block([self.map.feat_at[g]], 2)
+                jac = rt
+            nu = z[3 + 2 * j:5 + 2 * j] - rt @ (f - s[:2])
+            innov = P[3 + 2 * j:5 + 2 * j, 3 + 2 * j:5 + 2 * j] + jac @ joint @ jac.T
+            if float(nu @ np.linalg.solve(innov, nu)) > gate:
+                keep[j] = False
+                self.gated += 1
+        return keep
+
+    def _pose_feature_covariance(self, g: int) -> F64:
+        """The joint covariance (5, 5) of the current start pose and global feature ``g``."""
+        a, b = self.map.pose_at[self.start], self.map.feat_at[g]
+        idx = [a, a + 1, a + 2, b, b + 1]
+        return self.map.covariance_block(idx, 1)
+
+    def join(self) -> None:
+        """Fuse the current local map into the global map and start the next one at its end pose."""
+        tic = self._clock() if self._clock else 0.0
+        loc = self.local
+        if loc.n == 0 and self.local_distance_m == 0.0 and self.local_scans == 0:
+            return  # nothing happened since the last join
+        features = np.array([self.by_id[fid] for fid in loc.feature_ids], np.int64)
+        keep = self._gate(features, np.array(loc.x), np.array(loc.P))
+        rows = np.concatenate([np.arange(3), (3 + 2 * np.flatnonzero(keep)[:, None] + np.arange(2)).reshape(-1)])
+        end = self.map.join(self.start, loc.pose, features[keep], np.array(loc.x)[rows],
+                            np.array(loc.P)[np.ix_(rows, rows)])
+        self.start = end
+        self._start_pose = self.map.pose(end)
+        self._start_cov = self.map.pose_covariance(end)
+        self.rejected_joined += loc.rejected
+        self.local = EkfSlam(self.config.local)
+        self.local_scans, self.local_distance_m = 0, 0.0
+        self.observer.log("slsjf/local_maps", Scalar(float(len(self.map.maps))))
+        self.observer.log("slsjf/iterations", Scalar(float(self.map.iterations[-1])))
+        if self._clock is not None:
+            self.profile.setdefault("join", []).append(self._clock() - tic)

@@ -1,0 +1,327 @@
+"""The runs table (``/`` and ``/runs``): every job, paged, sorted and filtered in SQL, its state in the URL.
+
+A page reads one page of rows from the store (metric values included: `JobService` copies
+them from ``metrics.json`` when a job ends, and older jobs are read once, here, the first
+time a table is drawn), so its cost does not grow with the number of runs on disk. The same
+view exports as CSV (every page). Renaming, tagging, cancelling and deleting are plain form
+POSTs behind a confirmation page, so they work without JavaScript.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import re
+import shutil
+import time
+from collections.abc import Iterator
+from typing import Annotated, Any
+from urllib.parse import urlencode
+
+from fastapi import APIRouter, Depends, Query, Request
+from fastapi import Path as PathParam
+from fastapi.responses import HTMLResponse, RedirectResponse, Response, StreamingResponse
+from starlette.concurrency import run_in_threadpool
+
+from slamreplay.api.deps import JobsDep, get_jobs
+from slamreplay.api.errors import ConflictError, NotFoundError
+from slamreplay.api.jobs import JobService
+from slamreplay.api.models import JOB_ID
+from slamreplay.api.pages import PAGE_ERRORS, duration_text, suite_key, web_session
+from slamreplay.api.pages import error_response as _error
+from slamreplay.api.pages import page_lists as _lists
+from slamreplay.api.pages import page_response as _page
+from slamreplay.api.runs_query import (
+    PAGE_SIZES,
+    RunsView,
+    metric_specs,
+    order_sql,
+    parse_view,
+    where_sql,
+)
+from slamreplay.api.store import ACTIVE, JOB_STATUSES
+from slamreplay.api.store_runs import RunRow
+from slamreplay.replay.errors import ReplayError
+
+JobPath = Annotated[str, PathParam(pattern=JOB_ID)]
+TAG_RE = re.compile(r"[\w.:/+-]{1,40}")
+MAX_TAGS = 20
+router = APIRouter(dependencies=[Depends(web_session)], include_in_schema=False)
+
+
+def _when(t: float | None) -> str:
+    return "" if t is None else time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(t))
+
+
+def _clock(t: float | None, day_of: float) -> str:
+    """A time of the same UTC day as ``day_of`` as its clock time only (the table stays narrow), else in full."""
+    if t is None:
+        return ""
+    same_day = time.gmtime(t)[:3] == time.gmtime(day_of)[:3]
+    return time.strftime("%H:%M:%S", time.gmtime(t)) if same_day else _when(t)
+
+
+def first_line(text: str | None, most: int = 160) -> str:
+    """The first line of ``text``, cut to ``most`` characters (an ellipsis says so)."""
+    line = (text or "").strip().splitlines()[0] if (text or "").strip() else ""
+    return line if len(line) <= most else line[:most - 1] + "…"
+
+
+def backfill_metrics(jobs: JobService) -> int:
+    """Copy the metric values of succeeded jobs that have none in the store (an older server's) from their
+    metrics.json, once; how many were read."""
+    ids = jobs.store.unscored()
+    if ids:
+        jobs.store.set_metrics({i: jobs.metric_values(i) for i in ids})
+    return len(ids)
+
+
+def differing_config(rows: list[RunRow]) -> list[str]:
+    """Config keys whose submitted value is not the same in every row (a key left out counts as its default)."""
+    keys = sorted({k for r in rows for k in r.job.config})
+    return [k for k in keys if len({repr(r.job.config.get(k, "\0default")) for r in rows}) > 1]
+
+
+def _duration(r: RunRow) -> float | None:
+    j = r.job
+    if j.started is None:
+        return None
+    return (j.finished if j.finished is not None else time.time()) - j.started
+
+
+def _cells(r: RunRow, cols: tuple[str, ...], config_keys: list[str]) -> dict[str, Any]:
+    j = r.job
+    return {"job": j, "recording": r.recording_name or j.recording_id[:8], "variant": r.variant or "",
+            "created": _when(j.created)[:16], "started": _clock(j.started, j.created),
+            "finished": _clock(j.finished, j.created), "when": _when(j.created),
+            "duration": duration_text(_duration(r)), "error": first_line(j.error), "active": j.status in ACTIVE,
+            "metrics": [(j.metrics or {}).get(c) for c in cols],
+            "config": [j.config.get(k) for k in config_keys]}
+
+
+def metric_heading(name: str) -> dict[str, str]:
+    """A metric column's heading: its name, unit (unless the name ends with it), direction arrow and meaning."""
+    spec = metric_specs().get(name)
+    if spec is None:
+        return {"name": name, "unit": "", "arrow": "", "title": name}
+    target = getattr(spec, "target", None)  # the consistent value of a NEES, closest is best
+    arrow = {"lower": "↓", "higher": "↑"}.get(spec.better, f"≈{target:g}" if target is not None else "")
+    better = {"lower": "lower is better", "higher": "higher is better"}.get(
+        spec.better, f"closest to {target:g} is best" if target is not None else "describes the run")
+    unit = spec.unit
+    return {"name": name, "unit": "" if not unit or name.endswith(f"_{unit}") else unit, "arrow": arrow,
+            "title": f"{spec.description}; {better}"}
+
+
+def runs_ctx(request: Request, view: RunsView) -> dict[str, Any]:
+    """What ``_runs.html`` draws: one page of the view, its headings, pager and the filter choices."""
+    jobs = get_jobs(request)
+    backfill_metrics(jobs)
+    where, args = where_sql(view)
+    order = order_sql(view)
+    rows, total = jobs.store.select_runs(where, args, order, view.per, (view.page - 1) * view.per)
+    pages = max(1, -(-total // view.per))
+    if view.page > pages:  # past the end (runs deleted since the link was made): the last page
+        view = RunsView(**{**view.__dict__, "page": pages})
+        rows, total = jobs.store.select_runs(where, args, order, view.per, (view.page - 1) * view.per)
+    config_keys = differing_config(rows)
+    recs = jobs.store.list_recordings()
+    return {"view": view, "rows": [_cells(r, view.cols, config_keys) for r in rows], "total": total,
+            "pages": pages, "config_keys": config_keys, "metric_cols": [metric_heading(c) for c in view.cols],
+            "all_metrics": list(metric_specs()), "page_sizes": PAGE_SIZES, "statuses": JOB_STATUSES,
+            "filter_recordings": recs, "filter_pipelines": jobs.store.pipelines_used(),
+            "filter_tags": jobs.store.tag_counts(), "csv_url": view.url("/runs.csv", page=1),
+            "here": view.url("/runs")}
+
+
+def _view(request: Request) -> RunsView:
+    """The view the request's query asks for."""
+    query: dict[str, list[str]] = {}
+    for k, v in request.query_params.multi_items():
+        query.setdefault(k, []).append(v)
+    return parse_view(query)
+
+
+@router.get("/")
+def home_page(request: Request, uploaded: Annotated[str | None, Query(max_length=64)] = None) -> HTMLResponse:
+    """The main page: the runs table first, then recordings, a job form, suites and compare (``/#recordings`` ...)."""
+    from slamreplay.replay.pipeline import all_pipelines
+
+    view = _view(request)
+    lists = _lists(request)
+    example = None
+    if lists["recordings"]:
+        first = lists["recordings"][0]
+        example = (f'seeds = [1, 2, 3]\n\n[recordings.{suite_key(first.filename)}]\nid = "{first.id}"\n\n'
+                   '[pipelines.odometry]\n\n[pipelines.dslam]\n')
+    ctx = runs_ctx(request, view)
+    return _page(request, "index.html", 422 if view.errors else 200, **lists, **ctx, uploaded=uploaded,
+                 pipelines=sorted(all_pipelines()), example=example, full=True)
+
+
+@router.get("/runs")
+def runs_page(request: Request) -> HTMLResponse:
+    """The runs table alone (what its sort, filter and page links open): it reads one page of rows, whatever the
+    number of recordings and suites."""
+    view = _view(request)
+    return _page(request, "index.html", 422 if view.errors else 200, **runs_ctx(request, view), full=False)
+
+
+@router.get("/ui/part/runs")
+def runs_part(request: Request) -> HTMLResponse:
+    """The table alone, for the live refresh while a listed job is queued or running."""
+    return _page(request, "_runs.html", **runs_ctx(request, _view(request)))
+
+
+def _csv_text(v: Any) -> str:
+    """A text cell that a spreadsheet would run as a formula (= + - @) is quoted with a leading apostrophe."""
+    s = "" if v is None else str(v)
+    return "'" + s if s[:1] in ("=", "+", "-", "@") else s
+
+
+@router.get("/runs.csv")
+def runs_csv(request: Request) -> Response:
+    """The view as CSV: every page, the chosen metric columns with units, the config as JSON."""
+    import json
+
+    view = _view(request)
+    if view.errors:
+        return _error(request, ReplayError("; ".join(view.errors)))
+    jobs = get_jobs(request)
+    backfill_metrics(jobs)
+    where, args = where_sql(view)
+    rows, _ = jobs.store.select_runs(where, args, order_sql(view))
+    heads = [metric_heading(c) for c in view.cols]
+
+    def lines() -> Iterator[str]:
+        buf = io.StringIO()
+        w = csv.writer(buf)
+        w.writerow(["id", "name", "tags", "note", "recording", "recording_id", "pipeline", "variant", "seed",
+                    "created", "started", "finished", "duration_s", "status", "error", "config",
+                    *[h["name"] + (f" [{h['unit']}]" if h["unit"] else "") for h in heads]])
+        for r in rows:
+            j = r.job
+            d = _duration(r)
+            w.writerow([j.id, _csv_text(j.name), _csv_text(" ".join(j.tags)), _csv_text(j.note), r.recording_name,
+                        j.recording_id, j.pipeline, r.variant or "", j.seed, _when(j.created), _when(j.started),
+                        _when(j.finished), "" if d is None else f"{d:.3f}", j.status,
+                        _csv_text(first_line(j.error, 10_000)), json.dumps(j.config, sort_keys=True),
+                        *["" if (j.metrics or {}).get(c) is None else repr((j.metrics or {})[c]) for c in view.cols]])
+            yield buf.getvalue()
+            buf.seek(0)
+            buf.truncate()
+
+    return StreamingResponse(lines(), media_type="text/csv; charset=utf-8",
+                             headers={"Content-Disposition": 'attachment; filename="runs.csv"'})
+
+
+def _next(raw: Any) -> str:
+    """Where to go back to: a path on this server only."""
+    nxt = str(raw or "/runs")
+    return nxt if nxt.startswith("/") and not nxt.startswith("//") and "\\" not in nxt else "/runs"
+
+
+def parse_tags(text: str) -> list[str]:
+    """Tags from ``a, b c``: letters, digits and ``_ . : / + -``, at most 40 characters each and 20 in all."""
+    tags = list(dict.fromkeys(t for t in re.split(r"[,\s]+", text.strip()) if t))
+    bad = [t for t in tags if not TAG_RE.fullmatch(t)]
+    if bad:
+        raise ValueError(f"tag {bad[0]!r}: use letters, digits and _ . : / + - (at most 40 characters)")
+    if len(tags) > MAX_TAGS:
+        raise ValueError(f"{len(tags)} tags: at most {MAX_TAGS}")
+    return tags
+
+
+@router.get("/ui/jobs/{job_id}/edit")
+def edit_form(request: Request, job_id: JobPath, jobs: JobsDep, next: str = "/runs") -> HTMLResponse:
+    """The form that names, tags and annotates a job."""
+    try:
+        job = jobs.get(job_id)
+    except PAGE_ERRORS as err:
+        return _error(request, err)
+    return _page(request, "job_action.html", action="edit", job=job, next=_next(next))
+
+
+@router.post("/ui/jobs/{job_id}/edit")
+async def edit_job(request: Request, job_id: JobPath, jobs: JobsDep) -> Response:
+    """Rename, tag and annotate a job (empty fields clear them)."""
+    form = await request.form()
+    name, note = str(form.get("name", "")).strip(), str(form.get("note", "")).strip()
+    try:
+        if len(name) > 120 or len(note) > 2000:
+            raise ValueError("a name has at most 120 characters, a note 2000")
+        tags = parse_tags(str(form.get("tags", "")))
+    except ValueError as err:
+        return _error(request, ReplayError(f"cannot save job {job_id[:8]}: {err}"))
+    if await run_in_threadpool(jobs.store.set_labels, job_id, name or None, tags, note or None) is None:
+        return _error(request, NotFoundError(f"job {job_id} not found"))
+    return RedirectResponse(_next(form.get("next")), 303)
+
+
+def _confirm(request: Request, job_id: str, action: str, jobs: JobService, nxt: str) -> HTMLResponse:
+    """Are you sure? (cancel a queued or running job, delete an ended one and its files)."""
+    try:
+        job = jobs.get(job_id)
+    except PAGE_ERRORS as err:
+        return _error(request, err)
+    return _page(request, "job_action.html", action=action, job=job, next=_next(nxt),
+                 allowed=(job.status in ACTIVE) == (action == "cancel"), suite_cells=jobs.store.suite_uses(job_id))
+
+
+@router.get("/ui/jobs/{job_id}/cancel")
+def confirm_cancel(request: Request, job_id: JobPath, jobs: JobsDep, next: str = "/runs") -> HTMLResponse:
+    """Ask before cancelling a job."""
+    return _confirm(request, job_id, "cancel", jobs, next)
+
+
+@router.get("/ui/jobs/{job_id}/delete")
+def confirm_delete(request: Request, job_id: JobPath, jobs: JobsDep, next: str = "/runs") -> HTMLResponse:
+    """Ask before deleting a job."""
+    return _confirm(request, job_id, "delete", jobs, next)
+
+
+@router.post("/ui/jobs/{job_id}/cancel")
+async def cancel_job(request: Request, job_id: JobPath, jobs: JobsDep) -> Response:
+    """Cancel a queued or running job (409 when it has ended), then go back."""
+    form = await request.form()
+    try:
+        await run_in_threadpool(jobs.cancel, job_id)
+    except PAGE_ERRORS as err:
+        return _error(request, err)
+    return RedirectResponse(_next(form.get("next")), 303)
+
+
+@router.post("/ui/jobs/{job_id}/delete")
+async def delete_job(request: Request, job_id: JobPath, jobs: JobsDep) -> Response:
+    """Forget an ended job and delete its run directory (and comparison files made from it)."""
+    form = await request.form()
+    outcome = await run_in_threadpool(jobs.store.delete_job, job_id)
+    if outcome == "missing":
+        return _error(request, NotFoundError(f"job {job_id} not found"))
+    if outcome == "active":
+        return _error(request, ConflictError(f"job {job_id} is queued or running: cancel it before deleting it"))
+    shutil.rmtree(jobs.run_dir(job_id), ignore_errors=True)
+    for pair in (jobs.settings.runs_dir / "diffs").glob(f"*{job_id}*.rrd"):
+        pair.unlink(missing_ok=True)
+    return RedirectResponse(_next(form.get("next")), 303)
+
+
+@router.get("/ui/runs/compare")
+def compare_selected(request: Request, jobs: JobsDep,
+                     sel: Annotated[list[str] | None, Query(max_length=32)] = None) -> Response:
+    """The selected runs: two succeeded runs of one recording and pipeline open the comparison page; otherwise a
+    page with the comparison's URL (``/compare?runs=...``) and, for two runs, the API's diff."""
+    ids = list(dict.fromkeys(s for s in sel or [] if re.fullmatch(JOB_ID, s)))
+    if len(ids) < 2:
+        return _error(request, ReplayError("select at least two runs (the boxes in the table's first column), "
+                                           "then Compare selected"))
+    try:
+        chosen = [jobs.get(i) for i in ids]
+    except PAGE_ERRORS as err:
+        return _error(request, err)
+    a, b = chosen[0], chosen[-1]
+    if (len(chosen) == 2 and all(j.status == "succeeded" for j in chosen) and a.recording_id == b.recording_id
+            and a.pipeline == b.pipeline and a.seed == b.seed):
+        return RedirectResponse("/ui/compare?" + urlencode({"a": a.id, "b": b.id}), 303)
+    return _page(request, "runs_compare.html", chosen=chosen, runs_url="/compare?runs=" + ",".join(ids),
+                 diff_url=f"/diff?a={a.id}&b={b.id}" if len(chosen) == 2 else None)

@@ -1,0 +1,156 @@
+"""Jobs as the store returns them (`JobRow`), and the runs table's part of the job store: labels (name, tags,
+note), metric values, and pages of jobs.
+
+`RunsTableMixin` is a base of `slamreplay.api.store.Store` (which provides the connections), kept
+apart so that each module stays short. The SQL of a page's filters and order is built from a
+validated view by `slamreplay.api.runs_query`; values only ever travel as ``?`` arguments.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
+from typing import Any, Literal
+
+JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled", "interrupted"]
+JOB_STATUSES: tuple[JobStatus, ...] = ("queued", "running", "succeeded", "failed", "cancelled", "interrupted")
+ACTIVE: tuple[JobStatus, ...] = ("queued", "running")
+# Every job column, and its tags as a JSON list (sorted), for queries that build JobRow.
+JOB_COLUMNS = ("j.*, (SELECT json_group_array(tag) FROM (SELECT tag FROM job_tags t WHERE t.job_id = j.id "
+               "ORDER BY tag)) AS tags")
+
+
+@dataclass(frozen=True, slots=True)
+class JobRow:
+    """A job as stored: what ran, how it went, and what people said of it."""
+
+    id: str
+    recording_id: str
+    pipeline: str
+    config: dict[str, Any]
+    seed: int
+    status: JobStatus
+    progress: float
+    error: str | None
+    note: str | None
+    attempts: int
+    created: float
+    started: float | None
+    finished: float | None
+    name: str | None = None
+    tags: tuple[str, ...] = ()
+    metrics: dict[str, float] | None = None  # succeeded jobs, once read from metrics.json
+
+
+def job_row(row: sqlite3.Row) -> JobRow:
+    """A job of a query's row (``tags`` and ``metrics`` when the query selected them)."""
+    keys = row.keys()
+    tags = tuple(json.loads(row["tags"])) if "tags" in keys and row["tags"] else ()
+    metrics = json.loads(row["metrics"]) if "metrics" in keys and row["metrics"] else None
+    return JobRow(row["id"], row["recording_id"], row["pipeline"], json.loads(row["config"]), row["seed"],
+                  row["status"], row["progress"], row["error"], row["note"], row["attempts"], row["created"],
+                  row["started"], row["finished"], row["name"] if "name" in keys else None, tags, metrics)
+
+
+@dataclass(frozen=True, slots=True)
+class RunRow:
+    """A job as the runs table lists it: with its recording's file name and its suite variant, if any."""
+
+    job: JobRow
+    recording_name: str | None
+    variant: str | None
+
+
+# A job's suite variant: the first cell naming it (the suites tables are made by api/suites.py, which a bare
+# store may not have run: then no job has a variant).
+VARIANTS = ("LEFT JOIN (SELECT job_id, MIN(json_extract(cell, '$.variant')) AS variant FROM suite_cells "
+            "GROUP BY job_id) v ON v.job_id = j.id")
+NO_VARIANTS = "LEFT JOIN (SELECT NULL AS job_id, NULL AS variant) v ON 0"
+
+
+class RunsTableMixin:
+    """Store methods of the runs table; ``Store`` provides the connections (`_read`, `_tx`) and `get_job`."""
+
+    def _read(self) -> AbstractContextManager[sqlite3.Connection]:
+        raise NotImplementedError
+
+    def _tx(self) -> AbstractContextManager[sqlite3.Connection]:
+        raise NotImplementedError
+
+    def get_job(self, job_id: str) -> JobRow | None:
+        raise NotImplementedError
+
+    def set_labels(self, job_id: str, name: str | None, tags: list[str], note: str | None) -> JobRow | None:
+        """Replace a job's name, tags and note (None: none); None when the job is unknown."""
+        with self._tx() as conn:
+            cur = conn.execute("UPDATE jobs SET name = ?, note = ? WHERE id = ?", (name, note, job_id))
+            if cur.rowcount != 1:
+                return None
+            conn.execute("DELETE FROM job_tags WHERE job_id = ?", (job_id,))
+            conn.executemany("INSERT OR IGNORE INTO job_tags (job_id, tag) VALUES (?, ?)", [(job_id, t) for t in tags])
+        return self.get_job(job_id)
+
+    def delete_job(self, job_id: str) -> Literal["deleted", "missing", "active"]:
+        """Forget an ended job and its tags (its run directory is the caller's); a queued or running one is refused."""
+        with self._tx() as conn:
+            row = conn.execute("SELECT status FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            if row is None:
+                return "missing"
+            if row["status"] in ACTIVE:
+                return "active"
+            conn.execute("DELETE FROM job_tags WHERE job_id = ?", (job_id,))
+            conn.execute("DELETE FROM jobs WHERE id = ?", (job_id,))
+        return "deleted"
+
+    def unscored(self, limit: int = 10_000) -> list[str]:
+        """Ids of succeeded jobs whose metric values were never copied into the store (an older server's)."""
+        with self._read() as conn:
+            rows = conn.execute("SELECT id FROM jobs WHERE status = 'succeeded' AND metrics IS NULL ORDER BY seq "
+                                "LIMIT ?", (limit,)).fetchall()
+        return [r["id"] for r in rows]
+
+    def set_metrics(self, values: dict[str, dict[str, float]]) -> None:
+        """Store the metric values of succeeded jobs (job id -> {metric: value}; {} when there are none)."""
+        with self._tx() as conn:
+            conn.executemany("UPDATE jobs SET metrics = ? WHERE id = ? AND status = 'succeeded'",
+                             [(json.dumps(v), k) for k, v in values.items()])
+
+    def tag_counts(self) -> list[tuple[str, int]]:
+        """Every tag in use and how many jobs carry it, by tag."""
+        with self._read() as conn:
+            rows = conn.execute("SELECT tag, COUNT(*) AS n FROM job_tags GROUP BY tag ORDER BY tag").fetchall()
+        return [(r["tag"], int(r["n"])) for r in rows]
+
+    def pipelines_used(self) -> list[str]:
+        """The pipelines that jobs in the store ran, by name."""
+        with self._read() as conn:
+            return [r[0] for r in conn.execute("SELECT DISTINCT pipeline FROM jobs ORDER BY pipeline")]
+
+    def _variants(self, conn: sqlite3.Connection) -> str:
+        found = conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'suite_cells'").fetchone()
+        return VARIANTS if found else NO_VARIANTS
+
+    def select_runs(self, where: str, args: list[Any], order: str, limit: int | None = None,
+                    offset: int = 0) -> tuple[list[RunRow], int]:
+        """One page of jobs and how many match in all.
+
+        ``where`` and ``order`` are SQL over ``j`` (jobs), ``r`` (recordings) and ``v.variant``, built by
+        `slamreplay.api.runs_query` from a validated view (values only as ``?`` arguments in ``args``).
+        ``limit`` None: every matching job (the CSV export).
+        """
+        with self._read() as conn:
+            joins = f"FROM jobs j LEFT JOIN recordings r ON r.id = j.recording_id {self._variants(conn)}"
+            total = int(conn.execute(f"SELECT COUNT(*) {joins} WHERE {where}", args).fetchone()[0])
+            rows = conn.execute(f"SELECT {JOB_COLUMNS}, r.filename AS recording_name, v.variant AS variant {joins} "
+                                f"WHERE {where} ORDER BY {order} LIMIT ? OFFSET ?",
+                                (*args, -1 if limit is None else limit, offset)).fetchall()
+        return [RunRow(job_row(r), r["recording_name"], r["variant"]) for r in rows], total
+
+    def suite_uses(self, job_id: str) -> int:
+        """How many suite cells a job serves (0 when no suite was ever stored)."""
+        with self._read() as conn:
+            if self._variants(conn) == NO_VARIANTS:
+                return 0
+            return int(conn.execute("SELECT COUNT(*) FROM suite_cells WHERE job_id = ?", (job_id,)).fetchone()[0])

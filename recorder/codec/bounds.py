@@ -1,0 +1,226 @@
+"""Bounds on the work a recording's bytes can ask for, checked before the work is done.
+
+A schema is checked before a protobuf descriptor pool or a ROS 2 parser is built from it (both
+recurse once per nesting level and per type in a chain, and so fail with ``RecursionError`` or take
+minutes on a hostile schema); an image's width and height are read from its header before OpenCV
+allocates its pixels. Each bound is a named constant, far above any real recording and far below
+what would hurt; breaking one raises :class:`CodecError` in one line saying which and by how much.
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+
+from google.protobuf import descriptor_pb2
+
+from slamreplay.recorder.errors import CodecError
+
+# Nesting of a schema: nested message declarations, a chain of message-typed fields, or a chain of file
+# dependencies. Foxglove's schemas nest 3 deep, ROS 2's common messages 4; Python's recursion (1000) is
+# reached by a chain of a few hundred in the libraries that build decoders.
+MAX_SCHEMA_DEPTH = 64
+# Message types in one schema: Foxglove's have under 10, a rosbag2 concatenated definition a few dozen;
+# each costs a class built at read time.
+MAX_SCHEMA_TYPES = 10_000
+# Pixels of one image: 32 Mpx is above any robot camera (a 4K frame is 8.3 Mpx) and keeps one decoded
+# rgb8 frame under 100 MB; a header claiming 40,000 x 40,000 (1.6 Gpx, 4.8 GB) is refused undecoded.
+MAX_IMAGE_PIXELS = 32 << 20
+
+# Chunks of one PNG, each checked (CRC) in Python before OpenCV sees the bytes: libpng writes 8 KiB IDAT
+# chunks, so the largest image slamreplay decodes (MAX_IMAGE_PIXELS rgb8) needs ~12,300; a PNG of a million
+# empty chunks (12 MB that compress to almost nothing) would cost seconds per message.
+MAX_PNG_CHUNKS = 1 << 16
+# Nesting of JSON held in a recording's metadata (the sensor model, the source): Python's json parser recurses
+# once per level and raises RecursionError near 1000; slamreplay's own JSON nests 3 deep.
+MAX_JSON_DEPTH = 64
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
+_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}  # start-of-frame markers (not DHT, JPG, DAC)
+_ROS_PRIMITIVES = frozenset(("bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32",
+                             "uint32", "int64", "uint64", "string", "wstring", "time", "duration"))
+
+
+def shown(text: str, limit: int = 100) -> str:
+    """A string from a file (topic, schema name...) as it may appear in a one-line message: printable, bounded."""
+    text = "".join(c if c.isprintable() else "?" for c in text)
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
+def json_depth(text: str) -> int:
+    """How deep the arrays and objects of a JSON text nest (strings skipped), without parsing it."""
+    depth = deepest = 0
+    for c in _JSON_STRING.sub("", text):
+        if c in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif c in "]}":
+            depth -= 1
+    return deepest
+
+
+def _longest_chain(edges: dict[str, list[str]], roots: list[str]) -> tuple[int, bool]:
+    """Length of the longest path of ``edges`` from ``roots`` (a back edge ends a path), and whether
+    there is a cycle; iterative, so that a chain of any length costs no recursion."""
+    depth: dict[str, int] = {}
+    on_stack: set[str] = set()
+    best, cyclic = 0, False
+    for root in roots:
+        if root in depth:
+            best = max(best, depth[root])
+            continue
+        stack: list[tuple[str, int]] = [(root, 0)]
+        on_stack.add(root)
+        while stack:
+            node, i = stack[-1]
+            children = edges.get(node, [])
+            if i < len(children):
+                stack[-1] = (node, i + 1)
+                child = children[i]
+                cyclic = cyclic or child in on_stack
+                if child not in depth and child not in on_stack and child in edges:
+                    stack.append((child, 0))
+                    on_stack.add(child)
+                continue
+            depth[node] = 1 + max((depth.get(c, 0) for c in children if c not in on_stack), default=0)
+            on_stack.discard(node)
+            stack.pop()
+        best = max(best, depth[root])
+    return best, cyclic
+
+
+def _too_deep(kind: str, depth: int) -> CodecError:
+    return CodecError(f"the schema nests {kind} {depth} deep, beyond slamreplay's limit of {MAX_SCHEMA_DEPTH}: "
+                      f"it is damaged or hostile")
+
+
+def check_protobuf_schema(data: bytes) -> None:
+    """CodecError when a FileDescriptorSet nests or holds more than the bounds allow.
+
+    Raises protobuf's DecodeError when ``data`` is not a FileDescriptorSet: upb parses it with its own
+    depth limit (100), so a set nested deeper is refused there, without recursion in Python.
+    """
+    fds = descriptor_pb2.FileDescriptorSet.FromString(data)
+    edges: dict[str, list[str]] = {}
+    nesting = 0
+    pending = [(f".{fd.package}" if fd.package else "", m, 1) for fd in fds.file for m in fd.message_type]
+    while pending:
+        scope, m, level = pending.pop()
+        nesting = max(nesting, level)
+        if nesting > MAX_SCHEMA_DEPTH:
+            raise _too_deep("message declarations", nesting)
+        if len(edges) >= MAX_SCHEMA_TYPES:
+            raise CodecError(f"the schema declares more than {MAX_SCHEMA_TYPES:,} message types, beyond "
+                             f"slamreplay's limit: it is damaged or hostile")
+        name = f"{scope}.{m.name}"
+        edges[name] = [f.type_name for f in m.field if f.type_name]
+        pending.extend((name, n, level + 1) for n in m.nested_type)
+    for name, targets in edges.items():
+        edges[name] = [_resolve(name, t, edges) for t in targets]
+    chain, _ = _longest_chain(edges, list(edges))  # recursive types are legal: upb bounds their decoding
+    if chain > MAX_SCHEMA_DEPTH:
+        raise _too_deep("message-typed fields", chain)
+    files = {fd.name: list(fd.dependency) for fd in fds.file}
+    chain, _ = _longest_chain(files, list(files))
+    if chain > MAX_SCHEMA_DEPTH:
+        raise _too_deep("file dependencies", chain)
+
+
+def _resolve(scope: str, type_name: str, known: dict[str, list[str]]) -> str:
+    """A field's type as a full name: absolute (``.pkg.T``), or relative, looked up from the field's
+    message outwards as protoc does."""
+    if type_name.startswith("."):
+        return type_name
+    parts = scope.split(".")
+    for i in range(len(parts), 0, -1):
+        candidate = ".".join(parts[:i]) + "." + type_name
+        if candidate in known:
+            return candidate
+    return "." + type_name
+
+
+def check_ros2_schema(text: str, name: str) -> None:
+    """CodecError when a ros2msg definition (with its ``MSG:`` sections) nests, recurses or holds too much."""
+    # split and named as mcap_ros2 does: a section is named by a leading "MSG:" line, else by the one before
+    sections = re.split(r"^={3,}$", text, flags=re.MULTILINE)
+    if len(sections) > MAX_SCHEMA_TYPES:
+        raise CodecError(f"the schema holds {len(sections):,} message definitions, beyond slamreplay's limit of "
+                         f"{MAX_SCHEMA_TYPES:,}: it is damaged or hostile")
+    edges: dict[str, list[str]] = {}
+    current = name
+    for section in sections:
+        section = section.strip()
+        found = re.match(r"^MSG:\s+(\S+)$", section, flags=re.MULTILINE)
+        current = found.group(1) if found else current
+        own = _ros_name(current, "")
+        pkg = own.split("/")[0]
+        fields = edges.setdefault(own, [])
+        for line in section.splitlines():
+            line = line.split("#", 1)[0].strip()
+            if not line or line.startswith("MSG:") or "=" in line:
+                continue
+            ftype = re.sub(r"(\[.*\]|<=\d+)", "", line.split()[0])
+            if ftype in _ROS_PRIMITIVES:
+                continue
+            tokens = line.split()
+            # a default value on a message-typed field: rosidl's parser raises NotImplementedError on it (a bad
+            # field name is found first by the parser, as InvalidFieldDefinition or NameError)
+            if len(tokens) > 2 and re.fullmatch(r"[a-z][a-z0-9_]*", tokens[1]):
+                raise CodecError(f"the schema gives the field {tokens[1]} of message type "
+                                 f"{shown(ftype, 60)} a default value, which ROS 2 allows only for primitive types")
+            fields.append(_ros_name(ftype, pkg))
+    chain, cyclic = _longest_chain(edges, list(edges))
+    if chain > MAX_SCHEMA_DEPTH:
+        raise _too_deep("message-typed fields", chain)
+    if cyclic:  # ROS 2 forbids recursive messages, and the CDR decoder would recurse as deep as the bytes go
+        raise CodecError("the schema holds a message type that contains itself, which ROS 2 does not allow: "
+                         "it is damaged or hostile")
+
+
+def _ros_name(ftype: str, pkg: str) -> str:
+    """``pkg/msg/Type``, ``pkg/Type`` or ``Type`` (in ``pkg``; ``Header`` is std_msgs') as ``pkg/Type``."""
+    parts = ftype.split("/")
+    if len(parts) == 1:
+        return "std_msgs/Header" if ftype == "Header" else f"{pkg}/{ftype}"
+    return f"{parts[0]}/{parts[-1]}"
+
+
+def image_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR or a JPEG's start-of-frame header; None when neither is found."""
+    if data.startswith(_PNG_SIGNATURE):
+        if len(data) >= 24 and data[12:16] == b"IHDR":
+            w, h = struct.unpack_from(">II", data, 16)
+            return int(w), int(h)
+        return None
+    if not data.startswith(b"\xff\xd8"):
+        return None
+    pos = 2
+    while pos + 4 <= len(data):  # markers: 0xFF, kind, then a big-endian segment length (itself included)
+        if data[pos] != 0xFF:
+            return None
+        kind = data[pos + 1]
+        if kind == 0xFF:  # fill byte
+            pos += 1
+            continue
+        (length,) = struct.unpack_from(">H", data, pos + 2)
+        if kind in _JPEG_SOF:
+            if pos + 9 > len(data):
+                return None
+            h, w = struct.unpack_from(">HH", data, pos + 5)
+            return int(w), int(h)
+        if kind == 0xDA or length < 2:  # scan data: no frame header came first
+            return None
+        pos += 2 + length
+    return None
+
+
+def check_image_size(data: bytes, fmt: str) -> None:
+    """CodecError when a PNG/JPEG header claims more than MAX_IMAGE_PIXELS pixels (or none); no decoding."""
+    size = image_size(data)
+    if size is None:
+        return  # no header found: OpenCV refuses the bytes without allocating pixels
+    w, h = size
+    if w == 0 or h == 0 or w * h > MAX_IMAGE_PIXELS:
+        raise CodecError(f"the {fmt or 'image'} header claims {w:,} x {h:,} pixels; slamreplay decodes at most "
+                         f"{MAX_IMAGE_PIXELS:,} pixels per image: the image is damaged or hostile")

@@ -1,0 +1,422 @@
+"""The runs table (/runs): paging, sorting, filters, metric conditions, URL state, CSV, labels, cancel/delete."""
+
+from __future__ import annotations
+
+import csv
+import html
+import io
+import json
+import re
+import sqlite3
+import warnings
+from pathlib import Path
+from urllib.parse import parse_qs, urlsplit
+
+import pytest
+from service_helpers import InlineExecutor
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", UserWarning)  # StarletteDeprecationWarning: it asks for httpx2; httpx works
+    from fastapi.testclient import TestClient
+
+from slamreplay.api.app import create_app
+from slamreplay.api.runs_query import RunsView, parse_conditions, parse_view
+from slamreplay.api.settings import Settings
+from slamreplay.api.store import RecordingRow, Store
+
+SIM, HALL = "a" * 64, "b" * 64
+# The jobs table as the first release made it: a database from then must open and work.
+OLD_SCHEMA = """
+CREATE TABLE IF NOT EXISTS recordings (
+    id TEXT PRIMARY KEY, filename TEXT NOT NULL, size INTEGER NOT NULL, topics TEXT NOT NULL,
+    message_count INTEGER NOT NULL, start_ns INTEGER NOT NULL, end_ns INTEGER NOT NULL, created REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS jobs (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    id TEXT NOT NULL UNIQUE,
+    recording_id TEXT NOT NULL,
+    pipeline TEXT NOT NULL,
+    config TEXT NOT NULL,
+    seed INTEGER NOT NULL,
+    status TEXT NOT NULL,
+    progress REAL NOT NULL DEFAULT 0,
+    error TEXT,
+    note TEXT,
+    attempts INTEGER NOT NULL DEFAULT 0,
+    created REAL NOT NULL,
+    started REAL,
+    finished REAL
+);
+CREATE INDEX IF NOT EXISTS jobs_status ON jobs (status, seq);
+CREATE INDEX IF NOT EXISTS jobs_recording ON jobs (recording_id);
+"""
+
+
+def jid(i: int) -> str:
+    return f"{i:032x}"
+
+
+def app_for(data: Path) -> TestClient:
+    """An app over ``data`` whose scheduler never starts: the rows put in its store stay as they are."""
+    return TestClient(create_app(Settings(allowed_hosts=("testserver",), data_dir=data, workers=1),
+                                 executor=InlineExecutor()))
+
+
+def write_metrics(run_dir: Path, values: dict[str, float]) -> None:
+    run_dir.mkdir(parents=True, exist_ok=True)
+    doc = {"format": 1, "pipeline": "x", "metrics": {k: {"value": v, "better": "lower", "unit": "m"}
+                                                      for k, v in values.items()}}
+    (run_dir / "metrics.json").write_text(json.dumps(doc))
+
+
+@pytest.fixture
+def table(tmp_path: Path) -> tuple[TestClient, Store]:
+    """Nine jobs: 0-5 succeeded (ape_rmse_m 0.0, 0.1 ... 0.5, odometry on sim.mcap for even seeds, dslam on
+    hall.mcap for odd), 6 failed, 7 running, 8 queued; job 3 has the config {"range_sigma_m": 0.2}."""
+    client = app_for(tmp_path)
+    store: Store = client.app.state.jobs.store  # type: ignore[attr-defined]
+    store.add_recording(RecordingRow(SIM, "sim.mcap", 10, [], 0, 0, 0, 0.0))
+    store.add_recording(RecordingRow(HALL, "hall.mcap", 10, [], 0, 0, 0, 0.0))
+    for i in range(9):
+        rec, pipeline = (SIM, "odometry") if i % 2 == 0 else (HALL, "dslam")
+        store.add_job(jid(i), rec, pipeline, {"range_sigma_m": 0.2} if i == 3 else {}, i)
+        if i < 8:
+            assert store.claim_next() is not None
+        if i < 6:
+            store.finish_job(jid(i), "succeeded", None, {"ape_rmse_m": i / 10, "poses_scored": 100.0 - i})
+        elif i == 6:
+            store.finish_job(jid(i), "failed", "sim.mcap: topic /camera/image is missing\nsecond line", None)
+    return client, store
+
+
+def row_ids(html: str) -> list[int]:
+    """The listed jobs, in the table's order, as their numbers."""
+    return [int(m, 16) for m in re.findall(r'<tr id="run-([0-9a-f]{32})"', html)]
+
+
+def test_first_page_lists_every_column(table: tuple[TestClient, Store]) -> None:
+    """/ and /runs list every job newest first with recording by file name, status with the error's first line,
+    the metric column with its unit and direction, and a viewport meta and favicon link; /runs is the table alone."""
+    client, _ = table
+    for path in ("/", "/runs"):
+        r = client.get(path)
+        assert r.status_code == 200
+        assert row_ids(r.text) == [8, 7, 6, 5, 4, 3, 2, 1, 0]
+    assert 'id="upload-form"' in client.get("/").text  # the home page has the lists and forms below the table
+    html = client.get("/runs").text
+    assert 'id="upload-form"' not in html and 'href="/#recordings"' in html
+    assert '<meta name="viewport" content="width=device-width, initial-scale=1">' in html
+    assert 'rel="icon" href="/static/favicon.svg"' in html
+    assert "hall.mcap" in html and SIM not in html.split('id="runs-table"')[1].split("</table>")[0]
+    assert "sim.mcap: topic /camera/image is missing" in html and "second line" not in html
+    assert re.search(r"ape_rmse_m</a> ↓", html)  # the unit is in the name; lower is better
+    assert 'title="absolute position error RMSE' in html
+    assert "config: range_sigma_m" in html  # the only key that differs between the listed runs
+
+
+def test_paging(table: tuple[TestClient, Store]) -> None:
+    """per=25 of 60 jobs: three pages (25, 25, 10), links to the next page; a page past the end shows the last."""
+    client, store = table
+    for i in range(9, 60):
+        store.add_job(jid(i), SIM, "odometry", {}, i)
+    first = client.get("/runs", params={"per": 25})
+    assert row_ids(first.text) == list(range(59, 34, -1)) and "page 1 of 3" in first.text
+    nxt = re.search(r'href="([^"]+)" rel="next"', first.text)
+    assert nxt is not None
+    second = client.get(nxt.group(1).replace("&amp;", "&"))
+    assert row_ids(second.text) == list(range(34, 9, -1))
+    assert row_ids(client.get("/runs", params={"per": 25, "page": 3}).text) == list(range(9, -1, -1))
+    assert row_ids(client.get("/runs", params={"per": 25, "page": 99}).text) == list(range(9, -1, -1))
+
+
+@pytest.mark.parametrize(("sort", "expected"), [
+    ("-created", [8, 7, 6, 5, 4, 3, 2, 1, 0]),
+    ("created", [0, 1, 2, 3, 4, 5, 6, 7, 8]),
+    ("seed", [0, 1, 2, 3, 4, 5, 6, 7, 8]),
+    ("-seed", [8, 7, 6, 5, 4, 3, 2, 1, 0]),
+    ("pipeline", [7, 5, 3, 1, 8, 6, 4, 2, 0]),  # dslam first; ties newest first
+    ("recording", [7, 5, 3, 1, 8, 6, 4, 2, 0]),  # hall.mcap before sim.mcap
+    ("status", [6, 7, 5, 4, 3, 2, 1, 0, 8]),  # failed, queued... alphabetical: failed < queued < running
+    ("m.ape_rmse_m", [0, 1, 2, 3, 4, 5, 8, 7, 6]),  # runs without the metric last
+    ("-m.ape_rmse_m", [5, 4, 3, 2, 1, 0, 8, 7, 6]),
+    ("m.poses_scored", [5, 4, 3, 2, 1, 0, 8, 7, 6]),
+    ("c.range_sigma_m", [3, 8, 7, 6, 5, 4, 2, 1, 0]),
+    ("-started", [7, 6, 5, 4, 3, 2, 1, 0, 8]),
+    ("-finished", [6, 5, 4, 3, 2, 1, 0, 8, 7]),
+])
+def test_each_sort(table: tuple[TestClient, Store], sort: str, expected: list[int]) -> None:
+    """Each column sorts (runs without a value last either way, then newest first)."""
+    client, _ = table
+    got = row_ids(client.get("/runs", params={"sort": sort}).text)
+    if sort == "status":  # queued (8) and running (7) after failed: check the order of statuses only
+        assert got[0] == 6 and got[1:3] == [8, 7] and set(got[3:]) == {0, 1, 2, 3, 4, 5}
+    else:
+        assert got == expected
+
+
+def test_sort_by_name_tags_note_duration_and_variant(table: tuple[TestClient, Store]) -> None:
+    """Name, tags, note, duration and variant sort too; unnamed runs come last."""
+    client, store = table
+    store.set_labels(jid(2), "beta", ["z"], "second")
+    store.set_labels(jid(4), "Alpha", ["a"], "first")
+    assert row_ids(client.get("/runs", params={"sort": "name"}).text)[:2] == [4, 2]
+    assert row_ids(client.get("/runs", params={"sort": "-name"}).text)[:2] == [2, 4]
+    assert row_ids(client.get("/runs", params={"sort": "note"}).text)[:2] == [4, 2]
+    assert row_ids(client.get("/runs", params={"sort": "tags"}).text)[0] in (2, 4)
+    assert len(row_ids(client.get("/runs", params={"sort": "-duration"}).text)) == 9
+    with sqlite3.connect(store.path) as conn:
+        conn.execute("INSERT INTO suite_cells VALUES ('s', 0, ?, ?, 0)", (json.dumps({"variant": "tuned"}), jid(1)))
+    html = client.get("/runs", params={"sort": "variant"}).text
+    assert row_ids(html)[0] == 1 and ">tuned<" in html
+    assert "It serves 1 suite cell:" in client.get(f"/ui/jobs/{jid(1)}/delete").text
+
+
+@pytest.mark.parametrize(("params", "expected"), [
+    ({"recording": SIM}, [8, 6, 4, 2, 0]),
+    ({"recording": "hall.mcap"}, [7, 5, 3, 1]),
+    ({"recording": "bbbbbbbb"}, [7, 5, 3, 1]),  # an id prefix, as the page shows it
+    ({"pipeline": "dslam"}, [7, 5, 3, 1]),
+    ({"status": "failed"}, [6]),
+    ({"q": "camera/image"}, [6]),  # the error's text
+    ({"q": "range_sigma"}, [3]),  # the config
+    ({"q": jid(5)[-6:]}, [5]),  # the id
+    ({"where": "ape_rmse_m < 0.25"}, [2, 1, 0]),
+    ({"where": "ape_rmse_m >= 0.3"}, [5, 4, 3]),
+    ({"where": "ape_rmse_m != 0"}, [5, 4, 3, 2, 1]),
+    ({"where": "ape_rmse_m = 0.2"}, [2]),
+    ({"where": "ape_rmse_m > 0.05 and poses_scored >= 97", "pipeline": "dslam"}, [3, 1]),
+    ({"where": "ape_rmse_m<=1e-1", "recording": SIM}, [0]),
+])
+def test_each_filter(table: tuple[TestClient, Store], params: dict[str, str], expected: list[int]) -> None:
+    """Recording (id, prefix or file name), pipeline, status, free text and metric conditions filter the runs."""
+    client, _ = table
+    r = client.get("/runs", params=params)
+    assert r.status_code == 200 and row_ids(r.text) == expected
+
+
+def test_tag_and_text_filters_find_labels(table: tuple[TestClient, Store]) -> None:
+    """A tag filters exactly; free text finds names, notes and tags (every word must match)."""
+    client, store = table
+    store.set_labels(jid(1), "old baseline", ["paper", "v1"], "before the fix")
+    store.set_labels(jid(2), None, ["paper-draft"], None)
+    assert row_ids(client.get("/runs", params={"tag": "paper"}).text) == [1]
+    assert row_ids(client.get("/runs", params={"q": "baseline"}).text) == [1]
+    assert row_ids(client.get("/runs", params={"q": "before fix"}).text) == [1]
+    assert row_ids(client.get("/runs", params={"q": "paper"}).text) == [2, 1]
+    assert row_ids(client.get("/runs", params={"q": "100%"}).text) == []  # % is a character, not a wildcard
+
+
+@pytest.mark.parametrize(("where", "message"), [
+    ("ape_rmse_m << 0.1", "cannot read the condition 'ape_rmse_m << 0.1': write a metric name, one of"),
+    ("ape_rmse_m < abc", "cannot read the condition"),
+    ("ape_rmse_m < 0.1; drop table jobs", "cannot read the condition"),
+    ("ape_rmse < 0.1", "unknown metric 'ape_rmse': did you mean ape_rmse_m"),
+    ("< 0.1", "cannot read the condition"),
+])
+def test_bad_condition_is_a_message(table: tuple[TestClient, Store], where: str, message: str) -> None:
+    """A condition that does not parse: 422 with one line saying what is wrong, the table unfiltered by it."""
+    client, _ = table
+    r = client.get("/runs", params={"where": where})
+    assert r.status_code == 422 and r.headers["content-type"].startswith("text/html")
+    assert message in html.unescape(r.text) and "(the condition is not applied)" in r.text
+    assert len(row_ids(r.text)) == 9
+
+
+def test_other_bad_parameters_are_messages(table: tuple[TestClient, Store]) -> None:
+    """An unknown status, sort or metric column and a page that is not a number: messages, never a 500."""
+    client, _ = table
+    for params, message in (({"status": "done"}, "unknown status"), ({"sort": "colour"}, "cannot sort by"),
+                            ({"cols": "ape_rmse_m,nope"}, "column unknown metric"),
+                            ({"page": "two"}, "page must be a whole number")):
+        r = client.get("/runs", params=params)
+        assert r.status_code == 422 and message in html.unescape(r.text), params
+
+
+def test_parse_conditions_strictly() -> None:
+    """Each operator parses; the number may be signed or in exponent form."""
+    known = {"a_m": None, "b": None}
+    got = parse_conditions("a_m < 1 and b>=-2.5e-3 AND a_m != .5", known)
+    assert [(c.metric, c.op, c.value) for c in got] == [("a_m", "<", 1.0), ("b", ">=", -2.5e-3), ("a_m", "!=", 0.5)]
+    for op in ("<", "<=", ">", ">=", "=", "!="):
+        assert parse_conditions(f"b {op} 1", known)[0].op == op
+    for bad in ("b == 1", "b < 1 or a_m > 2", "b < nan", "b <", "1 < b"):
+        with pytest.raises(ValueError, match="cannot read the condition"):
+            parse_conditions(bad, known)
+
+
+def test_url_state_round_trip(table: tuple[TestClient, Store]) -> None:
+    """A view written to a URL and read back is the same view; the page's sort and pager links keep the filters."""
+    view = parse_view({"q": ["drift"], "pipeline": ["dslam"], "status": ["succeeded"], "tag": ["paper"],
+                       "where": ["ape_rmse_m < 0.5"], "cols": ["ape_rmse_m", "poses_scored"],
+                       "sort": ["-m.ape_rmse_m"], "page": ["2"], "per": ["25"], "recording": ["sim.mcap"]})
+    assert view.errors == ()
+    again = parse_view({k: [v] for k, v in parse_qs(urlsplit(view.url()).query).items() for v in v})
+    assert again == view and again.cols == ("ape_rmse_m", "poses_scored")
+    assert parse_view({}) == RunsView()
+    client, _ = table
+    html = client.get("/runs", params={"pipeline": "dslam", "cols": "ape_rmse_m,poses_scored"}).text
+    link = re.search(r'href="([^"]*sort=seed[^"]*)"', html)
+    assert link is not None
+    params = parse_qs(urlsplit(link.group(1).replace("&amp;", "&")).query)
+    assert params == {"pipeline": ["dslam"], "cols": ["ape_rmse_m,poses_scored"], "sort": ["seed"]}
+    assert "poses_scored</a>" in html
+
+
+def test_csv_export_is_the_view_on_every_page(table: tuple[TestClient, Store]) -> None:
+    """Export CSV: the same filter and sort over every page, the metric columns with units."""
+    client, _ = table
+    html = client.get("/runs", params={"pipeline": "odometry", "sort": "-m.ape_rmse_m", "per": 25}).text
+    href = re.search(r'id="export-csv" href="([^"]+)"', html)
+    assert href is not None
+    r = client.get(href.group(1).replace("&amp;", "&"))
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/csv")
+    rows = list(csv.reader(io.StringIO(r.text)))
+    assert rows[0][:3] == ["id", "name", "tags"] and rows[0][-1] == "ape_rmse_m"
+    assert [int(x[0], 16) for x in rows[1:]] == [4, 2, 0, 8, 6]
+    assert [x[-1] for x in rows[1:]] == ["0.4", "0.2", "0.0", "", ""]
+    assert rows[1][4] == "sim.mcap" and rows[1][13] == "succeeded"
+    bad = client.get("/runs.csv", params={"where": "nope <"})
+    assert bad.status_code == 422 and "cannot read the condition" in bad.text
+
+
+def test_csv_cells_are_never_formulas(table: tuple[TestClient, Store]) -> None:
+    """A name a spreadsheet would run (=HYPERLINK...) is exported with a leading apostrophe."""
+    client, store = table
+    store.set_labels(jid(0), "=HYPERLINK(1)", [], None)
+    rows = list(csv.reader(io.StringIO(client.get("/runs.csv").text)))
+    assert [x[1] for x in rows if x[0] == jid(0)] == ["'=HYPERLINK(1)"]
+
+
+def test_rename_tag_and_note(table: tuple[TestClient, Store]) -> None:
+    """The edit form saves name, tags and note and goes back to the table; bad tags are a 422 message."""
+    client, store = table
+    form = client.get(f"/ui/jobs/{jid(1)}/edit", params={"next": "/runs?pipeline=dslam"})
+    assert form.status_code == 200 and 'id="edit-form"' in form.text
+    r = client.post(f"/ui/jobs/{jid(1)}/edit", data={"name": "baseline 2024", "tags": "paper, v1 paper",
+                                                      "note": "the run in the paper", "next": "/runs?pipeline=dslam"},
+                    follow_redirects=False)
+    assert r.status_code == 303 and r.headers["location"] == "/runs?pipeline=dslam"
+    job = store.get_job(jid(1))
+    assert job is not None and (job.name, job.tags, job.note) == ("baseline 2024", ("paper", "v1"),
+                                                                 "the run in the paper")
+    html = client.get("/runs", params={"tag": "v1"}).text
+    assert row_ids(html) == [1] and "baseline 2024" in html and 'class="tag"' in html
+    api = client.get(f"/jobs/{jid(1)}").json()
+    assert (api["name"], api["tags"], api["note"]) == ("baseline 2024", ["paper", "v1"], "the run in the paper")
+    assert [j["tags"] for j in client.get("/jobs", params={"pipeline": "dslam"}).json() if j["id"] == jid(1)] == [
+        ["paper", "v1"]]
+    bad = client.post(f"/ui/jobs/{jid(1)}/edit", data={"name": "x", "tags": "a;b"})
+    assert bad.status_code == 422 and "tag &#39;a;b&#39;" in bad.text
+    away = client.post(f"/ui/jobs/{jid(1)}/edit", data={"name": "", "tags": "", "next": "https://evil.example/"},
+                       follow_redirects=False)
+    assert away.headers["location"] == "/runs"  # only a path on this server
+    job = store.get_job(jid(1))
+    assert job is not None and (job.name, job.tags) == (None, ())
+
+
+def test_cancel_and_delete_ask_first(table: tuple[TestClient, Store], tmp_path: Path) -> None:
+    """Cancel and delete are a confirmation page, then a form POST; each refuses the other kind of job."""
+    client, store = table
+    page = client.get(f"/ui/jobs/{jid(8)}/cancel")
+    assert page.status_code == 200 and f'action="/ui/jobs/{jid(8)}/cancel"' in page.text
+    assert store.get_job(jid(8)).status == "queued"  # type: ignore[union-attr]  # asking changes nothing
+    r = client.post(f"/ui/jobs/{jid(8)}/cancel", data={"next": "/runs"}, follow_redirects=False)
+    assert r.status_code == 303 and store.get_job(jid(8)).status == "cancelled"  # type: ignore[union-attr]
+    assert "nothing to cancel" in client.get(f"/ui/jobs/{jid(0)}/cancel").text
+    assert client.post(f"/ui/jobs/{jid(0)}/cancel").status_code == 409
+
+    run = tmp_path / "runs" / jid(0)
+    write_metrics(run, {"ape_rmse_m": 0.0})
+    page = client.get(f"/ui/jobs/{jid(0)}/delete")
+    assert 'id="confirm-form"' in page.text and "cannot be undone" in page.text
+    assert "cancel it before deleting it" in client.get(f"/ui/jobs/{jid(7)}/delete").text
+    assert client.post(f"/ui/jobs/{jid(7)}/delete").status_code == 409
+    r = client.post(f"/ui/jobs/{jid(0)}/delete", data={"next": "/runs?status=succeeded"}, follow_redirects=False)
+    assert r.status_code == 303 and r.headers["location"] == "/runs?status=succeeded"
+    assert store.get_job(jid(0)) is None and not run.exists()
+    assert 0 not in row_ids(client.get("/runs").text)
+    assert client.post(f"/ui/jobs/{jid(0)}/delete").status_code == 404
+    assert client.get(f"/ui/jobs/{jid(0)}/delete").status_code == 404
+
+
+def test_compare_selected(table: tuple[TestClient, Store]) -> None:
+    """Two succeeded runs of one recording and pipeline open the comparison page; others get /compare?runs=
+    and, for two, the API's diff; fewer than two is a message."""
+    client, store = table
+    store.cancel_job(jid(8))  # so that the next claim is the new job
+    store.add_job(jid(20), SIM, "odometry", {"x": 1}, 0)
+    store.claim_next()
+    store.finish_job(jid(20), "succeeded", None, {})
+    r = client.get("/ui/runs/compare", params={"sel": [jid(0), jid(20)]}, follow_redirects=False)
+    assert r.status_code == 303 and r.headers["location"] == f"/ui/compare?a={jid(0)}&b={jid(20)}"
+    r = client.get("/ui/runs/compare", params={"sel": [jid(0), jid(1)]})
+    assert r.status_code == 200 and f"/compare?runs={jid(0)},{jid(1)}" in r.text
+    assert f'href="/diff?a={jid(0)}&amp;b={jid(1)}"' in r.text
+    r = client.get("/ui/runs/compare", params={"sel": [jid(0), jid(1), jid(2)]})
+    assert f"/compare?runs={jid(0)},{jid(1)},{jid(2)}" in r.text and "/diff?" not in r.text
+    r = client.get("/ui/runs/compare", params={"sel": [jid(0)]})
+    assert r.status_code == 422 and "select at least two runs" in r.text
+
+
+def test_favicon(table: tuple[TestClient, Store]) -> None:
+    """/favicon.ico answers with the package's SVG icon."""
+    client, _ = table
+    r = client.get("/favicon.ico")
+    assert r.status_code == 200 and r.headers["content-type"].startswith("image/svg+xml") and b"<svg" in r.content
+
+
+def test_metrics_are_backfilled_once_for_old_jobs(table: tuple[TestClient, Store], tmp_path: Path) -> None:
+    """A succeeded job without stored metric values (an older server's) is read from metrics.json once, under the
+    metrics' current names."""
+    client, store = table
+    store.cancel_job(jid(8))  # so that the next claim is the new job
+    store.add_job(jid(30), SIM, "odometry", {}, 0)
+    store.claim_next()
+    store.finish_job(jid(30), "succeeded", None)  # no values: as an older server left it
+    assert store.unscored() == [jid(30)]
+    write_metrics(tmp_path / "runs" / jid(30), {"robot_ate_rmse_m": 7.5})  # a metric's name before a rename
+    assert row_ids(client.get("/runs", params={"where": "ape_rmse_m > 7"}).text) == [30]
+    assert store.unscored() == [] and store.get_job(jid(30)).metrics == {"ape_rmse_m": 7.5}  # type: ignore[union-attr]
+
+
+def test_old_database_is_migrated_in_place(tmp_path: Path) -> None:
+    """A jobs.sqlite made with the first schema opens: new columns and tables added, old rows kept and listed,
+    their metrics read from their runs."""
+    db = tmp_path / "runs" / "jobs.sqlite"
+    db.parent.mkdir()
+    with sqlite3.connect(db) as conn:
+        conn.executescript(OLD_SCHEMA)
+        conn.execute("INSERT INTO recordings VALUES (?, 'old.mcap', 1, '[]', 0, 0, 0, 0)", (SIM,))
+        conn.execute("INSERT INTO jobs (id, recording_id, pipeline, config, seed, status, note, created, started, "
+                     "finished) VALUES (?, ?, 'odometry', '{}', 3, 'succeeded', 're-queued once', 1.0, 2.0, 5.0)",
+                     (jid(1), SIM))
+    write_metrics(tmp_path / "runs" / jid(1), {"ape_rmse_m": 0.25})
+    store = Store(db)
+    job = store.get_job(jid(1))
+    assert job is not None and (job.name, job.tags, job.metrics, job.note) == (None, (), None, "re-queued once")
+    Store(db)  # opening it again changes nothing
+    with sqlite3.connect(db) as conn:
+        columns = {r[1] for r in conn.execute("PRAGMA table_info(jobs)")}
+        tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+    assert {"name", "metrics"} <= columns and "job_tags" in tables
+    client = app_for(tmp_path)
+    html = client.get("/runs", params={"cols": "ape_rmse_m"}).text
+    assert row_ids(html) == [1] and "old.mcap" in html and "0.25" in html and "3.0 s" in html
+    assert store.set_labels(jid(1), "kept", ["old"], None) is not None
+
+
+def test_finished_job_stores_its_metrics(tmp_path: Path) -> None:
+    """A job run by the scheduler has its metric values in the store when it ends (no file read by the table)."""
+    from conftest import write_tiny_recording
+    from service_helpers import wait_for
+
+    rec = write_tiny_recording(tmp_path / "tiny.mcap")
+    with app_for(tmp_path / "data") as client:
+        rid = client.post("/recordings", content=rec.read_bytes(), params={"filename": "tiny.mcap"}).json()["id"]
+        job_id = client.post("/jobs", json={"recording_id": rid, "pipeline": "odometry"}).json()["id"]
+        assert wait_for(client, job_id)["status"] == "succeeded"
+        job = client.app.state.jobs.store.get_job(job_id)  # type: ignore[attr-defined]
+        on_disk = json.loads((tmp_path / "data" / "runs" / job_id / "metrics.json").read_text())["metrics"]
+        assert job.metrics == {k: v["value"] for k, v in on_disk.items()} and job.metrics
+        html = client.get("/runs").text
+        assert "tiny.mcap" in html and row_ids(html) == [int(job_id, 16)]
