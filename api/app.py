@@ -4,10 +4,10 @@ Routes only validate and delegate (to ``RecordingService``, ``JobService`` and `
 replays run in worker processes, never in the event loop. Ids in paths and queries must be
 hex (sha256 for recordings, 32 digits for jobs), so user input never names a file. When a
 token is set, every route but ``/healthz`` needs ``Authorization: Bearer <token>`` (the
-interactive ``/docs`` page is then off, as a browser cannot send the token from it). With or
-without a token, only the host names the server answers to are served and other sites cannot
-make changes (``slamreplay.api.siteguard``); the app starts only while it holds its data
-directory's lock (``slamreplay.api.datalock``).
+interactive ``/docs`` and ``/redoc`` pages, served from installed files, are then off, as a browser
+cannot send the token from them). With or without a token, only the host names the server
+answers to are served and other sites cannot make changes (``slamreplay.api.siteguard``); the
+app starts only while it holds its data directory's lock (``slamreplay.api.datalock``).
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from starlette.concurrency import run_in_threadpool
 
 from slamreplay.api.datalock import DataDirLock
 from slamreplay.api.deps import ERRORS, JobsDep, RecordingsDep, require_token
+from slamreplay.api.docs_pages import install_docs
 from slamreplay.api.errors import ApiError, disk_full_error, is_disk_full
 from slamreplay.api.executor import Executor, LocalExecutor
 from slamreplay.api.jobs import JobService
@@ -153,7 +154,7 @@ def delete_recording(recording_id: RecordingId, recordings: RecordingsDep) -> Re
 @router.post("/jobs", status_code=202, tags=["jobs"])
 def submit_job(spec: JobSpec, jobs: JobsDep) -> JobOut:
     """Queue a job; 422 naming an unknown pipeline or config key, 404 for an unknown recording."""
-    return JobOut.of(jobs.submit(spec.recording_id, spec.pipeline, spec.config, spec.seed))
+    return JobOut.of(jobs.submit(spec.recording_id, spec.pipeline, spec.config, spec.seed, spec.topic_map))
 
 
 @router.get("/jobs", tags=["jobs"])
@@ -257,7 +258,8 @@ def create_app(settings: Settings | None = None, executor: Executor | None = Non
             await run_in_threadpool(jobs.stop)
 
     docs = settings.token is None
-    app = FastAPI(title="slamreplay", version=version(), lifespan=lifespan, docs_url="/docs" if docs else None,
+    # /docs and /redoc are served from installed files, not FastAPI's CDN links (api/docs_pages.py)
+    app = FastAPI(title="slamreplay", version=version(), lifespan=lifespan, docs_url=None,
                   redoc_url=None, openapi_url="/openapi.json" if docs else None,
                   description="Upload MCAP recordings, replay them through SLAM pipelines as jobs, "
                               "fetch metrics and Rerun recordings, and diff runs.")
@@ -271,7 +273,9 @@ def create_app(settings: Settings | None = None, executor: Executor | None = Non
     app.include_router(router)
     install_record_routes(app)  # POST /recordings/record/NAME per importer the server may run
     install_web(app)  # suites, compare, the web page at / (api/suites_routes.py, api/web.py)
-    if not docs:
+    if docs:
+        install_docs(app)
+    else:
         @app.get("/openapi.json", include_in_schema=False, dependencies=[Depends(require_token)])
         def openapi() -> JSONResponse:
             return JSONResponse(app.openapi())

@@ -141,14 +141,15 @@ class JobService:
 
     def task_of(self, job: JobRow) -> Task:
         """The task of ``job``; with a storage URL, its recording is copied there first (once)."""
-        recording, run_dir = str(self.recording_path(job.recording_id)), str(self.run_dir(job.id))
+        recording, run_dir = str(self.named_recording(job.recording_id)), str(self.run_dir(job.id))
         base = self.settings.storage_url
         if base is not None:
             remote = storage.join(base, "recordings", f"{job.recording_id}.mcap")
             if not storage.exists(remote):
                 storage.put_file(Path(recording), remote)
             recording, run_dir = remote, storage.join(base, "runs", job.id)
-        return Task(job.id, recording, job.pipeline, job.config, job.seed, run_dir, str(self.settings.db_path))
+        return Task(job.id, recording, job.pipeline, job.config, job.seed, run_dir, str(self.settings.db_path),
+                    dict(job.topic_map or {}))
 
     def _collect(self, job_id: str, outcome: Outcome) -> Outcome:
         """With a storage URL, copy the run directory back into ``runs/`` (what it has, however the job ended)."""
@@ -167,19 +168,60 @@ class JobService:
     def recording_path(self, recording_id: str) -> Path:
         return self.settings.recordings_dir / f"{recording_id}.mcap"
 
+    def named_recording(self, recording_id: str) -> Path:
+        """The recording under the name it was uploaded with (a link in ``recordings/named/<id>/``), so that a run's
+        log, errors and viewer title say ``sim.mcap`` rather than its sha256; the stored file itself when the
+        link cannot be made (no row, or a file system without links)."""
+        path = self.recording_path(recording_id)
+        rec = self.store.get_recording(recording_id)
+        if rec is None:
+            return path
+        name = Path(rec.filename).name.strip() or "recording.mcap"
+        if name in (".", "..") or name.startswith("."):
+            name = "recording" + name
+        if not name.endswith(".mcap"):
+            name += ".mcap"
+        link = self.settings.recordings_dir / "named" / recording_id / name
+        try:
+            if not link.is_symlink():
+                link.parent.mkdir(parents=True, exist_ok=True)
+                link.symlink_to(Path("..") / ".." / path.name)
+        except OSError:
+            return path
+        return link
+
     def run_dir(self, job_id: str) -> Path:
         return self.settings.runs_dir / job_id
 
     # -- requests ------------------------------------------------------------------------------
 
-    def submit(self, recording_id: str, pipeline: str, config: dict[str, Any], seed: int) -> JobRow:
-        """Validate and queue a job. ReplayError names an unknown pipeline or config key; NotFoundError a recording."""
-        resolve_config(get_pipeline(pipeline), config)
+    def submit(self, recording_id: str, pipeline: str, config: dict[str, Any], seed: int,
+               topic_map: dict[str, str] | None = None) -> JobRow:
+        """Validate and queue a job.
+
+        ``recording_id``: a whole id or an unambiguous prefix of one; ``topic_map``: file topic -> slamreplay
+        topic, applied when the recording is read. ReplayError (422) names an unknown pipeline or config key, a
+        bad topic map, or the topics the pipeline needs that the recording lacks (and the pipelines it fits);
+        NotFoundError an unknown recording, ConflictError an ambiguous prefix.
+        """
+        from slamreplay.api.idprefix import resolve_id
+        from slamreplay.api.submit_checks import check_fit, parse_topic_map
+
+        pipeline_cls = get_pipeline(pipeline)
+        resolve_config(pipeline_cls, config)
         try:
             json.dumps(config, allow_nan=False)
         except ValueError as err:
             raise ReplayError(f"config must be plain JSON values: {err}") from err
-        job = self.store.add_job(uuid.uuid4().hex, recording_id, pipeline, config, seed)
+        topic_map = parse_topic_map(topic_map)
+        try:
+            recording_id = resolve_id(self.store, recording_id, ("recording",))
+        except NotFoundError as err:
+            raise NotFoundError(f"{err}; upload it with POST /recordings first") from None
+        rec = self.store.get_recording(recording_id)
+        if rec is not None:  # else add_job answers 404 below
+            check_fit(rec, pipeline_cls, topic_map)
+        job = self.store.add_job(uuid.uuid4().hex, recording_id, pipeline, config, seed, topic_map or None)
         if job is None:
             raise NotFoundError(f"recording {recording_id} not found; upload it with POST /recordings first")
         self.wake()

@@ -93,10 +93,16 @@ class JobSpec(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    recording_id: str = Field(pattern=SHA256, description="id (sha256) of an uploaded recording")
+    # Checked by the service, not a pattern: a prefix of an id names it, and a malformed one is a 404 with the id.
+    recording_id: str = Field(min_length=1, max_length=200, description="id (sha256) of an uploaded recording, or "
+                                                                        "an unambiguous prefix of it (the page "
+                                                                        "shows 8 digits)")
     pipeline: str = Field(min_length=1, max_length=100, description="a pipeline name (see `slamreplay pipelines`)")
     config: dict[str, Any] = Field(default_factory=dict, description="config key -> value; defaults for the rest")
     seed: int = Field(default=0, ge=0, le=2**63 - 1)
+    topic_map: dict[str, str] = Field(default_factory=dict, max_length=100,
+                                      description="file topic -> slamreplay topic, for a recording whose topics "
+                                                  'have other names, e.g. {"/wheel/odom": "/odom"}')
 
 
 class JobOut(BaseModel):
@@ -105,6 +111,7 @@ class JobOut(BaseModel):
     pipeline: str
     config: dict[str, Any]
     seed: int
+    topic_map: dict[str, str] = Field(default_factory=dict, description="file topic -> slamreplay topic")
     status: JobStatusName
     progress: float = Field(ge=0.0, le=1.0)
     error: str | None = Field(description="why it failed, was cancelled or interrupted")
@@ -140,7 +147,8 @@ class JobOut(BaseModel):
         if job.status == "succeeded":
             links |= {"rrd": f"{base}/rrd", "metrics": f"{base}/metrics"}
         return cls(id=job.id, recording_id=job.recording_id, pipeline=job.pipeline, config=job.config, seed=job.seed,
-                   status=job.status, progress=job.progress, error=job.error, note=job.note, name=job.name,
+                   topic_map=dict(job.topic_map or {}), status=job.status, progress=job.progress, error=job.error,
+                   note=job.note, name=job.name,
                    tags=list(job.tags), attempts=job.attempts,
                    created_at=_time(job.created), started_at=_maybe_time(job.started),
                    finished_at=_maybe_time(job.finished),

@@ -128,6 +128,7 @@ class RecordingService:
             raise ConflictError(f"recording {recording_id} is used by {n} queued or running job(s); "
                            f"cancel them (DELETE /jobs/{{id}}) or wait for them to finish")
         self.path(recording_id).unlink(missing_ok=True)
+        shutil.rmtree(self.settings.recordings_dir / "named" / recording_id, ignore_errors=True)  # JobService's link
 
     async def upload(self, chunks: AsyncIterator[bytes], filename: str | None, declared_size: int | None,
                      recover_damaged: bool) -> Stored:

@@ -155,8 +155,21 @@ def home_page(request: Request, uploaded: Annotated[str | None, Query(max_length
         example = (f'seeds = [1, 2, 3]\n\n[recordings.{suite_key(first.filename)}]\nid = "{first.id}"\n\n'
                    '[pipelines.odometry]\n\n[pipelines.dslam]\n')
     ctx = runs_ctx(request, view)
-    return _page(request, "index.html", 422 if view.errors else 200, **lists, **ctx, uploaded=uploaded,
-                 pipelines=sorted(all_pipelines()), example=example, full=True)
+    names = lists["rec_names"]
+    return _page(request, "index.html", 422 if view.errors else 200, **lists, **ctx,
+                 uploaded=names.get(uploaded or "", uploaded), pipelines=sorted(all_pipelines()), example=example,
+                 full=True, compare_options=compare_options(lists["suites"], lists["jobs"], names))
+
+
+def compare_options(suites: list[Any], jobs: list[Any], rec_names: dict[str, str]) -> list[dict[str, Any]]:
+    """The compare form's choices (suites, then succeeded jobs, newest first), with B the newest and A the one
+    before it, so that the form never starts with A = B."""
+    opts = [{"id": s.id, "label": f"suite {s.name} ({s.id[:8]})"} for s, _ in suites]
+    opts += [{"id": j.id, "label": f"job {j.name or j.id[:8]}: {j.pipeline} on {rec_names.get(j.recording_id, '?')}, "
+                                   f"seed {j.seed}"} for j in jobs if j.status == "succeeded"]
+    for i, o in enumerate(opts):
+        o["a"], o["b"] = i == (1 if len(opts) > 1 else 0), i == 0
+    return opts
 
 
 @router.get("/runs")
@@ -307,21 +320,15 @@ async def delete_job(request: Request, job_id: JobPath, jobs: JobsDep) -> Respon
 
 
 @router.get("/ui/runs/compare")
-def compare_selected(request: Request, jobs: JobsDep,
-                     sel: Annotated[list[str] | None, Query(max_length=32)] = None) -> Response:
-    """The selected runs: two succeeded runs of one recording and pipeline open the comparison page; otherwise a
-    page with the comparison's URL (``/compare?runs=...``) and, for two runs, the API's diff."""
+def compare_selected(request: Request, sel: Annotated[list[str] | None, Query(max_length=32)] = None) -> Response:
+    """The selected runs' comparison at its stable URL (``/ui/compare?runs=...``): two as a diff, more side by
+    side, whatever their pipelines, recordings and seeds."""
+    from slamreplay.api.compare_runs import MAX_RUNS
+
     ids = list(dict.fromkeys(s for s in sel or [] if re.fullmatch(JOB_ID, s)))
     if len(ids) < 2:
         return _error(request, ReplayError("select at least two runs (the boxes in the table's first column), "
                                            "then Compare selected"))
-    try:
-        chosen = [jobs.get(i) for i in ids]
-    except PAGE_ERRORS as err:
-        return _error(request, err)
-    a, b = chosen[0], chosen[-1]
-    if (len(chosen) == 2 and all(j.status == "succeeded" for j in chosen) and a.recording_id == b.recording_id
-            and a.pipeline == b.pipeline and a.seed == b.seed):
-        return RedirectResponse("/ui/compare?" + urlencode({"a": a.id, "b": b.id}), 303)
-    return _page(request, "runs_compare.html", chosen=chosen, runs_url="/compare?runs=" + ",".join(ids),
-                 diff_url=f"/diff?a={a.id}&b={b.id}" if len(chosen) == 2 else None)
+    if len(ids) > MAX_RUNS:
+        return _error(request, ReplayError(f"{len(ids)} runs selected: compare at most {MAX_RUNS} at once"))
+    return RedirectResponse("/ui/compare?" + urlencode({"runs": ",".join(ids)}, safe=","), 303)

@@ -63,13 +63,14 @@ CREATE TABLE IF NOT EXISTS jobs (
     started REAL,
     finished REAL,
     name TEXT,                      -- given on the page; NULL: none
-    metrics TEXT                    -- JSON {metric: value} of a succeeded job; NULL: not read yet
+    metrics TEXT,                   -- JSON {metric: value} of a succeeded job; NULL: not read yet
+    topic_map TEXT                  -- JSON {file topic: slamreplay topic}; NULL: none
 );
 CREATE INDEX IF NOT EXISTS jobs_status ON jobs (status, seq);
 CREATE INDEX IF NOT EXISTS jobs_recording ON jobs (recording_id);
 """
 # Columns added since the first schema: (name, declaration), added by ALTER TABLE to an older file.
-ADDED_COLUMNS = (("name", "TEXT"), ("metrics", "TEXT"))
+ADDED_COLUMNS = (("name", "TEXT"), ("metrics", "TEXT"), ("topic_map", "TEXT"))
 # Run after the columns exist (an index on a column an old file lacks would fail in SCHEMA).
 SCHEMA_AFTER = """
 CREATE TABLE IF NOT EXISTS job_tags (
@@ -233,13 +234,14 @@ class Store(RunsTableMixin):
     # -- jobs ------------------------------------------------------------------------------
 
     def add_job(self, job_id: str, recording_id: str, pipeline: str, config: dict[str, Any],
-                seed: int) -> JobRow | None:
+                seed: int, topic_map: dict[str, str] | None = None) -> JobRow | None:
         """Queue a job; None when the recording is unknown (checked in the same transaction)."""
         with self._tx() as conn:
             cur = conn.execute(
-                "INSERT INTO jobs (id, recording_id, pipeline, config, seed, status, created) "
-                "SELECT ?, ?, ?, ?, ?, 'queued', ? WHERE EXISTS (SELECT 1 FROM recordings WHERE id = ?)",
-                (job_id, recording_id, pipeline, json.dumps(config), seed, time.time(), recording_id))
+                "INSERT INTO jobs (id, recording_id, pipeline, config, seed, status, created, topic_map) "
+                "SELECT ?, ?, ?, ?, ?, 'queued', ?, ? WHERE EXISTS (SELECT 1 FROM recordings WHERE id = ?)",
+                (job_id, recording_id, pipeline, json.dumps(config), seed, time.time(),
+                 json.dumps(topic_map) if topic_map else None, recording_id))
             if cur.rowcount != 1:
                 return None
             row = conn.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()

@@ -42,6 +42,7 @@ class JobRow:
     name: str | None = None
     tags: tuple[str, ...] = ()
     metrics: dict[str, float] | None = None  # succeeded jobs, once read from metrics.json
+    topic_map: dict[str, str] | None = None  # file topic -> slamreplay topic, as submitted
 
 
 def job_row(row: sqlite3.Row) -> JobRow:
@@ -49,9 +50,10 @@ def job_row(row: sqlite3.Row) -> JobRow:
     keys = row.keys()
     tags = tuple(json.loads(row["tags"])) if "tags" in keys and row["tags"] else ()
     metrics = json.loads(row["metrics"]) if "metrics" in keys and row["metrics"] else None
+    topic_map = json.loads(row["topic_map"]) if "topic_map" in keys and row["topic_map"] else None
     return JobRow(row["id"], row["recording_id"], row["pipeline"], json.loads(row["config"]), row["seed"],
                   row["status"], row["progress"], row["error"], row["note"], row["attempts"], row["created"],
-                  row["started"], row["finished"], row["name"] if "name" in keys else None, tags, metrics)
+                  row["started"], row["finished"], row["name"] if "name" in keys else None, tags, metrics, topic_map)
 
 
 @dataclass(frozen=True, slots=True)
@@ -147,6 +149,20 @@ class RunsTableMixin:
                                 f"WHERE {where} ORDER BY {order} LIMIT ? OFFSET ?",
                                 (*args, -1 if limit is None else limit, offset)).fetchall()
         return [RunRow(job_row(r), r["recording_name"], r["variant"]) for r in rows], total
+
+    def ids_starting(self, table: str, prefix: str, limit: int = 10) -> list[str]:
+        """Ids of ``table`` (jobs, recordings or suites) that start with the hex ``prefix``, at most ``limit``, by id.
+
+        A range over the id index rather than LIKE (which SQLite would not answer from the index)."""
+        if table not in ("jobs", "recordings", "suites"):
+            raise ValueError(f"table {table!r}: not one with ids")
+        with self._read() as conn:
+            try:  # "g" follows every hex digit: [prefix, prefix + "g") holds exactly the ids starting with it
+                rows = conn.execute(f"SELECT id FROM {table} WHERE id >= ? AND id < ? ORDER BY id LIMIT ?",
+                                    (prefix, prefix + "g", limit)).fetchall()
+            except sqlite3.OperationalError:  # no suites table: a bare store
+                return []
+        return [r[0] for r in rows]
 
     def suite_uses(self, job_id: str) -> int:
         """How many suite cells a job serves (0 when no suite was ever stored)."""

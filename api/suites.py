@@ -16,7 +16,7 @@ import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +65,30 @@ class SuiteCell:
     reused: bool
 
 
+def _take_topic_maps(text: str, fmt: str) -> tuple[dict[str, dict[str, str]], dict[str, Any]]:
+    """({recording name: its topic_map}, the suite document without them); ({}, {}) when there is none or the text
+    does not parse (the suite parser then says why)."""
+    import tomllib
+
+    from slamreplay.api.submit_checks import parse_topic_map
+
+    try:
+        doc = json.loads(text) if fmt == "json" else tomllib.loads(text)
+    except (ValueError, tomllib.TOMLDecodeError):
+        return {}, {}
+    recs = doc.get("recordings") if isinstance(doc, dict) else None
+    if not isinstance(recs, dict):
+        return {}, {}
+    maps = {}
+    for name, spec in recs.items():
+        if isinstance(spec, dict) and "topic_map" in spec:
+            try:
+                maps[name] = parse_topic_map(spec.pop("topic_map"))
+            except ReplayError as err:
+                raise ReplayError(f"recordings.{name}.{err}") from None
+    return maps, doc
+
+
 class SuiteService:
     """Submit suites as jobs; report their progress and results; compare suites and jobs."""
 
@@ -87,23 +111,45 @@ class SuiteService:
 
     # -- submitting ----------------------------------------------------------------------------
 
+    def _full_id(self, rid: str) -> str:
+        """The recording id that ``rid`` (a whole id or an unambiguous prefix) names; ReplayError saying how to get
+        one otherwise."""
+        from slamreplay.api.errors import ApiError
+        from slamreplay.api.idprefix import resolve_id
+
+        try:
+            return resolve_id(self.jobs.store, rid, ("recording",))
+        except ApiError as err:
+            raise ReplayError(f"recording {rid!r}: {err}; upload it with POST /recordings first") from None
+
     def _recording(self, rid: str) -> Path:
-        """The stored file of recording ``rid``; ReplayError saying how to get one otherwise."""
-        if not (len(rid) == 64 and all(ch in "0123456789abcdef" for ch in rid)):
-            raise ReplayError(f"{rid!r} is not a recording id (64 hex digits, as POST /recordings answers)")
-        if self.jobs.store.get_recording(rid) is None:
-            raise ReplayError(f"recording {rid} not found; upload it with POST /recordings first")
-        return self.jobs.recording_path(rid)
+        """The stored file of recording ``rid`` (a prefix will do); ReplayError saying how to get one otherwise."""
+        full = self._full_id(rid)
+        if self.jobs.store.get_recording(full) is None:
+            raise ReplayError(f"recording {full} not found; upload it with POST /recordings first")
+        return self.jobs.recording_path(full)
 
     def parse(self, text: str, fmt: str) -> Suite:
-        """Validate a suite; ReplayError (422) naming the key (and, for TOML, the line) at fault."""
-        return parse_suite(text, Path(f"suite.{fmt}"), ids=self._recording, fmt=fmt)
+        """Validate a suite; ReplayError (422) naming the key (and, for TOML, the line) at fault.
 
-    def _reusable(self, rid: str, pipeline: str, config: dict[str, Any], seed: int) -> JobRow | None:
+        A recording may carry ``topic_map`` (file topic -> slamreplay topic), as in ``suite run``; the
+        suite parser refuses local-file keys for a service suite, so the maps are taken out first and
+        put back on the parsed recordings (the rest is then parsed as JSON: without TOML line numbers)."""
+        maps, rest = _take_topic_maps(text, fmt)
+        if not maps:
+            return parse_suite(text, Path(f"suite.{fmt}"), ids=self._recording, fmt=fmt)
+        suite = parse_suite(json.dumps(rest, default=str), Path("suite.json"), ids=self._recording, fmt="json")
+        for name, topic_map in maps.items():
+            if name in suite.recordings:
+                suite.recordings[name] = replace(suite.recordings[name], topic_map=topic_map)
+        return replace(suite, text=text)
+
+    def _reusable(self, rid: str, pipeline: str, config: dict[str, Any], seed: int,
+                  topic_map: dict[str, str]) -> JobRow | None:
         """A job with these inputs that is queued, running, or succeeded with the code running now."""
         want = canonical(config)
         for job in self.jobs.store.list_jobs(recording_id=rid, pipeline=pipeline, limit=1000):
-            if job.seed != seed or canonical(job.config) != want:
+            if job.seed != seed or canonical(job.config) != want or (job.topic_map or {}) != topic_map:
                 continue
             if job.status in ("queued", "running"):
                 return job
@@ -116,18 +162,32 @@ class SuiteService:
                     return job
         return None
 
+    def _check_cells(self, suite: Suite) -> None:
+        """ReplayError for the first (recording, pipeline) whose pipeline needs topics the recording lacks."""
+        from slamreplay.api.submit_checks import check_fit
+        from slamreplay.replay.pipeline import get_pipeline
+
+        for rec_name, pipeline in dict.fromkeys((c.recording, c.pipeline) for c in suite.cells()):
+            spec = suite.recordings[rec_name]
+            rec = self.jobs.store.get_recording(self._full_id(spec.id or ""))
+            if rec is not None:
+                check_fit(rec, get_pipeline(pipeline), dict(spec.topic_map))
+
     def submit(self, text: str, fmt: str) -> SuiteRow:
         """Validate the suite, queue a job per cell (or reuse one), and record the suite."""
         suite = self.parse(text, fmt)
         cells = suite.cells()
         suite_id = uuid.uuid4().hex
+        self._check_cells(suite)  # before queueing any: a suite with a cell that cannot run queues nothing
         rows = []
         for i, cell in enumerate(cells):
-            rid = suite.recordings[cell.recording].id or ""
-            job = self._reusable(rid, cell.pipeline, cell.config, cell.seed)
+            spec = suite.recordings[cell.recording]
+            rid = self._full_id(spec.id or "")
+            topic_map = dict(spec.topic_map)  # the suite's `topic_map` of this recording, as `suite run` uses it
+            job = self._reusable(rid, cell.pipeline, cell.config, cell.seed, topic_map)
             reused = job is not None
             if job is None:
-                job = self.jobs.submit(rid, cell.pipeline, dict(cell.config), cell.seed)
+                job = self.jobs.submit(rid, cell.pipeline, dict(cell.config), cell.seed, topic_map)
             rows.append((suite_id, i, json.dumps(cell.to_json(), sort_keys=True), job.id, int(reused)))
         created = time.time()
         with self._conn() as conn:

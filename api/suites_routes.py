@@ -21,9 +21,10 @@ from __future__ import annotations
 import math
 from datetime import datetime, timezone
 from typing import Annotated, Any, Literal
+from urllib.parse import urlencode
 
 from fastapi import APIRouter, Depends, Path, Query, Request
-from fastapi.responses import HTMLResponse, JSONResponse
+from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
 from pydantic import BaseModel, Field
 
 from slamreplay.api.deps import ERRORS, require_token, viewer_href
@@ -36,7 +37,8 @@ from slamreplay.replay.report import Links, render_html
 
 MAX_SUITE_BYTES = 1 << 20
 SuiteId = Annotated[str, Path(pattern=JOB_ID, description="suite id (32 hex digits)")]
-RefQuery = Annotated[str, Query(pattern=JOB_ID, description="a suite id or a job id (32 hex digits)")]
+OptRef = Annotated[str | None, Query(pattern=JOB_ID, description="a suite id or a job id (32 hex digits, or the first "
+                                                                  "8 of them)")]
 SUITE_BODY = {"requestBody": {
     "required": True,
     "description": "a suite file: TOML (any content type but JSON), or the same structure as JSON; recordings by id",
@@ -159,14 +161,26 @@ def comparison(suites: SuiteService, a: str, b: str, tolerance: list[str] | None
 
 
 @router.get("/compare", tags=["diff"], responses={200: {"content": {"text/html": {}}}})
-def compare_route(request: Request, a: RefQuery, b: RefQuery, suites: SuitesDep,
+def compare_route(request: Request, suites: SuitesDep, a: OptRef = None, b: OptRef = None,
+                  runs: Annotated[str | None, Query(max_length=2000, description=(
+                      "any runs: ID1,ID2[,...] (job ids or their first 8 digits); two: what changed and the metric "
+                      "deltas, as `slamreplay diff`; more: their metrics side by side"))] = None,
                   tolerance: Annotated[list[str] | None, Query(description="NAME=VALUE or NAME=N%; * for all")] = None,
                   format: Annotated[Literal["json", "html"] | None, Query(
                       description="html: the report (also chosen by Accept: text/html)")] = None,
                   ) -> Any:
-    """Compare B against A cell by cell (paired t-test over seeds): JSON, or the HTML report."""
-    c = comparison(suites, a, b, tolerance)
+    """Compare B against A cell by cell (paired t-test over seeds), or any ``runs``: JSON, or the HTML page."""
     wants_html = format == "html" or (format is None and "text/html" in request.headers.get("accept", ""))
+    if runs is not None:
+        from slamreplay.api.compare_runs import parse_runs, runs_json
+
+        ids = parse_runs(runs)
+        if wants_html:  # the page draws it (the same URL state), under the page's header and session
+            return RedirectResponse("/ui/compare?" + urlencode({"runs": ",".join(ids)}), 303)
+        return JSONResponse(_finite(runs_json(suites.jobs, ids)))
+    if a is None or b is None:
+        raise ApiError("give a and b (suite or job ids), or runs=ID1,ID2[,...]")
+    c = comparison(suites, a, b, tolerance)
     if wants_html:
         from pathlib import Path as FsPath
         return HTMLResponse(render_html(c, FsPath("/"), service_links(str(request.base_url),

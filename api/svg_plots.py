@@ -139,3 +139,38 @@ def error_svg(t_s: F64, error_m: F64, width: int = 480, height: int = 260) -> st
     body += frame.line(rows, ESTIMATE)
     body += _legend([("estimate − ground truth", ESTIMATE)], frame.left + 10, frame.top + 14)
     return _svg(width, height, f"position error over time: max {e_max:.4g} m", body)
+
+
+# Distinct colours for overlaid runs (none of them the truth's grey), repeated past ten runs.
+RUN_COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22",
+               "#393b79")
+
+
+def overlay_svg(runs: Sequence[tuple[str, F64]], truths: Sequence[tuple[str, F64]] = (),
+                width: int = 640, height: int = 480) -> str:
+    """Several runs' estimated paths on equal axes, one colour each, over ground truth (grey), with a legend.
+
+    Parameters
+    ----------
+    runs : (label, (n, 2) float64 x and y in the world frame, m), in legend order; empty paths are left out
+    truths : (label, (n, 2) float64) ground truth per recording, drawn grey under the runs
+    """
+    curves = [(xy, label, TRUTH) for label, xy in truths if len(xy)]
+    curves += [(xy, label, RUN_COLOURS[i % len(RUN_COLOURS)]) for i, (label, xy) in enumerate(runs) if len(xy)]
+    if not curves:
+        return ""
+    both = np.vstack([a for a, _, _ in curves])
+    lo, hi = both.min(axis=0), both.max(axis=0)
+    legend_h = 16 * len(curves) + 8  # the legend sits below the plot, so it never hides a path
+    plot_h = height
+    frame = _Frame((0, 1), (0, 1), width, plot_h)
+    dx, dy = (max(float(v), 1e-3) * 1.1 for v in hi - lo)
+    scale = min((frame.right - frame.left) / dx, (frame.bottom - frame.top) / dy)
+    half_x, half_y = (frame.right - frame.left) / scale / 2, (frame.bottom - frame.top) / scale / 2
+    cx, cy = (lo + hi) / 2
+    frame = _Frame((cx - half_x, cx + half_x), (cy - half_y, cy + half_y), width, plot_h)
+    body = frame.axes("x (m)", "y (m)")
+    body += "".join(frame.line(thin(a), colour, 4.5 if colour == TRUTH else 1.6) for a, _, colour in curves)
+    body += _legend([(label, colour) for _, label, colour in curves], frame.left, plot_h + 10)
+    return _svg(width, plot_h + legend_h, f"{len(runs)} trajectories overlaid on ground truth (world frame, m)",
+                body)

@@ -6,8 +6,11 @@ as ``rerun/web_viewer.zip`` instead. Either way nothing comes from outside the i
 package: the files are copied once per rerun-sdk version into a cache directory (from the zip,
 or from the SDK's own server, started for a moment in a child process on a loopback port), and
 the service serves that directory under ``/viewer/``. ``index.html`` loses its links to web
-fonts (the viewer draws its own text), so opening it fetches nothing from another host.
-The viewer loads a recording given as ``?url=http://.../run.rrd``.
+fonts (the viewer draws its own text), so opening it fetches nothing from another host, and
+gains a script that quietens it (``QUIET``): the viewer logs at debug level, about 11,000
+console lines for one run, which hid real errors.
+The viewer loads a recording given as ``?url=http://.../run.rrd``; ``&log=debug`` brings its
+debug lines back.
 """
 
 from __future__ import annotations
@@ -30,6 +33,29 @@ FILES = ("index.html", "re_viewer.js", "re_viewer_bg.wasm", "favicon.ico", "appl
 REQUIRED = ("index.html", "re_viewer.js", "re_viewer_bg.wasm")
 _FONT_LINKS = re.compile(r'\s*<link[^>]*(fonts\.googleapis\.com|fonts\.gstatic\.com)[^>]*/>', re.S)
 _lock = threading.Lock()
+# Bumped whenever the rewrite of index.html changes, so that a cached copy made by an older slamreplay is redone.
+PATCH = "q1"
+
+# The viewer's Rust logger writes at debug level and cannot be configured from the page; its JavaScript glue looks
+# up console.* and fetch at each call, so replacing them before the viewer loads sets its level. Its usage
+# statistics and version check go to other hosts: the page's CSP already blocks them, and answering them here,
+# without a request, spares a CSP error and a "Failed to fetch" per attempt in the console.
+QUIET = """<script>
+(() => {
+  const levels = ["trace", "debug", "info", "warn", "error"];
+  const asked = levels.indexOf(new URLSearchParams(location.search).get("log"));
+  const least = asked >= 0 ? asked : levels.indexOf("warn");
+  for (const name of levels.slice(0, least)) console[name] = () => {};
+  if (least > levels.indexOf("debug")) console.log = () => {};
+  const fetchHere = window.fetch.bind(window);
+  window.fetch = (input, init) => {
+    const url = new URL(input instanceof Request ? input.url : String(input), location.href);
+    if (url.origin === location.origin) return fetchHere(input, init);
+    return Promise.resolve(new Response("", {status: 403, statusText: "this viewer reaches its own server only"}));
+  };
+})();
+</script>
+"""
 
 
 class ViewerAssetsError(RuntimeError):
@@ -96,9 +122,17 @@ def _from_zip(archive: Path, out: Path) -> None:
                 (out / name).write_bytes(z.read(info))
 
 
+def quiet_index(html: str) -> str:
+    """The viewer's ``index.html`` with ``QUIET`` run before anything else of the page."""
+    head = html.find("</head>")
+    if head < 0:
+        raise ViewerAssetsError("the installed rerun-sdk's index.html has no </head>")
+    return html[:head] + QUIET + html[head:]
+
+
 def viewer_dir(cache: Path) -> Path:
-    """The web viewer's files for the installed rerun-sdk, copied into ``cache/<version>/`` on first use."""
-    target = cache / rerun_version()
+    """The web viewer's files for the installed rerun-sdk, copied into ``cache/<version>-<PATCH>/`` on first use."""
+    target = cache / f"{rerun_version()}-{PATCH}"
     if (target / "index.html").is_file():
         return target
     with _lock:
@@ -118,10 +152,13 @@ def viewer_dir(cache: Path) -> Path:
             if missing:
                 raise ViewerAssetsError(f"the installed rerun-sdk gave no {', '.join(missing)}")
             index = tmp / "index.html"
-            index.write_text(_FONT_LINKS.sub("", index.read_text()))
+            index.write_text(quiet_index(_FONT_LINKS.sub("", index.read_text())))
             if target.exists():
                 shutil.rmtree(target)
             os.replace(tmp, target)
+            for old in cache.iterdir():  # copies for another rerun-sdk or an older rewrite: 40 MB each, unused
+                if old.is_dir() and old != target and not old.name.startswith("."):
+                    shutil.rmtree(old, ignore_errors=True)
         finally:
             if tmp.exists():
                 shutil.rmtree(tmp, ignore_errors=True)

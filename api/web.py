@@ -16,29 +16,32 @@ from __future__ import annotations
 
 import hmac
 import json
-from pathlib import Path
 from typing import Annotated, Any, Literal
 from urllib.parse import urlencode
 
-from fastapi import APIRouter, Depends, FastAPI, Query, Request
+from fastapi import APIRouter, Depends, FastAPI, Request
 from fastapi import Path as PathParam
+from fastapi.middleware import Middleware
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, Response
 from starlette.concurrency import run_in_threadpool
 
+from slamreplay.api.compare_web import router as compare_router
 from slamreplay.api.deps import JobsDep, RecordingsDep, SettingsDep, rrd_key
 from slamreplay.api.errors import ApiError, UnauthorizedError
+from slamreplay.api.idprefix import IdPrefixes
 from slamreplay.api.job_web import install_job_files
 from slamreplay.api.job_web import job_ctx as _job_ctx  # the job page's parts (api/job_web.py)
 from slamreplay.api.models import JOB_ID
 from slamreplay.api.multipart import form_file, is_form
-from slamreplay.api.pages import COOKIE, HERE, PAGE_ERRORS, LoginRequiredError, session_value, templates, web_session
+from slamreplay.api.pages import COOKIE, HERE, PAGE_ERRORS, LoginRequiredError, session_value, web_session
 from slamreplay.api.pages import error_response as _error
 from slamreplay.api.pages import page_lists as _lists
 from slamreplay.api.pages import page_response as _page
 from slamreplay.api.runs_web import router as runs_router  # the runs table at / and /runs
 from slamreplay.api.settings import Settings
+from slamreplay.api.submit_checks import parse_topic_map
 from slamreplay.api.suites import SuiteService
-from slamreplay.api.suites_routes import SuitesDep, comparison
+from slamreplay.api.suites_routes import SuitesDep
 from slamreplay.api.suites_routes import router as suites_router
 from slamreplay.replay.errors import ReplayError
 
@@ -128,8 +131,9 @@ async def job_form(request: Request, jobs: JobsDep) -> Response:
         config = json.loads(raw) if raw else {}
         if not isinstance(config, dict):
             raise ReplayError('config must be a JSON object, e.g. {"range_sigma_m": 0.05}')
+        topic_map = parse_topic_map(str(form.get("topic_map", "")))
         job = await run_in_threadpool(jobs.submit, str(form.get("recording_id", "")), str(form.get("pipeline", "")),
-                                      config, seed)
+                                      config, seed, topic_map)
     except ValueError as err:
         return _error(request, ReplayError(f"bad job form: {err}"))
     except PAGE_ERRORS as err:
@@ -172,26 +176,6 @@ def suite_page(request: Request, suite_id: JobPath, suites: SuitesDep) -> HTMLRe
 @page.get("/ui/part/suites/{suite_id}")
 def suite_part(request: Request, suite_id: JobPath, suites: SuitesDep) -> HTMLResponse:
     return _page(request, "_suite.html", **_suite_ctx(suites, suite_id))
-
-
-@page.get("/ui/compare")
-def compare_page(request: Request, suites: SuitesDep, a: Annotated[str, Query(pattern=JOB_ID)],
-                 b: Annotated[str, Query(pattern=JOB_ID)],
-                 tolerance: Annotated[list[str] | None, Query()] = None) -> HTMLResponse:
-    """The comparison report of ``GET /compare?format=html``, under the page's header."""
-    from slamreplay.api.suites_routes import service_links
-    from slamreplay.replay.report import render_html
-
-    try:
-        c = comparison(suites, a, b, [t for t in tolerance or [] if t.strip()])  # the form sends an empty field
-    except PAGE_ERRORS as err:
-        return _error(request, err)
-    report = render_html(c, Path("/"), service_links(str(request.base_url), request.app.state.settings.token))
-    nav = templates.get_template("_nav.html").render(guarded=request.app.state.settings.token is not None)
-    head, _, body = report.partition("<body>")
-    style = "<style>" + (HERE / "static" / "web.css").read_text() + "</style>"
-    body = body.replace("</body>", "</main></body>")
-    return HTMLResponse(head.replace("</head>", style + "</head>") + "<body>" + nav + "<main>" + body)
 
 
 Key = Annotated[str, PathParam(pattern=r"^[0-9a-f]{32}$")]
@@ -263,5 +247,8 @@ def install_web(app: FastAPI) -> None:
     app.include_router(public)
     app.include_router(runs_router)  # the runs table at / and /runs (api/runs_web.py)
     app.include_router(install_job_files([web_session]))  # a run's files, for its page
+    app.include_router(compare_router)  # /ui/compare: any runs, or suites paired (api/compare_web.py)
     app.include_router(page)
+    # Id prefixes become whole ids before routing; innermost of the middleware, so the site guard stays outermost.
+    app.user_middleware.append(Middleware(IdPrefixes))
     app.mount("/static", StaticFiles(directory=HERE / "static"), name="static")

@@ -22,27 +22,32 @@ range without index was dropped). A file with no readable message is refused: no
 
 from __future__ import annotations
 
-import io
 import os
-import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-import zstandard
 from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from slamreplay.recorder.codec import READABLE_SCHEMAS, TopicDecoder
 from slamreplay.recorder.codec.bounds import shown
-from slamreplay.recorder.codec.mcap_io import MAGIC, MAX_CHUNK_BYTES, McapFile, chunk_records, decompress
-from slamreplay.recorder.codec.mcap_records import Body, parse_record, record_name
+from slamreplay.recorder.codec.mcap_io import (
+    MAGIC,
+    MAX_CHUNK_BYTES,
+    McapFile,
+    chunk_records,
+    cut_chunk_records,
+    decompress,
+)
+from slamreplay.recorder.codec.mcap_records import parse_record, record_name
 from slamreplay.recorder.codec.ros2 import canonical_ros_type
 from slamreplay.recorder.errors import CodecError, DamageError, RecorderError
 from slamreplay.recorder.messages import TOPIC_TYPES
+from slamreplay.recorder.sensor_model import METADATA_KEY, SensorModel
 from slamreplay.recorder.version import version
-from slamreplay.recorder.writer import CHUNK_SIZE, partial_path
+from slamreplay.recorder.writer import CHUNK_SIZE, METADATA_NAME, partial_path
 
 RESYNC_BYTES_PER_BYTE = 64  # see _Salvage.budget
 
@@ -82,6 +87,7 @@ class _Copier:
         self.messages = 0
         self.rejected = 0
         self._reasons: dict[str, list[Any]] = {}  # what went wrong -> [first full reason, count]
+        self.metadata_notes: list[str] = []
 
     def _decoder(self, channel: Channel) -> TopicDecoder | str | None:
         schema = self.schemas.get(channel.schema_id) if channel.schema_id else None
@@ -105,9 +111,20 @@ class _Copier:
         elif isinstance(record, Channel):
             self.channels.setdefault(record.id, record)
         elif isinstance(record, Metadata):
-            self.writer.add_metadata(record.name, record.metadata)
+            self.writer.add_metadata(record.name, self._checked_metadata(record))
         elif isinstance(record, Message):
             self._message(record)
+
+    def _checked_metadata(self, record: Metadata) -> dict[str, str]:
+        """The record's map without a sensor model that does not read (damaged JSON): inspect and run read it."""
+        kept = dict(record.metadata)
+        for key in [k for k in kept if record.name == METADATA_NAME and k.startswith(METADATA_KEY)]:
+            try:
+                SensorModel.from_record(kept, key[len(METADATA_KEY):])
+            except RecorderError as err:
+                del kept[key]
+                self.metadata_notes.append(f"the {shown(key)} entry of the {METADATA_NAME} metadata: {err}")
+        return kept
 
     def _message(self, record: Message) -> None:
         channel = self.channels.get(record.channel_id)
@@ -148,57 +165,9 @@ class _Copier:
 
     @property
     def notes(self) -> list[str]:
-        """One line per reason messages were dropped: how many, and the first one's reason."""
-        return [f"{n} message{'s' if n != 1 else ''}: {why}" for why, n in self._reasons.values()]
-
-
-def _records_of_cut_chunk(tail: bytes) -> list[Any]:
-    """Complete schema/channel/message records of a chunk record cut short by the end of the file
-    (``tail`` starts at its opcode); the zstd stream is decompressed as far as it goes, never past the
-    size the chunk claims nor MAX_CHUNK_BYTES."""
-    if not tail or tail[0] != Opcode.CHUNK:
-        return []
-    head = Body(tail, "the cut Chunk record", 9)
-    try:
-        head.u64("message start time")
-        head.u64("message end time")
-        uncompressed_size = head.u64("uncompressed size")
-        head.u32("uncompressed CRC")
-        compression = head.string("compression")
-        head.u64("records length")  # runs past the end of the file: that is why the chunk is cut
-    except DamageError:
-        return []
-    if uncompressed_size > MAX_CHUNK_BYTES:
-        return []  # a size no chunk of a recorder has: the header itself is damaged
-    data = tail[head.pos:]
-    if compression == "zstd":
-        out = bytearray()
-        try:
-            reader = zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data))
-            while len(out) <= uncompressed_size:
-                piece = reader.read(1 << 20)
-                if not piece:
-                    break
-                out += piece
-        except zstandard.ZstdError:
-            pass  # the stream ends in the middle of a block: keep the blocks before it
-        data = bytes(out[:uncompressed_size])
-    elif compression != "":
-        return []  # lz4 chunks are kept whole or not at all
-    records: list[Any] = []
-    pos = 0
-    while pos + 9 <= len(data):
-        opcode = data[pos]
-        (length,) = struct.unpack_from("<Q", data, pos + 1)
-        if length > len(data) - pos - 9:
-            break
-        if opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
-            try:
-                records.append(parse_record(opcode, data[pos + 9:pos + 9 + length], "in the cut chunk"))
-            except DamageError:
-                break
-        pos += 9 + length
-    return records
+        """One line per reason messages were dropped (how many, and the first one's reason), then one per
+        metadata entry dropped."""
+        return [f"{n} message{'s' if n != 1 else ''}: {why}" for why, n in self._reasons.values()] + self.metadata_notes
 
 
 class _Salvage:
@@ -291,7 +260,7 @@ class _Salvage:
         """Handle a record that cannot be framed at ``pos``; the offset to go on from."""
         tail_is_chunk = self.end == self.f.size and self.f.read_at(pos, 1) == bytes([Opcode.CHUNK])
         if tail_is_chunk and self._resync(pos + 1) is None:  # a chunk cut by the end of the file
-            salvaged = _records_of_cut_chunk(self.f.read_at(pos, self.f.size - pos))
+            salvaged = cut_chunk_records(self.f.read_at(pos, self.f.size - pos))
             before = self.copier.messages
             for record in salvaged:
                 self.copier.add(record)

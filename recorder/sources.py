@@ -172,6 +172,50 @@ class SimCorridor:
                 f"{s.duration_s:.0f} s, odometry off by {s.odom_final_error_m:.2f} m at the end")
 
 
+class SimRos2Bag:
+    name = "sim-ros2-bag"
+    help = "a small ROS 2 bag (not a recording): odometry, tf, IMU, laser scans of poles, camera; to try `record ros2`"
+    description = ("Write a small ROS 2 bag folder, as `ros2 bag record` would: a robot circling among poles with "
+                   "drifting /odom, /tf (map -> odom -> base_link), /tf_static, /imu, /scan, camera images and "
+                   "calibration. `slamreplay inspect BAG` and `slamreplay record ros2 BAG` then work as on a bag of "
+                   "your own.")
+    progress_label = "writing"
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
+        parser.add_argument("--out", required=True, help="the bag folder to write (must not exist)")
+        parser.add_argument("--seed", type=int, default=0,
+                            help="seed of the simulation's random generator (pole positions, noise) (default: 0)")
+        parser.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3",
+                            help="the bag's storage plugin: sqlite3 (.db3, ROS 2's default before Jazzy) or mcap "
+                                 "(default: sqlite3)")
+        parser.add_argument("--duration-s", type=float, default=20.0,
+                            help="seconds of driving: a 10 m circle takes 52 s at 1.2 m/s (default: 20)")
+
+    def record(self, options: Mapping[str, Any], progress: Progress, log: Callable[[str], None]) -> str:
+        import shutil
+
+        from slamreplay.recorder.sim.ros2bag import write_bag
+
+        out = Path(options["out"])
+        if out.exists():
+            raise RecorderError(f"--out {out} exists: give a new folder (a bag is never overwritten)")
+        if not options["duration_s"] > 0.2:
+            raise RecorderError(f"--duration-s must be > 0.2 s (two odometry messages), got {options['duration_s']}")
+        # written inside a hidden sibling folder under its own name (rosbags names the storage file after the
+        # folder), then moved into place: the bag appears whole or not at all
+        staging = out.with_name(f".{out.name}.partial")
+        shutil.rmtree(staging, ignore_errors=True)  # left by an interrupted earlier attempt
+        staging.mkdir(parents=True)
+        try:
+            truth = write_bag(staging / out.name, options["storage"], seed=options["seed"],
+                              seconds=options["duration_s"])
+            (staging / out.name).rename(out)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+        return (f"a {options['storage']} bag of {len(truth.stamps_ns):,} odometry messages and "
+                f"{len(truth.scan_stamps_ns):,} scans among {len(truth.poles)} poles")
+
+
 # ---------------------------------------------------------------------------------------
 # Importers
 

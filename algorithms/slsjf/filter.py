@@ -43,7 +43,7 @@ class SlsjfConfig:
     """The local maps' EKF, when a local map ends, and how the global map is linearized."""
 
     local: EkfSlamConfig = field(default_factory=EkfSlamConfig)
-    local_map_scans: int = 100
+    local_map_scans: int = 30  # measured: 100 left two MRCLAM robots 5x and 1.7x worse (docs/dslam.md)
     local_map_distance_m: float = 30.0
     linearization: Linearization = "iterated"
     max_iterations: int = 10

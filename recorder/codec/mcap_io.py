@@ -27,7 +27,7 @@ import zstandard
 from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, ChunkIndex, Footer, Header, Message, MetadataIndex, Schema, Statistics
 
-from slamreplay.recorder.codec.mcap_records import MESSAGE_FIXED, parse_record, record_name
+from slamreplay.recorder.codec.mcap_records import MESSAGE_FIXED, Body, parse_record, record_name
 from slamreplay.recorder.errors import DamageError
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -307,3 +307,52 @@ def chunk_messages(data: bytes, offset: int) -> list[tuple[int, int, int, int, b
             k += 1
         pos += 9 + length
     return out
+
+
+def cut_chunk_records(tail: bytes) -> list[Any]:
+    """Complete schema/channel/message records of a chunk record cut short by the end of the file
+    (``tail`` starts at its opcode); the zstd stream is decompressed as far as it goes, never past the
+    size the chunk claims nor MAX_CHUNK_BYTES."""
+    if not tail or tail[0] != Opcode.CHUNK:
+        return []
+    head = Body(tail, "the cut Chunk record", 9)
+    try:
+        head.u64("message start time")
+        head.u64("message end time")
+        uncompressed_size = head.u64("uncompressed size")
+        head.u32("uncompressed CRC")
+        compression = head.string("compression")
+        head.u64("records length")  # runs past the end of the file: that is why the chunk is cut
+    except DamageError:
+        return []
+    if uncompressed_size > MAX_CHUNK_BYTES:
+        return []  # a size no chunk of a recorder has: the header itself is damaged
+    data = tail[head.pos:]
+    if compression == "zstd":
+        out = bytearray()
+        try:
+            reader = zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data))
+            while len(out) <= uncompressed_size:
+                piece = reader.read(1 << 20)
+                if not piece:
+                    break
+                out += piece
+        except zstandard.ZstdError:
+            pass  # the stream ends in the middle of a block: keep the blocks before it
+        data = bytes(out[:uncompressed_size])
+    elif compression != "":
+        return []  # lz4 chunks are kept whole or not at all
+    records: list[Any] = []
+    pos = 0
+    while pos + 9 <= len(data):
+        opcode = data[pos]
+        (length,) = struct.unpack_from("<Q", data, pos + 1)
+        if length > len(data) - pos - 9:
+            break
+        if opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
+            try:
+                records.append(parse_record(opcode, data[pos + 9:pos + 9 + length], "in the cut chunk"))
+            except DamageError:
+                break
+        pos += 9 + length
+    return records

@@ -37,7 +37,7 @@ from slamreplay.replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfi
 class SlsjfPipelineConfig(LandmarkSlamConfig):
     """The parameters shared with ``dslam`` and ``ekfslam``, the local maps' size and the linearization."""
 
-    local_map_scans: int = field(default=100, metadata={"help": (
+    local_map_scans: int = field(default=30, metadata={"help": (
         "a local map ends after this many scans (or local_map_distance_m, whichever comes first) and is "
         "joined into the global map")})
     local_map_distance_m: float = field(default=30.0, metadata={"help": (

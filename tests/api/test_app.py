@@ -254,10 +254,12 @@ def test_unknown_pipeline_and_config_are_422_naming_them(client: TestClient, two
 
 
 def test_bad_job_bodies_are_422(client: TestClient, two_jobs: tuple[str, str, str]) -> None:
-    """Malformed ids, negative seeds, extra fields and a non-object config are refused with 422."""
+    """Negative seeds, extra fields and a non-object config are refused with 422; a malformed recording id is a
+    404 naming it (ids are checked by the service, which also takes the page's 8-digit prefixes)."""
     rid = two_jobs[0]
-    for body in ({"recording_id": "../../etc", "pipeline": "odometry"},
-                 {"recording_id": rid, "pipeline": "odometry", "seed": -1},
+    bad_id = client.post("/jobs", json={"recording_id": "../../etc", "pipeline": "odometry"})
+    assert bad_id.status_code == 404 and "'../../etc'" in bad_id.json()["detail"]
+    for body in ({"recording_id": rid, "pipeline": "odometry", "seed": -1},
                  {"recording_id": rid, "pipeline": "odometry", "priority": 9},
                  {"recording_id": rid, "pipeline": "odometry", "config": [1, 2]},
                  {"pipeline": "odometry"}):

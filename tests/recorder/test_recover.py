@@ -240,3 +240,30 @@ def test_recover_errors(tmp_path: Path) -> None:
     (tmp_path / "o.mcap").write_bytes(b"x")
     with pytest.raises(RecorderError, match="already exists"):
         recover(src, tmp_path / "o.mcap")
+
+
+def test_a_damaged_sensor_model_is_dropped_from_the_metadata(tmp_path: Path) -> None:
+    """A sensor model whose JSON is damaged (valid UTF-8, bad JSON) is left out, with a note: the output is healthy."""
+    from mcap.writer import Writer as McapWriter
+
+    from slamreplay.recorder.writer import METADATA_NAME
+
+    msg = GroundTruthPose(1000, 0.0, 0.0, 0.0)
+    src = tmp_path / "a.mcap"
+    with open(src, "wb") as f:
+        w = McapWriter(f)
+        w.start()
+        w.add_metadata(METADATA_NAME, {"source": "{}", "sensor_model": '{"range_sigma_m": 0.1\x00}'})
+        sid = w.register_schema(codec.schema_name(msg), "protobuf", codec.schema_data(msg))
+        cid = w.register_channel("/ground_truth/pose", "protobuf", sid)
+        w.add_message(cid, 1000, codec.encode(msg), 1000)
+        w.finish()
+    assert inspect_recording(src)["health"] == "corrupt"
+    report = recover(src, tmp_path / "fixed.mcap")
+    assert (report.messages, report.lost) == (1, 0)
+    assert report.notes == ("the sensor_model entry of the slamreplay.recording metadata: the recording's sensor "
+                            "model is not valid JSON (Expecting ',' delimiter: line 1 column 22 (char 21)); "
+                            "re-record it or pass every noise setting with --set",)
+    fixed = inspect_recording(tmp_path / "fixed.mcap")
+    assert fixed["health"] == "ok", fixed["problems"]
+    assert RecordingReader(tmp_path / "fixed.mcap").info.metadata[METADATA_NAME] == {"source": "{}"}

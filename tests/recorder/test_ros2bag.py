@@ -230,3 +230,21 @@ def test_inspect_recording_refuses_bag_options(imported: tuple[str, Path, Path, 
     _, _, rec, _, _ = imported
     _one_line_exit_2(["inspect", str(rec), "--base-frame", "chassis"], capsys,
                      "--base-frame apply to ROS 2 bags, and rec.mcap is a slamreplay recording")
+
+
+def test_record_sim_ros2_bag_writes_a_bag_record_ros2_reads(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`record sim-ros2-bag` writes a whole bag folder (storage file named after it, nothing else left beside it)
+    that `record ros2` imports, and refuses a folder that exists."""
+    bag = tmp_path / "bag"
+    assert main(["record", "sim-ros2-bag", "--out", str(bag), "--duration-s", "5", "-q"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bag"]
+    assert sorted(p.name for p in bag.iterdir()) == ["bag.db3", "metadata.yaml"]
+    assert main(["record", "ros2", str(bag), "--ground-truth-frame", "map", "--out", str(tmp_path / "r.mcap"),
+                 "-q"]) == 0
+    odom = _read(tmp_path / "r.mcap", "/odom")
+    assert len(odom) == 50
+    capsys.readouterr()
+    assert main(["record", "sim-ros2-bag", "--out", str(bag), "-q"]) == 2
+    assert "exists" in capsys.readouterr().err
+    assert main(["record", "sim-ros2-bag", "--out", str(tmp_path / "m"), "--storage", "mcap", "-q"]) == 0
+    assert [p.suffix for p in (tmp_path / "m").iterdir() if p.name != "metadata.yaml"] == [".mcap"]

@@ -1,0 +1,100 @@
+"""The comparison page, ``/ui/compare``: any runs (``?runs=ID1,ID2[,...]``), or two suites or jobs paired over
+seeds (``?a=&b=``), each at a stable URL.
+
+Two suites (or jobs) are compared cell by cell as ``slamreplay compare`` does. When nothing pairs
+(other pipelines, recordings or seeds), the page says why in one sentence and shows the unpaired
+comparison instead of an empty table: the two-run diff for two jobs, the runs side by side for
+suites. The comparisons themselves are built in `slamreplay.api.compare_runs`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Query, Request
+from fastapi.responses import HTMLResponse
+
+from slamreplay.api.compare_runs import (
+    job_ids_of,
+    many_runs,
+    parse_runs,
+    require_succeeded,
+    runs_of,
+    two_runs,
+    unpaired_reason,
+)
+from slamreplay.api.deps import get_jobs
+from slamreplay.api.models import JOB_ID
+from slamreplay.api.pages import HERE, PAGE_ERRORS, templates, web_session
+from slamreplay.api.pages import error_response as _error
+from slamreplay.api.pages import page_response as _page
+from slamreplay.api.suites_routes import SuitesDep, service_links
+from slamreplay.replay.compare import compare
+from slamreplay.replay.diff import parse_tolerances
+from slamreplay.replay.errors import ReplayError
+
+router = APIRouter(dependencies=[Depends(web_session)], include_in_schema=False)
+Ref = Annotated[str | None, Query(pattern=JOB_ID)]
+
+
+def runs_ctx(request: Request, ids: list[str], tolerances: dict[str, str] | None = None) -> dict[str, Any]:
+    """What ``compare_runs.html`` draws for the runs ``ids``: the diff of two, or several side by side."""
+    jobs = get_jobs(request)
+    if len(ids) == 2:
+        require_succeeded(runs_of(jobs, ids))
+        return {"mode": "two", **two_runs(jobs, ids, tolerances), "swap": f"/ui/compare?runs={ids[1]},{ids[0]}"}
+    return {"mode": "many", **many_runs(jobs, ids)}
+
+
+def _report(request: Request, c: Any) -> HTMLResponse:
+    """The comparison report of ``GET /compare?format=html``, under the page's header."""
+    from slamreplay.replay.report import render_html
+
+    report = render_html(c, Path("/"), service_links(str(request.base_url), request.app.state.settings.token))
+    nav = templates.get_template("_nav.html").render(guarded=request.app.state.settings.token is not None)
+    head, _, body = report.partition("<body>")
+    style = "<style>" + (HERE / "static" / "web.css").read_text() + "</style>"
+    viewport = '<meta name="viewport" content="width=device-width, initial-scale=1">'
+    body = body.replace("</body>", "</main></body>")
+    return HTMLResponse(head.replace("</head>", viewport + style + "</head>") + "<body>" + nav + "<main>" + body)
+
+
+def _paired(request: Request, suites: Any, a: str, b: str, tolerance: list[str]) -> HTMLResponse:
+    """Suites or jobs A and B cell by cell; when nothing pairs, why, and the unpaired comparison."""
+    tolerances = parse_tolerances(tolerance)
+    side_a, side_b = suites.side(a), suites.side(b)
+    try:
+        c = compare(suites.side(a), suites.side(b), tolerances)
+    except ReplayError as err:
+        if "no cell in common" not in str(err):  # compare's own wording for sides that share no cell
+            raise
+        c = None
+    if c is not None and (c.results or c.failures):
+        return _report(request, c)
+    ctx: dict[str, Any] = {"reason": unpaired_reason(side_a, side_b), "mode": "none", "a_ref": a, "b_ref": b}
+    ids = list(dict.fromkeys(job_ids_of(side_a) + job_ids_of(side_b)))
+    if side_a.kind == "run" and side_b.kind == "run" and len(ids) == 2:
+        ctx |= runs_ctx(request, ids, tolerances)
+    elif len(ids) >= 2:
+        ctx |= {"mode": "many", **many_runs(get_jobs(request), ids[:20])}
+    return _page(request, "compare_runs.html", **ctx)
+
+
+@router.get("/ui/compare")
+def compare_page(request: Request, suites: SuitesDep, a: Ref = None, b: Ref = None,
+                 runs: Annotated[str | None, Query(max_length=2000)] = None,
+                 tolerance: Annotated[list[str] | None, Query()] = None) -> HTMLResponse:
+    """Any runs (``runs=ID1,ID2,...``; ids or their first 8 digits), or suites/jobs ``a`` and ``b`` paired."""
+    tol = [t for t in tolerance or [] if t.strip()]  # the form sends an empty field
+    try:
+        if runs is not None:
+            ids = parse_runs(runs)
+            return _page(request, "compare_runs.html", **runs_ctx(request, ids, parse_tolerances(tol)))
+        if a is None or b is None:
+            raise ReplayError("choose what to compare: ?a=SUITE_OR_JOB&b=SUITE_OR_JOB, or ?runs=ID1,ID2[,...]")
+        if a == b:
+            raise ReplayError("A and B are the same: choose two different suites or jobs")
+        return _paired(request, suites, a, b, tol)
+    except PAGE_ERRORS as err:
+        return _error(request, err)

@@ -1,0 +1,48 @@
+"""The interactive API docs, ``/docs`` (Swagger UI) and ``/redoc`` (ReDoc), from files installed with the package.
+
+FastAPI's own docs pages load Swagger UI and ReDoc from a CDN, so without internet ``/docs``
+was blank. These pages are FastAPI's same HTML pointed at the copies that the
+``fastapi-offline`` package ships (MIT; swagger-ui-dist 5 and redoc 2), served here under
+``/docs/assets/``: opening them fetches nothing from another host. Swagger UI's validator
+badge (an image from validator.swagger.io) is off for the same reason.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fastapi import FastAPI, Request
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
+from fastapi.responses import HTMLResponse
+from fastapi.staticfiles import StaticFiles
+
+ASSETS = "/docs/assets"
+FAVICON = "/favicon.ico"  # the web page's own icon (api/web.py)
+
+
+def assets_dir() -> Path:
+    """The folder of Swagger UI's and ReDoc's files in the installed ``fastapi-offline``."""
+    import fastapi_offline
+
+    return Path(fastapi_offline.__file__).parent / "static"
+
+
+def install_docs(app: FastAPI, openapi_url: str = "/openapi.json") -> None:
+    """``/docs``, ``/redoc`` and their assets on ``app`` (call only when the docs are public: no token)."""
+    app.mount(ASSETS, StaticFiles(directory=assets_dir()), name="docs-assets")
+
+    @app.get("/docs", include_in_schema=False)
+    def swagger_ui(request: Request) -> HTMLResponse:
+        root = request.scope.get("root_path", "")
+        return get_swagger_ui_html(openapi_url=root + openapi_url, title=f"{app.title}: API (Swagger UI)",
+                                   swagger_js_url=f"{root}{ASSETS}/swagger-ui-bundle.js",
+                                   swagger_css_url=f"{root}{ASSETS}/swagger-ui.css",
+                                   swagger_favicon_url=root + FAVICON,
+                                   swagger_ui_parameters={"validatorUrl": None})
+
+    @app.get("/redoc", include_in_schema=False)
+    def redoc(request: Request) -> HTMLResponse:
+        root = request.scope.get("root_path", "")
+        return get_redoc_html(openapi_url=root + openapi_url, title=f"{app.title}: API (ReDoc)",
+                              redoc_js_url=f"{root}{ASSETS}/redoc.standalone.js", redoc_favicon_url=root + FAVICON,
+                              with_google_fonts=False)

@@ -1,0 +1,186 @@
+"""Ids as the page shows them: any unambiguous prefix (at least 4 hex digits; the page shows 8) of a recording,
+job or suite id stands for the whole id, in every route that takes one, API and page alike.
+
+`IdPrefixes` is an ASGI middleware that rewrites a request's path and query before routing: a
+prefix naming one id becomes that id, so the routes keep their strict patterns (an id never
+names a file the service did not make). A prefix naming several ids is a 409 listing them; an
+id that is not hex, or too long, or names nothing, is a 404 with the id, one line, instead of
+the routes' raw pattern error. Those answers name ids, so they are given only to a request
+that carries the server's token (bearer header or the page's session cookie); any other
+request passes through unchanged and gets the routes' usual 401.
+"""
+
+from __future__ import annotations
+
+import hmac
+import re
+from collections.abc import Awaitable, Callable, MutableMapping
+from typing import Any
+from urllib.parse import parse_qsl, urlencode
+
+from fastapi.responses import JSONResponse, Response
+from starlette.concurrency import run_in_threadpool
+from starlette.requests import Request
+
+from slamreplay.api.errors import ApiError, ConflictError, NotFoundError
+from slamreplay.api.store import Store
+
+Scope = MutableMapping[str, Any]
+ASGIApp = Callable[[Scope, Any, Any], Awaitable[None]]
+MIN_PREFIX = 4
+# kind -> (table, length of a whole id)
+KINDS = {"recording": ("recordings", 64), "job": ("jobs", 32), "suite": ("suites", 32)}
+HEX = re.compile(r"[0-9a-f]+")
+# Path segments that hold an id: (pattern with the group "id", kinds it may be). Words that are routes of their
+# own (/recordings/importers, /recordings/record/NAME) are not ids.
+PATHS = (
+    (re.compile(r"^/recordings/(?P<id>(?!importers$|record$)[^/]+)(?:/(?:recover|download))?$"), ("recording",)),
+    (re.compile(r"^/jobs/(?P<id>[^/]+)(?:/(?:rrd|metrics|manifest|log))?$"), ("job",)),
+    (re.compile(r"^/suites/(?P<id>[^/]+)$"), ("suite",)),
+    (re.compile(r"^/ui/(?:part/)?jobs/(?P<id>[^/]+)(?:/.*)?$"), ("job",)),
+    (re.compile(r"^/ui/(?:part/)?suites/(?P<id>[^/]+)$"), ("suite",)),
+)
+EITHER = ("suite", "job")
+# Query parameters that hold ids, per path; ``runs`` holds a comma-separated list.
+QUERIES: dict[str, dict[str, tuple[str, ...]]] = {
+    "/jobs": {"recording": ("recording",)},
+    "/diff": {"a": ("job",), "b": ("job",)},
+    "/diff.rrd": {"a": ("job",), "b": ("job",)},
+    "/compare": {"a": EITHER, "b": EITHER, "runs": ("job",)},
+    "/ui/compare": {"a": EITHER, "b": EITHER, "runs": ("job",)},
+    "/ui/runs/compare": {"sel": ("job",)},
+}
+
+
+def _what(kinds: tuple[str, ...]) -> str:
+    return " or ".join(kinds)
+
+
+def is_whole(text: str, kinds: tuple[str, ...]) -> bool:
+    """Whether ``text`` has the form of a whole id of one of ``kinds`` (lowercase hex of its length)."""
+    return bool(HEX.fullmatch(text)) and len(text) in {KINDS[k][1] for k in kinds}
+
+
+def resolve_id(store: Store, text: str, kinds: tuple[str, ...]) -> str:
+    """The whole id that ``text`` (a whole id or a prefix of one) names among ``kinds``.
+
+    Raises
+    ------
+    NotFoundError
+        ``text`` is not hex, is longer than an id, shorter than 4 digits, or starts no id.
+    ConflictError
+        ``text`` starts several ids (they are named).
+    """
+    what = _what(kinds)
+    if is_whole(text, kinds):
+        return text
+    if not HEX.fullmatch(text) or len(text) > max(KINDS[k][1] for k in kinds):
+        shown = text if len(text) <= 80 else text[:77] + "..."
+        raise NotFoundError(f"{what} {shown!r} not found: an id is lowercase hex digits (or the first 8 of them, "
+                            "as the page shows)")
+    if len(text) < MIN_PREFIX:
+        raise NotFoundError(f"{what} {text!r} not found: give at least {MIN_PREFIX} hex digits of its id")
+    found = [i for k in kinds for i in store.ids_starting(KINDS[k][0], text)]
+    if not found:
+        raise NotFoundError(f"no {what} id starts with {text}")
+    if len(found) > 1:
+        more = "" if len(found) < 10 else " and more"
+        raise ConflictError(f"{what} id prefix {text} is ambiguous: it starts {', '.join(found)}{more}; "
+                            "give more digits")
+    return found[0]
+
+
+def _authorized(scope: Scope) -> bool:
+    """Whether the request carries the server's token (bearer or the page's session cookie), or none is needed."""
+    from slamreplay.api.pages import COOKIE, session_value
+
+    token = scope["app"].state.settings.token
+    if token is None:
+        return True
+    request = Request(scope)
+    auth = request.headers.get("authorization", "")
+    if auth.startswith("Bearer ") and hmac.compare_digest(auth[7:].encode(), token.encode()):
+        return True
+    cookie = request.cookies.get(COOKIE, "")
+    return bool(cookie) and hmac.compare_digest(cookie, session_value(token))
+
+
+def rewrite(scope: Scope, store: Store) -> bool:
+    """Replace id prefixes in the request's path and query by whole ids; whether anything changed.
+    ApiError (404, 409) for a prefix that names no id or several."""
+    changed = False
+    path: str = scope["path"]
+    for pattern, kinds in PATHS:
+        m = pattern.match(path)
+        if m is not None:
+            whole = resolve_id(store, m.group("id"), kinds)
+            if whole != m.group("id"):
+                path = path[:m.start("id")] + whole + path[m.end("id"):]
+                scope["path"], scope["raw_path"] = path, path.encode()
+                changed = True
+            break
+    params = QUERIES.get(path)
+    if params is not None and scope.get("query_string"):
+        items = parse_qsl(scope["query_string"].decode("latin-1"), keep_blank_values=True)
+        out = []
+        for key, value in items:
+            kinds = params.get(key)
+            if kinds is not None and value.strip():
+                parts = [p.strip() for p in value.split(",")] if key == "runs" else [value]
+                whole = ",".join(resolve_id(store, p, kinds) for p in parts if p)
+                changed |= whole != value
+                value = whole
+            out.append((key, value))
+        if changed:
+            scope["query_string"] = urlencode(out).encode("latin-1")
+    return changed
+
+
+def _needs_store(scope: Scope) -> bool:
+    """Whether the request names an id that is not whole (only then is the store asked)."""
+    path: str = scope["path"]
+    for pattern, kinds in PATHS:
+        m = pattern.match(path)
+        if m is not None:
+            if not is_whole(m.group("id"), kinds):
+                return True
+            break
+    params = QUERIES.get(path)
+    if params is None or not scope.get("query_string"):
+        return False
+    for key, value in parse_qsl(scope["query_string"].decode("latin-1"), keep_blank_values=True):
+        kinds = params.get(key)
+        if kinds is not None and value.strip():
+            parts = value.split(",") if key == "runs" else [value]
+            if any(not is_whole(p.strip(), kinds) for p in parts if p.strip()):
+                return True
+    return False
+
+
+class IdPrefixes:
+    """ASGI middleware: id prefixes become whole ids before routing (see the module's docstring)."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Any, send: Any) -> None:
+        if scope["type"] == "http" and _needs_store(scope):
+            store: Store = scope["app"].state.jobs.store
+            original = (scope["path"], scope.get("raw_path"), scope.get("query_string"))
+            try:
+                await run_in_threadpool(rewrite, scope, store)  # SQLite off the event loop
+            except ApiError as err:
+                scope["path"], scope["raw_path"], scope["query_string"] = original
+                if _authorized(scope):
+                    await _error(scope, err)(scope, receive, send)
+                    return
+        await self.app(scope, receive, send)
+
+
+def _error(scope: Scope, err: ApiError) -> Response:
+    """The page's error page for a page route, else the API's one-line JSON error."""
+    if scope["path"].startswith("/ui/"):
+        from slamreplay.api.pages import error_response
+
+        return error_response(Request(scope), err)
+    return JSONResponse({"detail": err.detail}, err.status)

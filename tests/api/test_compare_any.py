@@ -1,0 +1,139 @@
+"""Compare anything: two runs of any kind as `diff` does, several side by side, and unpaired suites/jobs said so."""
+
+from __future__ import annotations
+
+import re
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from conftest import write_tiny_recording
+from service_helpers import InlineExecutor, wait_for
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", UserWarning)  # StarletteDeprecationWarning: it asks for httpx2; httpx works
+    from fastapi.testclient import TestClient
+
+from slamreplay.api.app import create_app
+from slamreplay.api.settings import Settings
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
+    """A running app (in-thread jobs) over a fresh data directory."""
+    app = create_app(Settings(allowed_hosts=("testserver",), data_dir=tmp_path_factory.mktemp("data"), workers=1),
+                     executor=InlineExecutor())
+    with TestClient(app) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def runs(client: TestClient, tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
+    """One tiny recording (uploaded as sim.mcap) through odometry seed 0, dslam seed 0 and odometry seed 1."""
+    rec = write_tiny_recording(tmp_path_factory.mktemp("rec") / "tiny.mcap", n=60)
+    rid = client.post("/recordings", content=rec.read_bytes(), params={"filename": "sim.mcap"}).json()["id"]
+    out = {"rec": rid}
+    for key, pipeline, seed in (("odo", "odometry", 0), ("dslam", "dslam", 0), ("odo1", "odometry", 1)):
+        job = client.post("/jobs", json={"recording_id": rid, "pipeline": pipeline, "seed": seed}).json()
+        assert wait_for(client, job["id"])["status"] == "succeeded"
+        out[key] = job["id"]
+    return out
+
+
+def test_two_runs_of_other_pipelines_diff_as_diff_does(client: TestClient, runs: dict[str, str]) -> None:
+    """Odometry against dslam on one recording: the pipeline is under What changed, the ATE has unit and verdict."""
+    url = f"/ui/compare?runs={runs['odo']},{runs['dslam']}"
+    page = client.get(url)
+    assert page.status_code == 200, page.text
+    changes = page.text[page.text.index('id="changes-table"'):page.text.index('id="metric-deltas"')]
+    assert "<td>pipeline</td><td><code>odometry</code></td><td><code>dslam</code></td>" in changes
+    row = re.search(r'<tr class="v-(\w+)"><td title="[^"]*">ape_rmse_m</td><td>m</td>', page.text)
+    assert row is not None and row.group(1) == "better"  # dslam corrects the odometry's drift with landmarks
+    assert '<span class="verdict better">better</span>' in page.text
+    assert "sim.mcap" in page.text and runs["rec"] not in page.text  # the recording by the name it was uploaded as
+    assert page.text.count("<polyline") >= 3  # A, B and the ground truth
+    data = client.get("/compare", params={"runs": f"{runs['odo']},{runs['dslam']}"}).json()
+    ate = next(m for m in data["metrics"] if m["name"] == "ape_rmse_m")
+    assert ate["verdict"] == "better" and ate["unit"] == "m" and ate["direction"] == "lower is better"
+    assert {"field": "pipeline", "a": "odometry", "b": "dslam"} in data["changes"]
+
+
+def test_compare_link_of_the_runs_table_is_no_longer_422(client: TestClient, runs: dict[str, str]) -> None:
+    """/compare?runs= answers JSON, and a browser (Accept: text/html) goes to the page at the same runs."""
+    ids = f"{runs['odo']},{runs['dslam']}"
+    r = client.get(f"/compare?runs={ids}", headers={"Accept": "text/html"}, follow_redirects=False)
+    assert r.status_code == 303 and r.headers["location"] == f"/ui/compare?runs={ids.replace(',', '%2C')}"
+    sel = client.get("/ui/runs/compare", params={"sel": [runs["odo"], runs["dslam"]]}, follow_redirects=False)
+    assert sel.status_code == 303 and sel.headers["location"] == f"/ui/compare?runs={ids}"
+
+
+def test_three_runs_overlay_three_trajectories(client: TestClient, runs: dict[str, str]) -> None:
+    """Three runs: one SVG with three coloured paths over the grey truth, metrics side by side, a link per pair."""
+    ids = [runs["odo"], runs["dslam"], runs["odo1"]]
+    page = client.get("/ui/compare", params={"runs": ",".join(ids)})
+    assert page.status_code == 200, page.text
+    svg = page.text[page.text.index("<svg"):page.text.index("</svg>")]
+    colours = re.findall(r'<polyline points="[^"]*" fill="none" stroke="(#[0-9a-f]{6})"', svg)
+    assert len(colours) == 4 and colours[0] == "#7f7f7f" and len(set(colours[1:])) == 3  # truth, then 3 runs
+    assert svg.count('class="legend"') == 1 and "ground truth of sim.mcap" in svg
+    table = page.text[page.text.index('id="metrics-side-table"'):]
+    head = table[:table.index("</tr>")]
+    assert head.count('<th class="n"') == 3
+    assert re.search(r"<td[^>]*>ape_rmse_m</td><td>m</td><td class=\"muted\">lower is better</td>", table)
+    pairs = re.findall(r'href="/ui/compare\?runs=([0-9a-f]{32}),([0-9a-f]{32})"', page.text)
+    assert len(pairs) == 3 and {frozenset(p) for p in pairs} == {frozenset(p) for p in
+                                                                 [(ids[0], ids[1]), (ids[0], ids[2]),
+                                                                  (ids[1], ids[2])]}
+
+
+def test_unpaired_jobs_say_why_and_show_the_diff(client: TestClient, runs: dict[str, str]) -> None:
+    """Two jobs with other seeds give no paired cell: one sentence says why, then the two-run diff (not an empty
+    table headed 0 regressions); odometry against dslam works from the same form."""
+    page = client.get("/ui/compare", params={"a": runs["odo"], "b": runs["odo1"]})
+    assert page.status_code == 200, page.text
+    assert "0 regression" not in page.text
+    reason = re.search(r'id="unpaired-reason">([^<]*)<', page.text)
+    assert reason is not None
+    assert reason.group(1).startswith("A and B share no recording/pipeline/variant/seed cell")
+    assert "seed 0" in reason.group(1) and "seed 1" in reason.group(1)
+    assert "<td>seed</td><td><code>0</code></td><td><code>1</code></td>" in page.text
+    other = client.get("/ui/compare", params={"a": runs["odo"], "b": runs["dslam"]})
+    assert other.status_code == 200 and "odometry on sim.mcap" in other.text and 'id="delta-table"' in other.text
+
+
+def test_unpaired_suites_say_why(client: TestClient, runs: dict[str, str]) -> None:
+    """Two suites over other seeds: the page says why nothing pairs and shows their runs side by side."""
+    suite = 'seeds = [{seed}]\n[recordings.sim]\nid = "{rid}"\n[pipelines.odometry]\n'
+    ids = []
+    for seed in (0, 1):
+        r = client.post("/suites", content=suite.format(rid=runs["rec"][:8], seed=seed))
+        assert r.status_code == 202, r.text
+        ids.append(r.json()["id"])
+        for cell in r.json()["cells"]:
+            wait_for(client, cell["job_id"])
+    page = client.get("/ui/compare", params={"a": ids[0][:8], "b": ids[1][:8]})
+    assert page.status_code == 200, page.text
+    assert 'id="unpaired-reason">A and B share no' in page.text and "0 regression" not in page.text
+    assert 'id="metrics-side-table"' in page.text
+
+
+def test_compare_form_never_starts_with_a_equal_b(client: TestClient, runs: dict[str, str]) -> None:
+    """The main page's compare form selects different A and B; choosing the same one is a message."""
+    home = client.get("/").text
+    form = home[home.index('id="compare-form"'):home.index("</form>", home.index('id="compare-form"'))]
+    selects = re.findall(r'<select name="([ab])">(.*?)</select>', form, re.S)
+    chosen = {side: re.search(r'<option value="([0-9a-f]+)" selected>', body).group(1)  # type: ignore[union-attr]
+              for side, body in selects}
+    assert chosen["a"] != chosen["b"]
+    same = client.get("/ui/compare", params={"a": runs["odo"], "b": runs["odo"]})
+    assert same.status_code == 422 and "A and B are the same" in same.text
+
+
+def test_too_few_runs_and_unfinished_runs_are_one_line(client: TestClient, runs: dict[str, str],
+                                                       tmp_path: Path) -> None:
+    """One run is a 422 saying how to ask; a malformed id in runs= is a 404 naming it."""
+    r = client.get("/compare", params={"runs": runs["odo"]})
+    assert r.status_code == 422 and "at least two runs" in r.json()["detail"]
+    r = client.get("/compare", params={"runs": f"{runs['odo']},zz-top"})
+    assert r.status_code == 404 and "'zz-top'" in r.json()["detail"]

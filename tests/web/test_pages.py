@@ -1,0 +1,131 @@
+"""Every page of slamreplay's own in headless chromium, at laptop (1366x768) and phone (390x844) size.
+
+Each page: a mobile viewport and the favicon, no console error, no sideways scroll on a phone,
+no serious or critical accessibility violation (axe-core, from axe-playwright-python), and a
+screenshot at both sizes in results/web-shots/ (kept by CI). And a running job cancelled from its page.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from web_site import LAPTOP, PHONE, call, chromium, seed_runs, served, shoot, wait_until
+
+pytestmark = pytest.mark.browser
+README_IMAGES = os.environ.get("SLAMREPLAY_README_IMAGES")  # e.g. docs/images: the README's screenshots, rewritten
+PAGES: dict[str, Callable[[dict[str, str]], str]] = {
+    "login": lambda ids: "/login",
+    "home": lambda ids: "/",
+    "runs": lambda ids: "/runs?cols=ape_rmse_m,rpe_step_trans_rmse_m",
+    "job-succeeded": lambda ids: f"/ui/jobs/{ids['baseline']}",
+    "job-failed": lambda ids: f"/ui/jobs/{ids['failed']}",
+    "job-running": lambda ids: f"/ui/jobs/{ids['running']}",
+    "job-edit": lambda ids: f"/ui/jobs/{ids['baseline']}/edit",
+    "suite": lambda ids: f"/ui/suites/{ids['suite']}",
+    "compare": lambda ids: f"/ui/compare?a={ids['baseline']}&b={ids['worn']}",
+    "compare-selected": lambda ids: f"/ui/runs/compare?sel={ids['baseline']}&sel={ids['dslam']}",
+}
+README = {"runs": "web-runs", "job-succeeded": "web-job", "compare": "web-compare"}
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, dict[str, str]]]:
+    """The served app with runs of every kind (tests/web/web_site.py): its base URL and the ids."""
+    folder = tmp_path_factory.mktemp("site")
+    with served(folder / "data") as base:
+        yield base, seed_runs(base, folder)
+
+
+@pytest.fixture(scope="module")
+def context() -> Iterator[Any]:
+    with chromium() as browser:
+        ctx = browser.new_context(viewport=LAPTOP)
+        ctx.set_default_timeout(30_000)
+        yield ctx
+        ctx.close()
+
+
+@pytest.fixture
+def page(context: Any) -> Iterator[Any]:
+    """A fresh tab; ``page.problems`` collects console errors and uncaught exceptions."""
+    pg = context.new_page()
+    pg.problems = []
+    pg.on("console", lambda m: pg.problems.append(f"console.{m.type}: {m.text}") if m.type == "error" else None)
+    pg.on("pageerror", lambda e: pg.problems.append(f"uncaught: {e}"))
+    yield pg
+    pg.close()
+
+
+def open_page(page: Any, site: tuple[str, dict[str, str]], name: str) -> None:
+    base, ids = site
+    response = page.goto(base + PAGES[name](ids))
+    assert response is not None and response.ok, (name, response and response.status)
+    page.wait_for_load_state("load")
+
+
+@pytest.mark.parametrize("name", list(PAGES))
+def test_page_works_at_laptop_and_phone_size(page: Any, site: tuple[str, dict[str, str]], name: str) -> None:
+    """A mobile viewport and a favicon that loads; no console error; at 390 px nothing scrolls sideways."""
+    open_page(page, site, name)
+    viewport = page.get_attribute("meta[name=viewport]", "content")
+    assert viewport is not None and "width=device-width" in viewport
+    icon = page.get_attribute("link[rel=icon]", "href")
+    assert icon is not None and page.request.get(site[0] + icon).ok
+    for path in shoot(page, name):
+        assert path.stat().st_size > 1000
+    page.set_viewport_size(PHONE)
+    wide = page.evaluate("document.documentElement.scrollWidth")
+    assert wide <= PHONE["width"], f"{name}: {wide} px wide at {PHONE['width']} px: the page scrolls sideways"
+    if README_IMAGES and name in README:
+        readme_images(page, Path(README_IMAGES) / README[name])
+    page.wait_for_timeout(300)  # a late error (a live refresh) is still caught
+    assert page.problems == [], page.problems
+
+
+def readme_images(page: Any, stem: Path) -> None:
+    """The README's screenshots of this page: what fits the screen at laptop and phone size, in 256 colours."""
+    from PIL import Image
+
+    for size, tag in ((LAPTOP, "laptop"), (PHONE, "phone")):
+        page.set_viewport_size(size)
+        page.wait_for_timeout(50)
+        out = stem.with_name(f"{stem.name}-{tag}.png")
+        page.screenshot(path=str(out))
+        Image.open(out).convert("RGB").quantize(256, dither=Image.Dither.NONE).save(out, optimize=True)
+    page.set_viewport_size(LAPTOP)
+
+
+@pytest.mark.parametrize("name", list(PAGES))
+def test_page_has_no_serious_accessibility_violation(page: Any, site: tuple[str, dict[str, str]], name: str) -> None:
+    """axe-core finds no violation of impact "serious" or "critical" (contrast, names, labels, landmarks...)."""
+    from axe_playwright_python.sync_playwright import Axe
+
+    open_page(page, site, name)
+    results = Axe().run(page)
+    bad = [f"{v['id']} ({v['impact']}): {v['help']}: " + "; ".join(" ".join(n["target"]) for n in v["nodes"][:5])
+           for v in results.response["violations"] if v["impact"] in ("serious", "critical")]
+    assert bad == [], "\n".join(bad)
+
+
+def test_cancel_a_running_job_from_its_page(page: Any, site: tuple[str, dict[str, str]]) -> None:
+    """A running job shows its percent and elapsed time; Cancel asks first, then the job is cancelled."""
+    base, ids = site
+    job = ids["running"]
+    open_page(page, site, "job-running")
+    assert page.inner_text("#job-status").strip() == "running"
+    assert re.fullmatch(r"\d+ %", page.inner_text("#job-progress").strip())
+    page.click("#cancel-job")
+    page.wait_for_url(re.compile(rf"/ui/jobs/{job}/cancel\?"))
+    assert "Cancel this job?" in page.inner_text("#job-action")
+    page.click("#confirm-form button[type=submit]")
+    page.wait_for_url(re.compile(rf"/ui/jobs/{job}$"))
+    assert page.inner_text("#job-status").strip() == "cancelled"
+    assert not page.is_visible("#cancel-job")
+    assert wait_until(base, job, ("cancelled",), timeout_s=10)["status"] == "cancelled"
+    assert call(base, "GET", f"/jobs/{job}")["status"] == "cancelled"
+    assert page.problems == [], page.problems
