@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.installed-py$(PY_VERSION)
 DATA   ?= ../shared/data
 ARGS   ?=
 
-.PHONY: venv demo serve test test-ray test-docs test-pythons test-viewer test-browser snapshots viewer-deps lint bench cholmod clean
+.PHONY: venv demo serve test test-ray test-docs test-pythons test-viewer test-browser snapshots readme-figures viewer-deps lint bench cholmod clean
 
 venv: $(STAMP)
 
@@ -49,11 +49,24 @@ test-viewer: $(STAMP) viewer-deps
 
 # The web page in a real browser: Debian's headless chromium driven by Playwright for Python (the
 # browser extra; PLAYWRIGHT_SKIP_BROWSER_DOWNLOAD: Playwright's own browser download is never used).
-# Upload, a job, a regression in red, the Rerun web viewer loading a job's .rrd (about 1 min).
+# Upload, a job, a regression in red, the Rerun web viewer loading a job's .rrd; every page at laptop and
+# phone size (axe-core scan, console errors, sideways scroll); the API docs offline (about 2 min on 2 cores).
+# Screenshots of every page at both sizes go to WEB_SHOTS (CI keeps them); README_IMAGES=docs/images also
+# rewrites the README's screenshots of the web page.
+WEB_SHOTS ?= results/web-shots
 test-browser: $(STAMP)
 	@test -x /usr/bin/chromium || { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium; }
 	PLAYWRIGHT_SKIP_BROWSER_DOWNLOAD=1 $(BIN)/python -m pip install --quiet -e ".[dev,browser]"
-	$(BIN)/python -m pytest -q -m browser tests/web $(ARGS)
+	rm -rf $(WEB_SHOTS)
+	SLAMREPLAY_BROWSER_SHOTS=$(abspath $(WEB_SHOTS)) SLAMREPLAY_README_IMAGES=$(if $(README_IMAGES),$(abspath $(README_IMAGES))) \
+		$(BIN)/python -m pytest -q -m browser tests/web $(ARGS); status=$$?; \
+		echo "screenshots of every page at 1366x768 and 390x844 (page-*.png): $(WEB_SHOTS)/"; exit $$status
+
+# The figures README.md and docs/ quote from the demo (<!-- demo: ... --> spans), rewritten from a fresh demo's
+# runs in runs/demo (docs/demo_figures.py); `make test-docs` fails when one differs from a fresh demo.
+readme-figures: $(STAMP)
+	$(BIN)/slamreplay demo --out runs/demo --data $(DATA)
+	$(BIN)/python docs/demo_figures.py --demo runs/demo --write
 
 # The README's pictures: every demo pipeline and a diff, rendered by `slamreplay snapshot` into docs/images/.
 snapshots: $(STAMP) viewer-deps

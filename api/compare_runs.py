@@ -65,10 +65,11 @@ def runs_of(jobs: JobService, ids: list[str]) -> list[Run]:
     return out
 
 
-def _spec(name: str) -> Any:
+def _specs() -> dict[str, Any]:
+    """Every installed pipeline's metric specs by name (unit, direction, meaning); read once per comparison."""
     from slamreplay.api.runs_query import metric_specs
 
-    return metric_specs().get(name)
+    return metric_specs()
 
 
 def direction_text(better: str, target: float | None) -> str:
@@ -103,9 +104,12 @@ def what_changed(changes: list[dict[str, Any]], a: Run, b: Run, topic_maps: tupl
             va, vb = f"{a.recording} ({str(va)[:8]})", f"{b.recording} ({str(vb)[:8]})"
         name = FIELD_NAMES.get(field) or (f"config {field[7:]}" if field.startswith("config.") else
                                           f"library {field[10:]}" if field.startswith("libraries.") else field)
-        out.append({"field": name, "a": _shown(va), "b": _shown(vb)})
+        # a config key of one side's pipeline only: listed apart, as there are many when the pipelines differ
+        only = field.startswith("config.") and (va is None or vb is None)
+        out.append({"field": name, "a": _shown(va), "b": _shown(vb), "only": only})
     if (topic_maps[0] or {}) != (topic_maps[1] or {}):
-        out.append({"field": "topic map", "a": _shown(topic_maps[0] or {}), "b": _shown(topic_maps[1] or {})})
+        out.append({"field": "topic map", "a": _shown(topic_maps[0] or {}), "b": _shown(topic_maps[1] or {}),
+                    "only": False})
     return out
 
 
@@ -117,14 +121,15 @@ def two_runs(jobs: JobService, ids: list[str], tolerances: dict[str, str] | None
     d = diff_runs(jobs.finished_run(a.job.id), jobs.finished_run(b.job.id), tolerances or {}, compare_rrd=False)
     ma, mb = _manifest(jobs, a.job.id), _manifest(jobs, b.job.id)
     maps = (ma.get("recording", {}).get("topic_map"), mb.get("recording", {}).get("topic_map"))
-    rows = []
+    rows, specs = [], _specs()
     for m in d.metrics:
-        spec = _spec(m.name)
+        spec = specs.get(m.name)
         fa, fb, fd = formatted(m)
         rows.append({"name": m.name, "unit": spec.unit if spec is not None else "", "a": m.a, "b": m.b,
                      "a_text": fa, "b_text": fb, "delta": fd, "verdict": m.verdict,
                      "direction": direction_text(m.better, m.target),
                      "meaning": spec.description if spec is not None else ""})
+    rows.sort(key=lambda r: r["verdict"] in ("added", "removed"))  # metrics of both runs first, then one side's
     counts = {v: sum(r["verdict"] == v for r in rows) for v in ("better", "worse", "same", "changed")}
     return {"a": a, "b": b, "changes": what_changed(d.changes, a, b, maps), "metrics": rows, "counts": counts,
             "worse": d.worse, "plot": overlay(jobs, [a, b], ("A", "B"))}
@@ -182,9 +187,9 @@ def many_runs(jobs: JobService, ids: list[str]) -> dict[str, Any]:
     runs = runs_of(jobs, ids)
     values = [(r.job.metrics if r.job.metrics is not None else
                jobs.metric_values(r.job.id) if r.job.status == "succeeded" else {}) for r in runs]
-    rows = []
+    rows, specs = [], _specs()
     for name in sorted({n for v in values for n in v}):
-        spec = _spec(name)
+        spec = specs.get(name)
         better, target = (spec.better, spec.target) if spec is not None else ("none", None)
         cells = [v.get(name) for v in values]
         rows.append({"name": name, "unit": spec.unit if spec is not None else "", "values": cells,

@@ -55,7 +55,9 @@ def _report(request: Request, c: Any) -> HTMLResponse:
     nav = templates.get_template("_nav.html").render(guarded=request.app.state.settings.token is not None)
     head, _, body = report.partition("<body>")
     style = "<style>" + (HERE / "static" / "web.css").read_text() + "</style>"
-    viewport = '<meta name="viewport" content="width=device-width, initial-scale=1">'
+    viewport = ('<meta name="viewport" content="width=device-width, initial-scale=1">'
+                '<link rel="icon" href="/static/favicon.svg" type="image/svg+xml">')  # as base.html's head
+    head = head.replace("<html>", '<html lang="en">', 1)  # the report has none: screen readers guess the language
     body = body.replace("</body>", "</main></body>")
     return HTMLResponse(head.replace("</head>", viewport + style + "</head>") + "<body>" + nav + "<main>" + body)
 

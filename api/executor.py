@@ -24,6 +24,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import queue
+import re
 import signal
 import threading
 import time
@@ -103,6 +104,13 @@ def _watch_parent(parent_pid: int) -> None:
         time.sleep(0.5)
 
 
+def service_words(message: str) -> str:
+    """A replay error in the terms of jobs and suites: the replay CLI's ``--topic-map FILE_TOPIC=TOPIC`` is their
+    ``topic_map`` field."""
+    return re.sub(r"--topic-map (\S+)=(\S+)", lambda m: f'topic_map {{"{m[1]}": "{m[2]}"}} '
+                  "(a field of the job, or of the recording in a suite)", message)
+
+
 def run_task(task: Task, report: Report | None = None) -> Outcome:
     """Run one task in this process (the body of a worker; also usable directly).
 
@@ -132,7 +140,7 @@ def run_task(task: Task, report: Report | None = None) -> Outcome:
             run_recording(recording, task.pipeline, run_dir, seed=task.seed, config=task.config,
                           topic_map=task.topic_map, progress=progress, run_id=task.job_id)
     except ReplayError as err:
-        return Outcome("failed", str(err))
+        return Outcome("failed", service_words(str(err)))
     except StorageError as err:
         return Outcome("failed", f"storage: {err}")
     except Exception as err:  # noqa: BLE001 -- any other error is this job's failure, not the worker's

@@ -204,7 +204,7 @@ class JobService:
         bad topic map, or the topics the pipeline needs that the recording lacks (and the pipelines it fits);
         NotFoundError an unknown recording, ConflictError an ambiguous prefix.
         """
-        from slamreplay.api.idprefix import resolve_id
+        from slamreplay.api.ids import resolve_id
         from slamreplay.api.submit_checks import check_fit, parse_topic_map
 
         pipeline_cls = get_pipeline(pipeline)
@@ -266,5 +266,29 @@ class JobService:
         run_a, run_b = self.finished_run(a), self.finished_run(b)
         out = self.settings.runs_dir / "diffs" / f"{a}-{b}.rrd"
         if not out.is_file():
-            write_comparison_rrd(run_a, run_b, out)
+            from slamreplay.replay.diff import diff_runs
+
+            diff = diff_runs(run_a, run_b, compare_rrd=False)
+            diff.a, diff.b = self.run_label(a), self.run_label(b)  # its summary's title: not server paths
+            write_comparison_rrd(self._labelled(run_a, diff.a), self._labelled(run_b, diff.b), out, diff)
         return out
+
+    def run_label(self, job_id: str) -> str:
+        """``name-or-id8: pipeline on sim.mcap, seed 0``: a run as the user knows it."""
+        job = self.get(job_id)
+        rec = self.store.get_recording(job.recording_id)
+        name = rec.filename if rec is not None else job.recording_id[:8]
+        return f"{job.name or job.id[:8]}: {job.pipeline} on {name}, seed {job.seed}"
+
+    def _labelled(self, run_dir: Path, label: str) -> Path:
+        """A link to ``run_dir`` named by ``label`` (a comparison's views are named by their run directories),
+        or ``run_dir`` itself when the link cannot be made."""
+        safe = "".join(ch if ch.isalnum() or ch in " .,:_-" else "_" for ch in label)[:120].strip() or run_dir.name
+        link = self.settings.runs_dir / "diffs" / ".labels" / run_dir.name / safe
+        try:
+            if not link.is_symlink():
+                link.parent.mkdir(parents=True, exist_ok=True)
+                link.symlink_to(run_dir.resolve(), target_is_directory=True)
+        except OSError:
+            return run_dir
+        return link

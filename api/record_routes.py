@@ -19,7 +19,7 @@ import hashlib
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, FastAPI, Response
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, StrictStr, create_model
@@ -32,7 +32,8 @@ from slamreplay.recorder.sources import Importer, get_importer, importer_plugins
 
 # Strict types: in lax mode pydantic reads JSON true as the number 1 (a fuzzer's sensor_range_m: true made a
 # recording); a float option takes a JSON integer too.
-_SCALARS: dict[str, Any] = {"int": StrictInt, "float": StrictFloat | StrictInt, "bool": StrictBool, "str": StrictStr}
+_SCALARS: dict[str, Any] = {"int": StrictInt, "float": StrictFloat | StrictInt, "bool": StrictBool, "str": StrictStr,
+                             "seed_value": Annotated[StrictInt, Field(ge=0, lt=2**63)]}
 
 
 class OptionOut(BaseModel):
@@ -76,7 +77,8 @@ def _options(importer: Importer) -> list[tuple[argparse.Action, str]]:
 def _type_name(action: argparse.Action) -> str:
     if action.choices is not None:
         return "|".join(map(str, action.choices))
-    return getattr(action.type, "__name__", "str") if action.type is not None else "str"
+    name = getattr(action.type, "__name__", "str") if action.type is not None else "str"
+    return {"seed_value": "int"}.get(name, name)  # a range-checked int is an int to a client
 
 
 def why_not_offered(importer: Importer) -> str | None:

@@ -157,8 +157,9 @@ def home_page(request: Request, uploaded: Annotated[str | None, Query(max_length
     ctx = runs_ctx(request, view)
     names = lists["rec_names"]
     return _page(request, "index.html", 422 if view.errors else 200, **lists, **ctx,
-                 uploaded=names.get(uploaded or "", uploaded), pipelines=sorted(all_pipelines()), example=example,
-                 full=True, compare_options=compare_options(lists["suites"], lists["jobs"], names))
+                 uploaded=names.get(uploaded or "", uploaded), uploaded_id=uploaded,
+                 pipelines=sorted(all_pipelines()), example=example, full=True,
+                 compare_options=compare_options(lists["suites"], lists["jobs"], names))
 
 
 def compare_options(suites: list[Any], jobs: list[Any], rec_names: dict[str, str]) -> list[dict[str, Any]]:
@@ -316,13 +317,16 @@ async def delete_job(request: Request, job_id: JobPath, jobs: JobsDep) -> Respon
     shutil.rmtree(jobs.run_dir(job_id), ignore_errors=True)
     for pair in (jobs.settings.runs_dir / "diffs").glob(f"*{job_id}*.rrd"):
         pair.unlink(missing_ok=True)
+    shutil.rmtree(jobs.settings.runs_dir / "diffs" / ".labels" / job_id, ignore_errors=True)  # its named link
     return RedirectResponse(_next(form.get("next")), 303)
 
 
 @router.get("/ui/runs/compare")
-def compare_selected(request: Request, sel: Annotated[list[str] | None, Query(max_length=32)] = None) -> Response:
-    """The selected runs' comparison at its stable URL (``/ui/compare?runs=...``): two as a diff, more side by
-    side, whatever their pipelines, recordings and seeds."""
+def compare_selected(request: Request, jobs: JobsDep,
+                     sel: Annotated[list[str] | None, Query(max_length=32)] = None) -> Response:
+    """The selected runs: two succeeded runs of one recording, pipeline and seed open the paired comparison page;
+    any others a page leading to their comparison at its stable URL (``/ui/compare?runs=...``: two as a diff,
+    more side by side) and, for two, the API's diff."""
     from slamreplay.api.compare_runs import MAX_RUNS
 
     ids = list(dict.fromkeys(s for s in sel or [] if re.fullmatch(JOB_ID, s)))
@@ -331,4 +335,15 @@ def compare_selected(request: Request, sel: Annotated[list[str] | None, Query(ma
                                            "then Compare selected"))
     if len(ids) > MAX_RUNS:
         return _error(request, ReplayError(f"{len(ids)} runs selected: compare at most {MAX_RUNS} at once"))
-    return RedirectResponse("/ui/compare?" + urlencode({"runs": ",".join(ids)}, safe=","), 303)
+    try:
+        chosen = [jobs.get(i) for i in ids]
+    except PAGE_ERRORS as err:
+        return _error(request, err)
+    a, b = chosen[0], chosen[-1]
+    if (len(chosen) == 2 and all(j.status == "succeeded" for j in chosen) and a.recording_id == b.recording_id
+            and a.pipeline == b.pipeline and a.seed == b.seed):
+        return RedirectResponse("/ui/compare?" + urlencode({"a": a.id, "b": b.id}), 303)
+    rec_names = {r.id: r.filename for r in jobs.store.list_recordings()}
+    return _page(request, "runs_compare.html", chosen=chosen, runs_url="/ui/compare?runs=" + ",".join(ids),
+                 diff_url=f"/diff?a={a.id}&b={b.id}" if len(chosen) == 2 else None, rec_names=rec_names,
+                 all_succeeded=all(j.status == "succeeded" for j in chosen))

@@ -174,7 +174,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
         from slamreplay.replay.diff_view import write_comparison_rrd
         from slamreplay.replay.report import pair_file_links, write_pair_rrds
         pair_links = pair_file_links(write_pair_rrds(result, Path(args.rrd_dir), write_comparison_rrd))
-    write_reports(result, args.report, args.markdown, pair_links)
+    write_reports(result, args.report, args.markdown, pair_links, base_url=args.base_url)
     if args.json:
         print(json.dumps(result.to_json(), indent=2, default=str))
     else:
@@ -249,7 +249,10 @@ def add_suite_parsers(sub: Any, quiet: argparse.ArgumentParser) -> None:
     cp.add_argument("b", help="to judge: RUN_DIR, RESULTS_DIR or rev:GITREV")
     cp.add_argument("--suite", metavar="SUITE.toml", help="the suite to run at a rev: side (cached)")
     cp.add_argument("--report", metavar="REPORT.html", help="write a self-contained HTML report")
-    cp.add_argument("--markdown", metavar="SUMMARY.md", help="write the table as markdown (CI job summary)")
+    cp.add_argument("--markdown", metavar="SUMMARY.md", help="write the table as markdown for a CI job summary: "
+                    "regressions first, unchanged rows folded; links relative to its folder, only to files inside it")
+    cp.add_argument("--base-url", metavar="URL", help="where CI publishes the markdown summary's folder: its links "
+                    "become URL/<path relative to that folder> (default: relative links)")
     cp.add_argument("--rrd-dir", metavar="DIR", help="write one comparison .rrd per A/B run pair (both runs, "
                                                      "same axes) into DIR; the report links each cell's pairs")
     cp.add_argument("--tolerance", action="append", default=[], metavar="NAME=VALUE",

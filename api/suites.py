@@ -115,12 +115,15 @@ class SuiteService:
         """The recording id that ``rid`` (a whole id or an unambiguous prefix) names; ReplayError saying how to get
         one otherwise."""
         from slamreplay.api.errors import ApiError
-        from slamreplay.api.idprefix import resolve_id
+        from slamreplay.api.ids import HEX, resolve_id
 
         try:
             return resolve_id(self.jobs.store, rid, ("recording",))
         except ApiError as err:
-            raise ReplayError(f"recording {rid!r}: {err}; upload it with POST /recordings first") from None
+            if not HEX.fullmatch(rid) or len(rid) > 64:
+                raise ReplayError(f"{rid!r} is not a recording id (64 hex digits, as POST /recordings answers, or "
+                                  "the first 8 of them)") from None
+            raise ReplayError(f"{err}; upload it with POST /recordings first") from None
 
     def _recording(self, rid: str) -> Path:
         """The stored file of recording ``rid`` (a prefix will do); ReplayError saying how to get one otherwise."""

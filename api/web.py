@@ -4,8 +4,9 @@ Server-rendered Jinja2 templates (``api/templates/``) over the same services as 
 only JavaScript (``api/static/web.js``, a dozen lines) refreshes the parts of a page that hold
 a queued or running job. "Open in Rerun" opens a job's ``.rrd`` in the Rerun web viewer, which
 this service serves itself from the files of the installed rerun-sdk (``slamreplay.api.viewer_assets``).
-The runs table (``/``, ``/runs``) is in ``api/runs_web.py``, a job's page in ``api/job_web.py``, and what
-every page shares (templates, session, error page) in ``api/pages.py``.
+The runs table (``/``, ``/runs``) is in ``api/runs_web.py``, a job's page in ``api/job_web.py``, comparisons
+(``/ui/compare``) in ``api/compare_web.py``, and what every page shares (templates, session, error page)
+in ``api/pages.py``. Ids in every route may be the 8-digit prefixes the page shows (``api/idprefix.py``).
 
 With ``SLAMREPLAY_TOKEN`` set the page asks for the token once (``/login``) and keeps a session
 cookie derived from it (HttpOnly, SameSite=Strict, so another site cannot post forms with it);

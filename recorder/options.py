@@ -32,6 +32,17 @@ def did_you_mean(word: str, known: Iterable[str], quote: bool = False) -> str:
     return " (did you mean " + " or ".join(repr(c) if quote else c for c in close) + "?)"
 
 
+def seed_value(text: str) -> int:
+    """An argparse type for a seed: a whole number from 0 to 2**63 - 1 (numpy's generators refuse others)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if not 0 <= value < 2**63:
+        raise argparse.ArgumentTypeError(f"a seed is a whole number from 0 to 2**63 - 1, got {value}")
+    return value
+
+
 def type_name(tp: Any) -> str:
     """How a field's type reads in help and errors: ``float``, ``a|b|c`` for a Literal."""
     if typing.get_origin(tp) is Literal:

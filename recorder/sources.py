@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 from slamreplay.recorder.errors import RecorderError
-from slamreplay.recorder.options import add_dataclass_options, dataclass_from_options
+from slamreplay.recorder.options import add_dataclass_options, dataclass_from_options, seed_value
 from slamreplay.recorder.plugins import Plugin, discover
 
 IMPORTER_GROUP = "slamreplay.importers"
@@ -91,7 +91,7 @@ def get_importer(name: str) -> Importer:
 
 def _out_and_seed(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help=OUT_HELP)
-    parser.add_argument("--seed", type=int, default=0,
+    parser.add_argument("--seed", type=seed_value, default=0,
                         help="seed of the simulation's random generator: the same seed and options make the same "
                              "recording (default: 0)")
 
@@ -183,7 +183,7 @@ class SimRos2Bag:
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--out", required=True, help="the bag folder to write (must not exist)")
-        parser.add_argument("--seed", type=int, default=0,
+        parser.add_argument("--seed", type=seed_value, default=0,
                             help="seed of the simulation's random generator (pole positions, noise) (default: 0)")
         parser.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3",
                             help="the bag's storage plugin: sqlite3 (.db3, ROS 2's default before Jazzy) or mcap "

@@ -291,7 +291,7 @@ def render_html(c: Comparison, base: Path, links: Links | None = None) -> str:
             "<th>B mean ± sd</th><th>B - A</th><th>tolerance</th><th>p</th><th class='l'>test</th>"
             "<th class='l'>verdict</th><th class='l'>seeds</th><th class='l'>runs</th></tr>"]
     shown: set[tuple[str, str, str]] = set()
-    for r in c.results:
+    for r in ranked(c.results):
         cell_links = _cell_links(c, r, base, links) if _links_here(r, shown) else ""
         out.append(f"<tr class='{r.verdict}'><td class='l'>{e(r.recording)}/{e(r.pipeline)}/{e(r.variant)}</td>"
                    f"<td class='l'>{e(_named(r.metric, r.unit))}</td><td>{e(r.direction)}</td>"
@@ -319,6 +319,13 @@ def render_html(c: Comparison, base: Path, links: Links | None = None) -> str:
 
 
 FOLDED = ("unchanged", "noise")  # rows a CI summary folds away: nothing to act on
+
+
+def ranked(results: Sequence[MetricResult]) -> list[MetricResult]:
+    """Results in the order a reader acts on them: regressions and failures first (VERDICT_ORDER); stable, so
+    each verdict's rows keep their cells' order."""
+    order = {v: i for i, v in enumerate(VERDICT_ORDER)}
+    return sorted(results, key=lambda r: order.get(r.verdict, len(order)))
 
 
 def render_markdown(c: Comparison, base: Path, links: Links | None = None, base_url: str | None = None) -> str:
@@ -352,10 +359,9 @@ def render_markdown(c: Comparison, base: Path, links: Links | None = None, base_
         lines.append(f"- changed `{ch['field']}`: `{ch['a']!r}` → `{ch['b']!r}`")
     head = ["| cell | metric | A mean ± sd | B mean ± sd | B - A | p | verdict | runs |",
             "| --- | --- | ---: | ---: | ---: | ---: | --- | --- |"]
-    order = {v: i for i, v in enumerate(VERDICT_ORDER)}
-    ranked = sorted(c.results, key=lambda r: order.get(r.verdict, len(order)))  # stable: cells keep their order
-    quiet = [r for r in ranked if r.verdict in FOLDED]
-    loud = [r for r in ranked if r.verdict not in FOLDED]
+    rows = ranked(c.results)
+    quiet = [r for r in rows if r.verdict in FOLDED]
+    loud = [r for r in rows if r.verdict not in FOLDED]
     lines += ["", *head]
     shown: set[tuple[str, str, str]] = set()
     for r in loud + quiet:

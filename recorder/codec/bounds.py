@@ -36,7 +36,6 @@ MAX_PNG_CHUNKS = 1 << 16
 MAX_JSON_DEPTH = 64
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
 _JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}  # start-of-frame markers (not DHT, JPG, DAC)
 _ROS_PRIMITIVES = frozenset(("bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32",
                              "uint32", "int64", "uint64", "string", "wstring", "time", "duration"))
@@ -51,8 +50,18 @@ def shown(text: str, limit: int = 100) -> str:
 def json_depth(text: str) -> int:
     """How deep the arrays and objects of a JSON text nest (strings skipped), without parsing it."""
     depth = deepest = 0
-    for c in _JSON_STRING.sub("", text):
-        if c in "[{":
+    in_string = escaped = False
+    for c in text:  # one pass, no regular expression: an unterminated string must not cost quadratic time
+        if in_string:
+            if escaped:
+                escaped = False
+            elif c == "\\":
+                escaped = True
+            elif c == '"':
+                in_string = False
+        elif c == '"':
+            in_string = True
+        elif c in "[{":
             depth += 1
             deepest = max(deepest, depth)
         elif c in "]}":
@@ -160,7 +169,7 @@ def check_ros2_schema(text: str, name: str) -> None:
             line = line.split("#", 1)[0].strip()
             if not line or line.startswith("MSG:") or "=" in line:
                 continue
-            ftype = re.sub(r"(\[.*\]|<=\d+)", "", line.split()[0])
+            ftype = line.split()[0].split("[", 1)[0].split("<=", 1)[0]  # pkg/T[<=3], string<=5: no regex backtracking
             if ftype in _ROS_PRIMITIVES:
                 continue
             tokens = line.split()

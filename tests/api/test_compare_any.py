@@ -56,16 +56,27 @@ def test_two_runs_of_other_pipelines_diff_as_diff_does(client: TestClient, runs:
     data = client.get("/compare", params={"runs": f"{runs['odo']},{runs['dslam']}"}).json()
     ate = next(m for m in data["metrics"] if m["name"] == "ape_rmse_m")
     assert ate["verdict"] == "better" and ate["unit"] == "m" and ate["direction"] == "lower is better"
-    assert {"field": "pipeline", "a": "odometry", "b": "dslam"} in data["changes"]
+    assert {"field": "pipeline", "a": "odometry", "b": "dslam", "only": False} in data["changes"]
 
 
 def test_compare_link_of_the_runs_table_is_no_longer_422(client: TestClient, runs: dict[str, str]) -> None:
-    """/compare?runs= answers JSON, and a browser (Accept: text/html) goes to the page at the same runs."""
+    """/compare?runs= answers JSON, and a browser (Accept: text/html) goes to the page at the same runs; the runs
+    table's Compare selected leads there."""
     ids = f"{runs['odo']},{runs['dslam']}"
     r = client.get(f"/compare?runs={ids}", headers={"Accept": "text/html"}, follow_redirects=False)
     assert r.status_code == 303 and r.headers["location"] == f"/ui/compare?runs={ids.replace(',', '%2C')}"
-    sel = client.get("/ui/runs/compare", params={"sel": [runs["odo"], runs["dslam"]]}, follow_redirects=False)
-    assert sel.status_code == 303 and sel.headers["location"] == f"/ui/compare?runs={ids}"
+    sel = client.get("/ui/runs/compare", params={"sel": [runs["odo"], runs["dslam"]]})
+    assert sel.status_code == 200 and f'id="compare-runs" href="/ui/compare?runs={ids}"' in sel.text
+
+
+def test_comparison_rrd_names_runs_as_the_user_knows_them(client: TestClient, runs: dict[str, str]) -> None:
+    """The comparison .rrd of two runs is made from run directories named by their labels, not server paths."""
+    r = client.get("/diff.rrd", params={"a": runs["odo"][:8], "b": runs["dslam"][:8]})
+    assert r.status_code == 200 and len(r.content) > 1000
+    labels = client.app.state.settings.runs_dir / "diffs" / ".labels"  # type: ignore[attr-defined]
+    names = sorted(p.name for p in labels.glob("*/*"))
+    assert names == sorted([f"{runs['dslam'][:8]}: dslam on sim.mcap, seed 0",
+                            f"{runs['odo'][:8]}: odometry on sim.mcap, seed 0"])
 
 
 def test_three_runs_overlay_three_trajectories(client: TestClient, runs: dict[str, str]) -> None:
@@ -80,7 +91,7 @@ def test_three_runs_overlay_three_trajectories(client: TestClient, runs: dict[st
     table = page.text[page.text.index('id="metrics-side-table"'):]
     head = table[:table.index("</tr>")]
     assert head.count('<th class="n"') == 3
-    assert re.search(r"<td[^>]*>ape_rmse_m</td><td>m</td><td class=\"muted\">lower is better</td>", table)
+    assert re.search(r"<td[^>]*>ape_rmse_m</td><td>m</td><td class=\"muted dir\">lower is better</td>", table)
     pairs = re.findall(r'href="/ui/compare\?runs=([0-9a-f]{32}),([0-9a-f]{32})"', page.text)
     assert len(pairs) == 3 and {frozenset(p) for p in pairs} == {frozenset(p) for p in
                                                                  [(ids[0], ids[1]), (ids[0], ids[2]),

@@ -34,7 +34,10 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[TestClien
         good = client.post("/jobs", json={"recording_id": rid, "pipeline": "dslam", "seed": 4,
                                           "config": {"range_sigma_m": 0.07}}).json()["id"]
         assert wait_for(client, good)["status"] == "succeeded"
-        bad = client.post("/jobs", json={"recording_id": rid, "pipeline": "ifmi"}).json()["id"]
+        # A topic map that passes the submit-time check (the topic has messages) but maps odometry onto the camera
+        # topic: the replay cannot decode it, so the job fails when it runs.
+        bad = client.post("/jobs", json={"recording_id": rid, "pipeline": "ifmi",
+                                         "topic_map": {"/odom": "/camera/image"}}).json()["id"]
         assert wait_for(client, bad)["status"] == "failed"
         yield client, good, bad
 

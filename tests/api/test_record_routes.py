@@ -61,6 +61,7 @@ def test_a_simulation_made_on_the_server_equals_the_cli_one(client: TestClient, 
     ({"duration_s": -5}, 422, "duration_s must be > 0"),  # the simulator's own check, one line
     ({"sensor_range_m": True}, 422, "sensor_range_m"),  # JSON true is not the number 1 (the fuzzer's case)
     ({"seed": 2.5}, 422, "seed"),
+    ({"seed": -1}, 422, "seed"),  # numpy refuses a negative seed: a 500 the fuzzer found
 ])
 def test_bad_options_are_422_and_store_nothing(client: TestClient, body: dict, status: int, detail: str) -> None:  # type: ignore[type-arg]
     name = "sim-seabed" if "texture" in body else "sim-landmarks"

@@ -340,12 +340,20 @@ def test_cancel_and_delete_ask_first(table: tuple[TestClient, Store], tmp_path: 
 
 
 def test_compare_selected(table: tuple[TestClient, Store]) -> None:
-    """Any two or more selected runs open their comparison at its stable URL (/ui/compare?runs=...), whatever their
-    recordings, pipelines and seeds; fewer than two is a message."""
-    client, _ = table
-    for sel in ([jid(0), jid(1)], [jid(0), jid(1), jid(2)]):
-        r = client.get("/ui/runs/compare", params={"sel": sel}, follow_redirects=False)
-        assert r.status_code == 303 and r.headers["location"] == "/ui/compare?runs=" + ",".join(sel)
+    """Two succeeded runs of one recording and pipeline open the comparison page; others get /compare?runs=
+    and, for two, the API's diff; fewer than two is a message."""
+    client, store = table
+    store.cancel_job(jid(8))  # so that the next claim is the new job
+    store.add_job(jid(20), SIM, "odometry", {"x": 1}, 0)
+    store.claim_next()
+    store.finish_job(jid(20), "succeeded", None, {})
+    r = client.get("/ui/runs/compare", params={"sel": [jid(0), jid(20)]}, follow_redirects=False)
+    assert r.status_code == 303 and r.headers["location"] == f"/ui/compare?a={jid(0)}&b={jid(20)}"
+    r = client.get("/ui/runs/compare", params={"sel": [jid(0), jid(1)]})
+    assert r.status_code == 200 and f'href="/ui/compare?runs={jid(0)},{jid(1)}"' in r.text
+    assert f'href="/diff?a={jid(0)}&amp;b={jid(1)}"' in r.text
+    r = client.get("/ui/runs/compare", params={"sel": [jid(0), jid(1), jid(2)]})
+    assert f"/compare?runs={jid(0)},{jid(1)},{jid(2)}" in r.text and "/diff?" not in r.text
     r = client.get("/ui/runs/compare", params={"sel": [jid(0)]})
     assert r.status_code == 422 and "select at least two runs" in r.text
 

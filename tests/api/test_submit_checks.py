@@ -170,3 +170,11 @@ def test_runs_name_the_uploaded_file(client: TestClient, recs: dict[str, str]) -
     log = client.get(f"/jobs/{job['id']}/log").text
     assert "odometry on sim.mcap" in log and f"{recs['sim']}.mcap" not in log.splitlines()[1]
     assert np.isfinite(client.get(f"/jobs/{job['id']}").json()["metrics"]["ape_rmse_m"])
+
+
+def test_run_errors_speak_of_topic_map_not_the_cli_flag() -> None:
+    """A failure that would tell a CLI user to pass --topic-map names the job's topic_map field instead."""
+    from slamreplay.api.executor import service_words
+
+    said = service_words("sim.mcap has no /odom topic; map it with --topic-map FILE_TOPIC=/odom")
+    assert "--topic-map" not in said and 'topic_map {"FILE_TOPIC": "/odom"}' in said

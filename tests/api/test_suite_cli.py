@@ -331,3 +331,29 @@ def test_suite_on_ray(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> Non
                                "--jobs", "2"], capsys)
     assert code == 0, err
     assert [r["status"] for r in suite_run.read_results(tmp_path / "res")] == ["succeeded"] * 2
+
+
+def test_compare_markdown_links_with_a_base_url(tmp_path: Path) -> None:
+    """`compare --markdown S.md --base-url URL`: runs inside the summary's folder are linked under URL; the
+    regression leads the table."""
+    from slamreplay.api.cli import main
+
+    def results(name: str, values: list[float]) -> Path:
+        out = tmp_path / name
+        out.mkdir()
+        rows = [{"recording": "lm", "recording_seed": i + 1, "pipeline": "dslam", "variant": "default", "seed": 0,
+                 "config": {}, "status": "succeeded", "error": None, "run_dir": str(out / f"r{i}"),
+                 "code_version": name, "metrics": {"landmark_rmse_m": v, "steps": 10.0},
+                 "better": {"landmark_rmse_m": "lower", "steps": "none"},
+                 "tolerance": {"landmark_rmse_m": 1e-6, "steps": 0.0}, "units": {"landmark_rmse_m": "m", "steps": ""}}
+                for i, v in enumerate(values)]
+        (out / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+        return out
+
+    a, b = results("a", [0.05, 0.08, 0.06]), results("b", [0.075, 0.121, 0.089])
+    assert main(["compare", str(a), str(b), "--markdown", str(tmp_path / "s.md"),
+                 "--base-url", "https://ci.example/7/", "-q"]) == 1
+    text = (tmp_path / "s.md").read_text()
+    assert "[A1](https://ci.example/7/a/r0)" in text
+    table = [line for line in text.splitlines() if line.startswith("| lm/")]
+    assert "regression" in table[0] and "landmark_rmse_m" in table[0]

@@ -318,3 +318,14 @@ def test_a_png_of_a_hundred_thousand_empty_chunks_is_refused() -> None:
     with pytest.raises(CodecError, match=f"PNG data holds more than {MAX_PNG_CHUNKS:,} chunks"):
         decode_image_bytes(data, "png")
     assert time.perf_counter() - t0 < 2
+
+
+def test_json_depth_skips_strings_and_stays_linear() -> None:
+    """Brackets inside strings (escaped quotes too) do not count; 500,000 unterminated escapes take one pass."""
+    from slamreplay.recorder.codec.bounds import json_depth
+
+    assert json_depth('{"a": [1, {"b": "[[[["}]}') == 3
+    assert json_depth('["a\\\\"]') == 1 and json_depth('"\\"[" ') == 0
+    t0 = time.perf_counter()
+    assert json_depth('"\\' * 500_000) == 0
+    assert time.perf_counter() - t0 < 1

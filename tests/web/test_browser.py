@@ -288,3 +288,71 @@ def test_phone_width_pages_do_not_scroll_sideways(page: Any, server: str) -> Non
     both_sizes(page, "runs")
     page.goto(server + "/runs?where=ape_rmse_m+%3C%3C+1")
     both_sizes(page, "runs-bad-condition")
+
+
+# -- compare anything (issue 25, part 3) ---------------------------------------------------------------------
+
+
+def _log_in(page: Any, server: str) -> None:
+    """Log in unless the session already is (the tests share one browser context)."""
+    page.goto(server + "/")
+    if "/login" in page.url:
+        page.fill("input[name=token]", TOKEN)
+        page.click("form button")
+        page.wait_for_url(server + "/")
+
+
+def _run_on(page: Any, server: str, recording_id: str, pipeline: str) -> str:
+    """Run ``pipeline`` on a recording through the job form; the job id once it has succeeded."""
+    page.goto(server + "/")
+    page.select_option("#job-form select[name=recording_id]", recording_id)
+    page.select_option("#job-form select[name=pipeline]", pipeline)
+    page.click("#job-form button")
+    page.wait_for_url(re.compile(r"/ui/jobs/[0-9a-f]{32}$"))
+    page.wait_for_function("document.querySelector('#job-status').textContent.trim() === 'succeeded'",
+                           timeout=90_000)
+    return str(page.url.rsplit("/", 1)[1])
+
+
+def test_compare_two_runs_of_different_pipelines(page: Any, server: str, tmp_path: Path) -> None:
+    """Odometry and dslam on one recording, ticked in the runs table: What changed names the pipeline, and the
+    ATE's verdict (better, green) is read by its direction; a third run gives three paths on one plot."""
+    _log_in(page, server)
+    page.set_viewport_size(LAPTOP)
+    page.set_input_files("#upload-form input[name=file]", str(write_tiny_recording(tmp_path / "pair.mcap", n=80)))
+    page.click("#upload-form button")
+    page.wait_for_url(re.compile(r"/\?uploaded=[0-9a-f]{64}"))
+    rid = page.url.split("uploaded=")[1][:64]
+    assert "pair.mcap" in page.inner_text("#flash")
+    odo, dslam = _run_on(page, server, rid, "odometry"), _run_on(page, server, rid, "dslam")
+
+    page.goto(server + f"/runs?recording={rid}")
+    assert set(listed_ids(page)) == {odo, dslam}
+    page.check(f"#run-{odo} input[name=sel]")
+    page.check(f"#run-{dslam} input[name=sel]")
+    page.click("#compare-selected")
+    page.click("#compare-runs")
+    page.wait_for_url(re.compile(r"/ui/compare\?runs="))
+    if f"runs={odo}" not in page.url:  # the table lists the newest first: make odometry the baseline (A)
+        page.click("#swap")
+        page.wait_for_url(re.compile(rf"/ui/compare\?runs={odo},{dslam}$"))
+    changes = page.inner_text("#changes-table")
+    assert re.search(r"pipeline\s+odometry\s+dslam", changes), changes
+    row = page.locator("#delta-table tr", has_text="ape_rmse_m").first
+    assert "better" in row.inner_text() and "lower is better" in row.inner_text()
+    verdict = row.locator(".verdict")
+    r, g, b = map(int, re.findall(r"\d+", verdict.evaluate("el => getComputedStyle(el).color"))[:3])
+    assert g > r + 40 and g > b + 20  # green text
+    assert page.locator("#plots svg polyline").count() >= 3  # A, B and ground truth
+    both_sizes(page, "compare-two-runs")
+    if SHOTS is not None:
+        page.screenshot(path=str(SHOTS / "compare-two-runs-full.png"), full_page=True)
+
+    third = _run_on(page, server, rid, "ekfslam")
+    page.goto(server + f"/ui/compare?runs={odo[:8]},{dslam[:8]},{third[:8]}")  # the page's short ids do
+    assert page.locator("#plots svg polyline").count() == 4  # three runs and the truth
+    assert page.locator("#metrics-side-table tr").first.locator("th.n").count() == 3
+    assert page.locator("#pairs li").count() == 3
+    both_sizes(page, "compare-three-runs")
+    if SHOTS is not None:
+        page.screenshot(path=str(SHOTS / "compare-three-runs-full.png"), full_page=True)

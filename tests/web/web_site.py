@@ -12,7 +12,6 @@ import dataclasses
 import json
 import os
 import shutil
-import tempfile
 import threading
 import time
 import urllib.parse
@@ -45,7 +44,7 @@ def web_job(task: Task, report: Report | None = None) -> Outcome:
         return Outcome("succeeded")
     if task.seed == DAMAGED_SEED:
         data = Path(task.recording).read_bytes()
-        cut = Path(tempfile.mkdtemp(prefix="slamreplay-web-")) / "field-test-0412.mcap"
+        cut = Path(task.db_path).parents[1] / "field-test-0412.mcap"  # in the data directory: the test's own
         cut.write_bytes(data[: len(data) * 2 // 3])
         return run_task(dataclasses.replace(task, recording=str(cut)), report)
     return run_task(task, report)
@@ -130,7 +129,8 @@ def seed_runs(base: str, folder: Path) -> dict[str, str]:
     ids["dslam"] = job("rec_good", "dslam")
     ids["dslam_tuned"] = job("rec_good", "dslam", config={"range_sigma_m": 0.05})
     ids["failed"] = job("rec_good", "odometry", DAMAGED_SEED)
-    suite = b'seeds = [1, 2]\n[recordings.corridor]\nid = "%s"\n[pipelines.odometry]\n' % ids["rec_good"].encode()
+    suite = (b'name = "nightly odometry"\nseeds = [1, 2]\n[recordings.corridor]\nid = "%s"\n[pipelines.odometry]\n'
+             % ids["rec_good"].encode())
     ids["suite"] = call(base, "POST", "/suites", suite)["id"]
     for key in ("baseline", "worn", "dslam", "dslam_tuned", "failed"):
         assert wait_until(base, ids[key])["status"] in ("succeeded", "failed"), key
@@ -169,7 +169,7 @@ def shoot(page: Any, name: str) -> list[Path]:
     for size, tag in ((LAPTOP, "laptop"), (PHONE, "phone")):
         page.set_viewport_size(size)
         page.wait_for_timeout(50)
-        path = SHOTS / f"{name}-{tag}.png"
+        path = SHOTS / f"page-{name}-{tag}.png"  # page-: apart from test_browser.py's shots in the same folder
         page.screenshot(path=str(path), full_page=True)
         paths.append(path)
     page.set_viewport_size(LAPTOP)
