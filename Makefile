@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.installed-py$(PY_VERSION)
 DATA   ?= ../shared/data
 ARGS   ?=
 
-.PHONY: venv demo serve test test-ray test-docs test-pythons test-viewer test-browser snapshots readme-figures viewer-deps lint bench cholmod clean
+.PHONY: venv demo serve test test-ray test-docs test-pythons test-viewer test-browser snapshots readme-figures fuzz viewer-deps lint bench cholmod clean
 
 venv: $(STAMP)
 
@@ -104,6 +104,17 @@ test-pythons:
 	done; \
 	set -- $$found; if [ $$# -eq 2 ]; then .ci/cross-python-diff.sh $$1 $$2 || exit 1; \
 	else echo "test-pythons: the cross-interpreter diff needs both 3.10 and 3.13: skipped"; fi
+
+# Coverage-guided fuzzing (atheris, the fuzz extra) of the MCAP reader, inspect and recover
+# (tests/fuzz/harness_mcap.py) for FUZZ_SECONDS, from the stored seed corpus; new inputs go to FUZZ_DIR (the
+# committed corpus is read only, never written), findings to FUZZ_DIR/crash-* (then store them as cases).
+FUZZ_SECONDS ?= 1800
+FUZZ_DIR ?= /tmp/slamreplay-fuzz
+fuzz: $(STAMP)
+	$(BIN)/python -m pip install --quiet -e ".[dev,fuzz]"
+	@mkdir -p $(FUZZ_DIR)/mcap
+	nice -n 10 $(BIN)/python tests/fuzz/harness_mcap.py -max_total_time=$(FUZZ_SECONDS) -timeout=20 \
+		-rss_limit_mb=4096 -max_len=65536 -artifact_prefix=$(FUZZ_DIR)/ $(FUZZ_DIR)/mcap tests/fuzz/corpus/mcap
 
 lint: $(STAMP)
 	$(BIN)/ruff check recorder replay algorithms api tests benchmarks examples

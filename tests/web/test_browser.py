@@ -252,9 +252,12 @@ def test_select_two_runs_and_compare(page: Any, server: str) -> None:
 
 
 def test_failed_job_error_is_readable_at_every_width(page: Any, server: str) -> None:
-    """ifmi on a recording without a camera fails: its whole error is a block below the status, with the log."""
+    """ifmi made to run on a recording without a camera (odometry poses mapped onto /camera/image: the submit check,
+    tests/api/test_submit_checks.py, refuses it without the map) fails: its whole error is a block below the
+    status, with the log."""
     page.goto(server + "/")
     page.select_option("#job-form select[name=pipeline]", "ifmi")
+    page.fill("#job-form input[name=topic_map]", '{"/odom": "/camera/image"}')
     page.click("#job-form button")
     page.wait_for_url(re.compile(r"/ui/jobs/[0-9a-f]{32}$"))
     page.wait_for_function("document.querySelector('#job-status').textContent.trim() === 'failed'", timeout=90_000)
