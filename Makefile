@@ -105,16 +105,23 @@ test-pythons:
 	set -- $$found; if [ $$# -eq 2 ]; then .ci/cross-python-diff.sh $$1 $$2 || exit 1; \
 	else echo "test-pythons: the cross-interpreter diff needs both 3.10 and 3.13: skipped"; fi
 
-# Coverage-guided fuzzing (atheris, the fuzz extra) of the MCAP reader, inspect and recover
-# (tests/fuzz/harness_mcap.py) for FUZZ_SECONDS, from the stored seed corpus; new inputs go to FUZZ_DIR (the
-# committed corpus is read only, never written), findings to FUZZ_DIR/crash-* (then store them as cases).
+# Coverage-guided fuzzing (atheris, the fuzz extra) of every byte parser, one harness after the other, each
+# for a quarter of FUZZ_SECONDS from its stored seed corpus: the MCAP reader, inspect and recover
+# (tests/fuzz/harness_mcap.py), suite files (harness_suite.py), form uploads (harness_upload.py) and ROS 2
+# bags (harness_ros2bag.py). New inputs go to FUZZ_DIR/<harness> (the committed corpus is read only, never
+# written), findings to FUZZ_DIR/<harness>-crash-* (then store them as cases); the first finding fails the run.
 FUZZ_SECONDS ?= 1800
 FUZZ_DIR ?= /tmp/slamreplay-fuzz
+FUZZ_EACH = $(shell expr $(FUZZ_SECONDS) / 4)
+FUZZ_RUN = nice -n 10 $(BIN)/python tests/fuzz/harness_$(1).py -max_total_time=$(FUZZ_EACH) \
+	-artifact_prefix=$(FUZZ_DIR)/$(1)- $(2) $(FUZZ_DIR)/$(1) tests/fuzz/corpus/$(1)
 fuzz: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[dev,fuzz]"
-	@mkdir -p $(FUZZ_DIR)/mcap
-	nice -n 10 $(BIN)/python tests/fuzz/harness_mcap.py -max_total_time=$(FUZZ_SECONDS) -timeout=20 \
-		-rss_limit_mb=4096 -max_len=65536 -artifact_prefix=$(FUZZ_DIR)/ $(FUZZ_DIR)/mcap tests/fuzz/corpus/mcap
+	@mkdir -p $(FUZZ_DIR)/mcap $(FUZZ_DIR)/suite $(FUZZ_DIR)/upload $(FUZZ_DIR)/ros2bag
+	$(call FUZZ_RUN,mcap,-timeout=20 -rss_limit_mb=4096 -max_len=65536)
+	$(call FUZZ_RUN,suite,-timeout=10 -rss_limit_mb=2048 -max_len=4096 -dict=tests/fuzz/suite.dict)
+	$(call FUZZ_RUN,upload,-timeout=10 -rss_limit_mb=2048 -max_len=8192)
+	$(call FUZZ_RUN,ros2bag,-timeout=20 -rss_limit_mb=3072 -max_len=65536)
 
 lint: $(STAMP)
 	$(BIN)/ruff check recorder replay algorithms api tests benchmarks examples

@@ -44,6 +44,7 @@ from slamreplay.api.recordings import RecordingService
 from slamreplay.api.settings import Settings
 from slamreplay.api.siteguard import SiteGuard
 from slamreplay.api.store import Store
+from slamreplay.api.timeouts import BodyTimeout
 from slamreplay.api.web import install_web
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.version import version
@@ -266,6 +267,7 @@ def create_app(settings: Settings | None = None, executor: Executor | None = Non
     app.state.settings = settings
     app.state.jobs = jobs
     app.state.recordings = recordings
+    app.add_middleware(BodyTimeout, idle_s=settings.body_timeout_s, min_rate=settings.min_body_rate)  # 408 on stalls
     app.add_middleware(SiteGuard, hosts=settings.allowed_hosts)  # outermost: before any route or error handler
     for exc in (ApiError, ReplayError, RecorderError, OSError, sqlite3.Error):
         app.add_exception_handler(exc, handle_error)

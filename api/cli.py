@@ -339,12 +339,14 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn  # the service's stack, imported once the directory and the port are ours (a refusal is quick)
 
     from slamreplay.api.app import create_app
+    from slamreplay.api.timeouts import server_config
 
     try:
         app = create_app(settings, lock=lock)
     except ImportError as err:  # --executor ray without the extra: the message has the install command
         raise CliError(str(err)) from None
-    uvicorn.Server(uvicorn.Config(app, host=args.host, port=args.port, log_level=args.log_level)).run(sockets=[sock])
+    config = server_config(app, args.host, args.port, args.log_level, settings.header_timeout_s)  # api/timeouts.py
+    uvicorn.Server(config).run(sockets=[sock])
     lock.release()
     return EXIT_OK
 

@@ -79,8 +79,13 @@ def run_files(run_dir: Path) -> list[dict[str, Any]]:
 
 
 def log_tail(run_dir: Path, lines: int = LOG_TAIL_LINES) -> str:
-    """The last ``lines`` lines of the run's log (read from its last 64 KiB)."""
+    """The last ``lines`` lines of the run's log (read from its last 64 KiB): log.txt once the run has ended, the
+    live copy the run appends to while it runs (``replay.run.LIVE_LOG``) before."""
+    from slamreplay.replay.run import LIVE_LOG
+
     path = run_dir / "log.txt"
+    if not path.exists():
+        path = run_dir / LIVE_LOG
     try:
         with path.open("rb") as f:
             f.seek(max(path.stat().st_size - 65536, 0))

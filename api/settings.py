@@ -20,6 +20,11 @@
 | ``SLAMREPLAY_ALLOWED_HOSTS`` | unset | host names served besides 127.0.0.1, localhost, ::1 and the address |
 | | | ``serve`` is bound to, comma-separated: ``slam.lan,10.0.0.5``, ``*.example.org``, ``*`` for |
 | | | any (slamreplay.api.siteguard); another ``Host`` is a 400 |
+| ``SLAMREPLAY_HEADER_TIMEOUT_S`` | ``10`` | a request's header must be whole this long after its first byte (or |
+| | | after the connection, for the first request), else 408 and closed (slamreplay.api.timeouts) |
+| ``SLAMREPLAY_BODY_TIMEOUT_S`` | ``30`` | longest wait for the next bytes of a request body, else 408 and closed |
+| ``SLAMREPLAY_MIN_BODY_RATE`` | ``1024`` | lowest average body rate in bytes/s, checked from ``BODY_TIMEOUT_S`` |
+| | | after the request's start, else 408 (0: no rate) |
 """
 
 from __future__ import annotations
@@ -33,10 +38,12 @@ from fastapi import Request
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from slamreplay.api.limits import JobLimits
+from slamreplay.api.timeouts import BODY_TIMEOUT_S, HEADER_TIMEOUT_S, MIN_BODY_RATE
 
 ENV_PREFIX = "SLAMREPLAY_"
 ENV_FIELDS = ("data_dir", "token", "workers", "max_upload_bytes", "executor", "ray_address", "storage_url",
-              "job_memory_mib", "job_timeout_s", "allowed_hosts")
+              "job_memory_mib", "job_timeout_s", "allowed_hosts", "header_timeout_s", "body_timeout_s",
+              "min_body_rate")
 LIST_FIELDS = ("allowed_hosts",)  # comma-separated in the environment
 
 
@@ -55,6 +62,9 @@ class Settings(BaseModel):
     job_memory_mib: int | None = Field(default=None, ge=64)
     job_timeout_s: float | None = Field(default=None, gt=0)
     allowed_hosts: tuple[str, ...] = ()
+    header_timeout_s: float = Field(default=HEADER_TIMEOUT_S, gt=0)
+    body_timeout_s: float = Field(default=BODY_TIMEOUT_S, gt=0)
+    min_body_rate: int = Field(default=MIN_BODY_RATE, ge=0)
 
     @field_validator("allowed_hosts")
     @classmethod

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import os
 import sys
@@ -59,13 +60,11 @@ def rss_mib(pid: int) -> float:
 
 
 def open_sockets(pid: int) -> int:
-    """Sockets the server process holds (the listening one and its SQLite-free rest included)."""
+    """Sockets the server process holds (the listening one included)."""
     n = 0
     for fd in Path(f"/proc/{pid}/fd").iterdir():
-        try:
+        with contextlib.suppress(OSError):  # closed since the listing
             n += os.readlink(fd).startswith("socket:")
-        except OSError:
-            pass
     return n
 
 
@@ -322,10 +321,11 @@ def main(argv: list[str] | None = None) -> int:
     for r in results:
         lat = r["latency_ms"]
         d, a = r["at_end_of_hold"], r["after_hang_up"]
+        up, closed_max = lat["upload"], "-" if r["closed_after_s_max"] is None else r["closed_after_s_max"]
         print(f"{r['scenario']:<15} {r['connections']:>5} "
               f"{lat['/healthz']['p50']:>9.1f}/{lat['/healthz']['p95']:<9.1f} "
-              f"{lat['/']['p50']:>6.1f}/{lat['/']['p95']:<7.1f} {lat['upload']['p50']:>7.1f}/{lat['upload']['p95']:<7.1f} "
-              f"{r['probe_error_count']:>4} {r['closed_by_server']:>6} {'-' if r['closed_after_s_max'] is None else r['closed_after_s_max']:>5} "
+              f"{lat['/']['p50']:>6.1f}/{lat['/']['p95']:<7.1f} {up['p50']:>7.1f}/{up['p95']:<7.1f} "
+              f"{r['probe_error_count']:>4} {r['closed_by_server']:>6} {closed_max:>5} "
               f"{json.dumps(r['answers']):<22} {d['server_sockets']:>14}/{d['partial_files']}/{d['rss_mib']:<10} "
               f"{a['server_sockets']:>10}/{a['partial_files']}/{a['rss_mib']}")
     if args.json:

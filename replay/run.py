@@ -84,6 +84,35 @@ def library_versions() -> dict[str, str]:
 
 
 RUN_FILES = frozenset({"run.rrd", "metrics.json", "manifest.json", "log.txt"})
+LIVE_LOG = ".log.txt.partial"  # the log as it is written, for a live tail (the service's job page); gone at the end
+
+
+class LiveLog(list[str]):
+    """The run's log lines; each is also appended to ``LIVE_LOG`` as it comes, so that a running job's log can be
+    followed. ``log.txt`` is still written whole at the end, and the live copy removed."""
+
+    def __init__(self, path: Path, first: str) -> None:
+        super().__init__()
+        self.path = path
+        self._file: Any = None
+        self.append(first)
+
+    def append(self, line: str) -> None:
+        super().append(line)
+        try:
+            if self._file is None:
+                self._file = open(self.path, "a", encoding="utf-8")  # noqa: SIM115 (kept open: a line per call)
+            self._file.write(line + "\n")
+            self._file.flush()
+        except OSError:
+            pass  # the live copy is a convenience: log.txt is written at the end whatever happens to it
+
+    def close(self) -> None:
+        """Stop the live copy and remove it."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+        self.path.unlink(missing_ok=True)
 ARTIFACT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 
 
@@ -208,7 +237,8 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
         "slamreplay": {"version": version(), "git_commit": git_commit()}, "libraries": library_versions(),
         "host": {"platform": platform.platform(), "cpus": os.cpu_count()},
     }
-    lines: list[str] = [f"slamreplay {version()} ({git_commit()}): {pipeline} on {recording}, seed {seed}"]
+    lines = LiveLog(out_dir / LIVE_LOG, f"slamreplay {version()} ({git_commit()}): {pipeline} on {recording}, "
+                                        f"seed {seed}")
     rrd_tmp, rrd = out_dir / ".run.rrd.partial", out_dir / "run.rrd"
     observer: RerunObserver | None = None
     values: dict[str, float] = {}
@@ -291,8 +321,10 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
                                **{k: round(v, 6) for k, v in timings.items()}}
         try:
             atomic_write(out_dir / "log.txt", "\n".join(lines) + "\n")
+            lines.close()
             atomic_write(out_dir / "manifest.json", json.dumps(manifest, indent=2, sort_keys=True, default=str) + "\n")
         except OSError as err:  # no manifest: diff and compare read the run as unfinished, which it is
+            lines.close()
             if err.errno not in DISK_FULL:
                 raise
             for name in (rrd.name, "metrics.json", *manifest.get("artifacts", {})):

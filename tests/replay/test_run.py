@@ -214,3 +214,23 @@ def test_full_disk_fails_the_run_cleanly(tiny_recording: Path, tmp_path: Path, m
         assert manifest["status"] == "failed" and "no space left" in manifest["error"]
     else:
         assert left == ["log.txt"]
+
+
+def test_the_log_is_followed_live_and_ends_whole(tmp_path: Path) -> None:
+    """While a run replays, its log lines are in the live copy (the service's job page tails it); at the end
+    log.txt holds them all and the live copy is gone."""
+    from slamreplay.replay.run import LIVE_LOG
+
+    rec = write_tiny_recording(tmp_path / "r.mcap")
+    seen: list[str] = []
+
+    def progress(done: int, total: int) -> None:
+        live = tmp_path / "run" / LIVE_LOG
+        if live.exists() and not seen:
+            seen.append(live.read_text())
+
+    run_recording(rec, "odometry", tmp_path / "run", progress=progress)
+    assert seen and "odometry on r.mcap" in seen[0]
+    assert not (tmp_path / "run" / LIVE_LOG).exists()
+    log = (tmp_path / "run" / "log.txt").read_text()
+    assert log.startswith(seen[0].splitlines()[0]) and "finished:" in log
