@@ -173,6 +173,11 @@ def key_line(text: str, path: Sequence[str]) -> int | None:
     return None if best is None else best[1]
 
 
+def _printable(text: str) -> str:
+    """``text`` with line breaks and other control characters escaped, so that an error stays one line."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 class _Checker:
     def __init__(self, path: Path, text: str) -> None:
         self.path, self.text = path, text
@@ -180,7 +185,8 @@ class _Checker:
     def fail(self, keys: Sequence[str], what: str) -> ReplayError:
         line = key_line(self.text, keys)
         where = f"{self.path}:{line}" if line else str(self.path)
-        return ReplayError(f"{where}: {'.'.join(keys) or 'suite'}: {what}")
+        # keys and values come from the file, where a quoted key or a string may hold a line break
+        return ReplayError(_printable(f"{where}: {'.'.join(keys) or 'suite'}: {what}"))
 
     def table(self, value: Any, keys: Sequence[str]) -> dict[str, Any]:
         if not isinstance(value, dict):
@@ -265,7 +271,10 @@ def _recording(chk: _Checker, name: str, doc: Any, base: Path,
             if key in doc:
                 raise chk.fail([*keys, key], f"only applies to a simulated recording (sim = ...), not to {source}")
     if source == "path":
-        p = Path(doc["path"]).expanduser()
+        try:
+            p = Path(doc["path"]).expanduser()
+        except RuntimeError as err:  # "~name" of a user this machine does not know
+            raise chk.fail([*keys, "path"], f"cannot expand {doc['path']!r}: {err}") from None
         p = p if p.is_absolute() else (base / p)
         if not p.exists():
             raise chk.fail([*keys, "path"], f"{p} does not exist")

@@ -416,6 +416,10 @@ def _convert(topic: str, msgtype: str, target: str | None, obj: Any, bag_ns: int
         sigma = math.sqrt(cov) if cov > 0 and obj.angular_velocity_covariance[0] >= 0 else 0.0
         return TOPIC_IMU_YAW_RATE, ImuYawRate(_stamp(obj.header, bag_ns), float(obj.angular_velocity.z), sigma)
     if msgtype == "sensor_msgs/msg/LaserScan":
+        # checked here, where the message is named: the pole extractor places readings by these angles
+        if not (math.isfinite(obj.angle_min) and math.isfinite(obj.angle_increment)):
+            raise RecorderError(f"{topic}: a LaserScan with angle_min {obj.angle_min} and angle_increment "
+                                f"{obj.angle_increment}: both must be finite to place its readings")
         scans.append((_stamp(obj.header, bag_ns), obj.header.frame_id.lstrip("/"), obj))
         return None
     raise RecorderError(f"{topic}: type {msgtype} has no mapping")
