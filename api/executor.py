@@ -32,6 +32,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
+from pathlib import Path
 from typing import Any, Literal, Protocol
 
 from slamreplay.api.limits import GRACE_S, JobLimitExceeded, JobLimits, Watchdog, rss_mib
@@ -104,9 +105,11 @@ def _watch_parent(parent_pid: int) -> None:
         time.sleep(0.5)
 
 
-def service_words(message: str) -> str:
+def service_words(message: str, recording: str | None = None) -> str:
     """A replay error in the terms of jobs and suites: the replay CLI's ``--topic-map FILE_TOPIC=TOPIC`` is their
-    ``topic_map`` field."""
+    ``topic_map`` field, and the recording is named by its file name (the server's folders are not the user's)."""
+    if recording:
+        message = message.replace(str(Path(recording).parent) + os.sep, "")
     return re.sub(r"--topic-map (\S+)=(\S+)", lambda m: f'topic_map {{"{m[1]}": "{m[2]}"}} '
                   "(a field of the job, or of the recording in a suite)", message)
 
@@ -140,7 +143,7 @@ def run_task(task: Task, report: Report | None = None) -> Outcome:
             run_recording(recording, task.pipeline, run_dir, seed=task.seed, config=task.config,
                           topic_map=task.topic_map, progress=progress, run_id=task.job_id)
     except ReplayError as err:
-        return Outcome("failed", service_words(str(err)))
+        return Outcome("failed", service_words(str(err), task.recording))
     except StorageError as err:
         return Outcome("failed", f"storage: {err}")
     except Exception as err:  # noqa: BLE001 -- any other error is this job's failure, not the worker's

@@ -112,3 +112,13 @@ def test_worker_is_replaced_after_max_jobs(store: Store, tmp_path: Path) -> None
         assert pids[0] == pids[1] != pids[2]
     finally:
         ex.close()
+
+
+def test_service_words_name_the_recording_by_its_file_and_the_topic_map_as_a_field() -> None:
+    """A run's error as the service shows it: no server folder before the file name, topic_map as a job field."""
+    from slamreplay.api.executor import service_words
+
+    msg = service_words("/srv/data/recordings/named/ab12/sim.mcap: truncated at byte 70; pass --topic-map "
+                        "/wheel/odom=/odom", "/srv/data/recordings/named/ab12/sim.mcap")
+    assert msg.startswith("sim.mcap: truncated at byte 70")
+    assert 'topic_map {"/wheel/odom": "/odom"}' in msg and "/srv/data" not in msg
