@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import AsyncIterator
 
 from python_multipart.exceptions import MultipartParseError
-from python_multipart.multipart import MultipartParser, parse_options_header
+from python_multipart.multipart import MAX_BOUNDARY_LENGTH, MultipartParser, parse_options_header
 
 from slamreplay.api.errors import ApiError, TooLargeError
 
@@ -104,6 +104,9 @@ async def form_file(stream: AsyncIterator[bytes], content_type: str,
     boundary = params.get(b"boundary")
     if not boundary:
         raise FormError(f"multipart/form-data without a boundary: let the client build the form, e.g. {USAGE}")
+    if len(boundary) > MAX_BOUNDARY_LENGTH:  # the parser refuses it with its own error type (RFC 2046 says 70)
+        raise FormError(f"multipart/form-data boundary of {len(boundary)} bytes, over the {MAX_BOUNDARY_LENGTH} "
+                        f"the parser takes: let the client build the form, e.g. {USAGE}")
     parts = _Parts()
     parser = MultipartParser(boundary, parts.callbacks())  # type: ignore[arg-type]
     source = stream.__aiter__()

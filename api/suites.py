@@ -68,9 +68,8 @@ class SuiteCell:
 def _take_topic_maps(text: str, fmt: str) -> tuple[dict[str, dict[str, str]], dict[str, Any]]:
     """({recording name: its topic_map}, the suite document without them); ({}, {}) when there is none or the text
     does not parse (the suite parser then says why)."""
-    import tomllib
-
     from slamreplay.api.submit_checks import parse_topic_map
+    from slamreplay.replay.suite import tomllib  # tomllib, or tomli on Python 3.10: the suite parser's own
 
     try:
         doc = json.loads(text) if fmt == "json" else tomllib.loads(text)

@@ -181,7 +181,7 @@ class BodyTimeout:
                 wait = min(wait, start + self.idle_s + received / self.min_rate - loop.time())
             try:
                 message = await asyncio.wait_for(receive(), max(wait, 0.0))
-            except TimeoutError:
+            except asyncio.TimeoutError:  # not the builtin TimeoutError before Python 3.11
                 timed_out = True
                 why = (f"no body bytes for {self.idle_s:g} s" if wait >= self.idle_s else
                        f"body slower than {self.min_rate} bytes/s after {loop.time() - start:.0f} s")

@@ -193,13 +193,38 @@ def _open(path: Path, typestore: str) -> _Bag:
     return _Bag(reader, storage)
 
 
+def _messages(bag: _Bag, path: Path, conns: list[Any]) -> Iterator[tuple[Any, int, Any]]:
+    """(connection, bag time, raw CDR) of ``conns``; storage damaged past the index (a sqlite page, an MCAP
+    chunk) raises RecorderError when it is reached, which opening the bag cannot check."""
+    import sqlite3
+    import struct
+
+    import apsw
+    from rosbags.rosbag2 import ReaderError
+
+    items = bag.reader.messages(connections=conns)
+    done = 0
+    while True:
+        try:
+            item = next(items)
+        except StopIteration:
+            return
+        # UnicodeDecodeError: a damaged sqlite page whose TEXT column (a topic's name) is no longer UTF-8
+        except (apsw.Error, sqlite3.Error, ReaderError, struct.error, UnicodeDecodeError) as err:
+            text = (str(err).splitlines() or [type(err).__name__])[0]
+            raise RecorderError(f"{path}: the bag's storage is damaged after message {done} ({text}); re-record "
+                                f"or copy the bag again") from err
+        done += 1
+        yield item
+
+
 def plan_bag(path: str | Path, topic_map: Mapping[str, str] | None = None, *, base_frame: str = "base_link",
              odom_frame: str = "odom", ground_truth_frame: str | None = None, typestore: str = "humble") -> BagPlan:
     """Map each topic of the bag onto a logical topic, or say why it is ignored (the bag stays unread)."""
     bag = _open(Path(path), typestore)
     try:
         plan = _plan(bag, Path(path), dict(topic_map or {}), ground_truth_frame)
-        edges = _tf_edges(bag)
+        edges = _tf_edges(bag, Path(path))
     finally:
         bag.reader.close()
     if not edges:
@@ -219,14 +244,14 @@ def plan_bag(path: str | Path, topic_map: Mapping[str, str] | None = None, *, ba
 TF_SAMPLE = 2000  # /tf messages plan_bag reads for the frame names (all of /tf_static)
 
 
-def _tf_edges(bag: _Bag) -> set[tuple[str, str]]:
+def _tf_edges(bag: _Bag, path: Path) -> set[tuple[str, str]]:
     """(parent, child) of the transforms in /tf_static and the first TF_SAMPLE messages of /tf."""
     edges: set[tuple[str, str]] = set()
     for topic in TF_TOPICS:
         conns = [c for c in bag.reader.connections if c.topic == topic and c.msgtype == TF_TYPE]
         if not conns:  # rosbags reads every connection when given none
             continue
-        for n, (conn, _, raw) in enumerate(bag.reader.messages(connections=conns)):
+        for n, (conn, _, raw) in enumerate(_messages(bag, path, conns)):
             if topic == "/tf" and n >= TF_SAMPLE:
                 break
             try:
@@ -331,7 +356,7 @@ def import_ros2_bag(bag_path: str | Path, out: str | Path, *, topic_map: Mapping
         scans: list[tuple[int, str, Any]] = []
         total = sum(c.msgcount for c in conns)
         every = max(1, total // 200)
-        for done, (conn, bag_ns, raw) in enumerate(reader.messages(connections=conns) if conns else (), start=1):
+        for done, (conn, bag_ns, raw) in enumerate(_messages(bag, bag_path, conns) if conns else (), start=1):
             try:
                 obj = reader.deserialize(raw, conn.msgtype)
                 item = _convert(conn.topic, conn.msgtype, by_topic[conn.topic].maps_to, obj, bag_ns, tree, scans)
