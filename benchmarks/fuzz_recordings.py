@@ -62,13 +62,8 @@ def main(argv: list[str] | None = None) -> int:
           f"({args.time_limit_s} s per command, address space warm size + {args.memory_headroom_mib} MiB)\n")
     print(campaign.table())
     findings = campaign.findings()
-    for r in findings:
-        for command, e in r["results"].items():
-            if e["outcome"] not in ("ok", "clean"):
-                print(f"\n{r['kind']} seed {r['seed']} index {r['index']} {command}: {e['outcome']}: "
-                      f"{e.get('why') or e.get('error')}\n  recipe {json.dumps(r['recipe'])[:300]}")
-                if e.get("traceback"):
-                    print("  " + "\n  ".join(e["traceback"].strip().splitlines()[-6:]))
+    if findings:
+        print(campaign.findings_text(lambda r: str(r["kind"])))
     if args.json:
         args.json.write_text(json.dumps({"seed": args.seed, "mutants": len(campaign.results), "wall_s": round(wall, 1),
                                          "base_sizes": sizes, "results": campaign.results}, indent=1))

@@ -60,13 +60,8 @@ def main(argv: list[str] | None = None) -> int:
           f"through inspect, run and recover in {wall:.0f} s ({args.time_limit_s} s per command)\n")
     print(campaign.table(by="op"))
     findings = campaign.findings()
-    for r in findings:
-        for command, e in r["results"].items():
-            if e["outcome"] not in ("ok", "clean"):
-                print(f"\n{r['recipe'].get('op')} seed {r['seed']} index {r['index']} {command}: {e['outcome']}: "
-                      f"{e.get('why') or e.get('error')}\n  recipe {json.dumps(r['recipe'])[:300]}")
-                if e.get("traceback"):
-                    print("  " + "\n  ".join(e["traceback"].strip().splitlines()[-6:]))
+    if findings:
+        print(campaign.findings_text(lambda r: str(r["recipe"].get("op"))))
     if args.json:
         args.json.write_text(json.dumps({"seed": args.seed, "mutants": len(campaign.results), "wall_s": round(wall, 1),
                                          "base_size": size, "results": campaign.results}, indent=1))

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 import multiprocessing as mp
 import multiprocessing.connection as mpc
 import os
@@ -28,7 +29,7 @@ import tempfile
 import time
 import traceback
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -214,6 +215,18 @@ class Campaign:
     def findings(self) -> list[dict[str, Any]]:
         """Mutants with an internal error, a hang or a wrong recover."""
         return [r for r in self.results if any(e["outcome"] not in ("ok", "clean") for e in r["results"].values())]
+
+    def findings_text(self, label: Callable[[dict[str, Any]], str]) -> str:
+        """Each finding's command, outcome, reason, recipe and the end of its traceback; ``label(row)`` names it."""
+        out = []
+        for r in self.findings():
+            for command, e in r["results"].items():
+                if e["outcome"] not in ("ok", "clean"):
+                    out.append(f"\n{label(r)} seed {r['seed']} index {r['index']} {command}: {e['outcome']}: "
+                               f"{e.get('why') or e.get('error')}\n  recipe {json.dumps(r['recipe'])[:300]}")
+                    if e.get("traceback"):
+                        out.append("  " + "\n  ".join(e["traceback"].strip().splitlines()[-6:]))
+        return "\n".join(out)
 
     def table(self, by: str = "kind") -> str:
         rows = [f"| {by} | command | mutants | {' | '.join(OUTCOMES)} |", "|" + " --- |" * (3 + len(OUTCOMES))]
