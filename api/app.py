@@ -48,8 +48,8 @@ from slamreplay.api.timeouts import BodyTimeout
 from slamreplay.api.web import install_web
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.version import version
-from slamreplay.replay.diff import diff_runs, parse_tolerances
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.runs.diff import diff_runs, parse_tolerances
 
 RecordingId = Annotated[str, Path(pattern=SHA256, description="sha256 of the recording")]
 JobId = Annotated[str, Path(pattern=JOB_ID, description="job id (32 hex digits)")]

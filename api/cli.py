@@ -95,7 +95,7 @@ def _add_record_parsers(rsub: Any, quiet: argparse.ArgumentParser) -> None:
 
 def cmd_inspect(args: argparse.Namespace) -> int:
     from slamreplay.recorder.importers.ros2bag import is_ros2_bag, iter_plan_lines
-    from slamreplay.replay.inspect import inspect_recording
+    from slamreplay.replay.tools.inspect import inspect_recording
 
     path = Path(args.file)
     if path.suffix == ".db3" or (path.is_dir() and any(path.glob("*.db3"))):
@@ -203,11 +203,11 @@ def _load_config_file(path: str | None) -> dict[str, Any]:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from slamreplay.replay.recording_file import check_recording
+    from slamreplay.replay.engine.recording_file import check_recording
 
     check_recording(args.file)  # a typo in the path: one line at once, before the replay stack is imported
-    from slamreplay.replay.pipeline import parse_assignments
-    from slamreplay.replay.run import run_recording
+    from slamreplay.replay.engine.pipeline import parse_assignments
+    from slamreplay.replay.runs.run import run_recording
 
     config = {**_load_config_file(args.config), **parse_assignments(args.set)}
     with progress_bar(f"run {args.pipeline} on {Path(args.file).name}", args.quiet, unit="messages") as update:
@@ -230,7 +230,7 @@ PAPER_NAVIGATION = {"keep_along_m": 0.0, "image_every_m": 0.5, "image_every_deg"
 
 
 def cmd_navigate(args: argparse.Namespace) -> int:
-    from slamreplay.replay.navigate import navigate
+    from slamreplay.replay.tools.navigate import navigate
 
     overrides = dict(PAPER_NAVIGATION) if args.preset == "paper" else {}
     overrides.update({k: v for k in PAPER_NAVIGATION if (v := getattr(args, k)) is not None})
@@ -251,8 +251,8 @@ def cmd_navigate(args: argparse.Namespace) -> int:
 
 
 def cmd_diff(args: argparse.Namespace) -> int:
-    from slamreplay.replay.diff import diff_runs, format_table, parse_tolerances
-    from slamreplay.replay.diff_view import write_comparison_rrd
+    from slamreplay.replay.runs.diff import diff_runs, format_table, parse_tolerances
+    from slamreplay.replay.runs.diff_view import write_comparison_rrd
 
     diff = diff_runs(args.run_a, args.run_b, parse_tolerances(args.tolerance))
     if args.rrd:
@@ -267,7 +267,7 @@ def cmd_diff(args: argparse.Namespace) -> int:
 
 
 def cmd_trajectory(args: argparse.Namespace) -> int:
-    from slamreplay.replay.trajectory_eval import evaluate_run, export_kitti
+    from slamreplay.replay.runs.trajectory_eval import evaluate_run, export_kitti
 
     run_dir = Path(args.run)
     if args.kitti:
@@ -281,7 +281,7 @@ def cmd_trajectory(args: argparse.Namespace) -> int:
 
 
 def cmd_snapshot(args: argparse.Namespace) -> int:
-    from slamreplay.replay.snapshot import parse_at, parse_size, snapshot
+    from slamreplay.replay.tools.snapshot import parse_at, parse_size, snapshot
 
     shots = snapshot(Path(args.source), Path(args.out), size=parse_size(args.size), at=parse_at(args.at))
     for shot in shots:

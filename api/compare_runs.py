@@ -1,6 +1,6 @@
 """Compare any runs, whatever their pipelines, recordings, seeds or configs.
 
-Two runs compare as ``slamreplay diff`` does (`slamreplay.replay.diff.diff_runs` on their run
+Two runs compare as ``slamreplay diff`` does (`slamreplay.replay.runs.diff.diff_runs` on their run
 directories, without the slow ``.rrd`` content check): what changed (pipeline, recording by the
 name it was uploaded with, config key by key, seed, code version) and each metric's delta with
 its verdict by the metric's direction. Several runs: their trajectories overlaid on one plot and
@@ -115,7 +115,7 @@ def what_changed(changes: list[dict[str, Any]], a: Run, b: Run, topic_maps: tupl
 
 def two_runs(jobs: JobService, ids: list[str], tolerances: dict[str, str] | None = None) -> dict[str, Any]:
     """Run B against run A as ``slamreplay diff`` judges it: changes, metric rows, verdict counts, and a plot."""
-    from slamreplay.replay.diff import diff_runs, formatted
+    from slamreplay.replay.runs.diff import diff_runs, formatted
 
     a, b = runs_of(jobs, ids)
     d = diff_runs(jobs.finished_run(a.job.id), jobs.finished_run(b.job.id), tolerances or {}, compare_rrd=False)
@@ -136,7 +136,7 @@ def two_runs(jobs: JobService, ids: list[str], tolerances: dict[str, str] | None
 
 
 def _trajectory(jobs: JobService, job_id: str, name: str) -> Any:
-    from slamreplay.replay.trajectory import read_tum
+    from slamreplay.replay.engine.trajectory import read_tum
 
     with contextlib.suppress(OSError, ValueError):
         xy = read_tum((jobs.run_dir(job_id) / name).read_text())[1][:, :2]
@@ -147,7 +147,7 @@ def _trajectory(jobs: JobService, job_id: str, name: str) -> Any:
 def overlay(jobs: JobService, runs: list[Run], tags: tuple[str, ...] | None = None) -> str:
     """Inline SVG: each succeeded run's estimated path in its own colour, over each recording's ground truth."""
     from slamreplay.api.svg_plots import overlay_svg
-    from slamreplay.replay.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT
+    from slamreplay.replay.engine.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT
 
     curves, truths, seen = [], [], set()
     for i, r in enumerate(runs):

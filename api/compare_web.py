@@ -30,9 +30,9 @@ from slamreplay.api.pages import HERE, PAGE_ERRORS, templates, web_session
 from slamreplay.api.pages import error_response as _error
 from slamreplay.api.pages import page_response as _page
 from slamreplay.api.suites_routes import SuitesDep, service_links
-from slamreplay.replay.compare import compare
-from slamreplay.replay.diff import parse_tolerances
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.runs.compare import compare
+from slamreplay.replay.runs.diff import parse_tolerances
 
 router = APIRouter(dependencies=[Depends(web_session)], include_in_schema=False)
 Ref = Annotated[str | None, Query(pattern=JOB_ID)]
@@ -49,7 +49,7 @@ def runs_ctx(request: Request, ids: list[str], tolerances: dict[str, str] | None
 
 def _report(request: Request, c: Any) -> HTMLResponse:
     """The comparison report of ``GET /compare?format=html``, under the page's header."""
-    from slamreplay.replay.report import render_html
+    from slamreplay.replay.runs.report import render_html
 
     report = render_html(c, Path("/"), service_links(str(request.base_url), request.app.state.settings.token))
     nav = templates.get_template("_nav.html").render(guarded=request.app.state.settings.token is not None)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from slamreplay.api.hints import has_display, tool, view_hint
 from slamreplay.api.progress import progress_bar, say
-from slamreplay.replay.run import RunResult, run_recording
+from slamreplay.replay.runs.run import RunResult, run_recording
 
 MARKER = ".slamreplay-demo"
 DEMO_DURATION_S = 600.0
@@ -77,7 +77,7 @@ def _navigation(out: Path, map_run: Path, world: Path, quiet: bool) -> Path:
     """Drive the sim-corridor world on the demo's map, NAV_GOAL_ALONG_M along the mapped route (paper section IV)."""
     import numpy as np
 
-    from slamreplay.replay.navigate import load_nav_map, navigate
+    from slamreplay.replay.tools.navigate import load_nav_map, navigate
 
     poses = load_nav_map(map_run).graph.poses
     along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])

@@ -124,7 +124,7 @@ def run_task(task: Task, report: Report | None = None) -> Outcome:
     from slamreplay.api.storage import StorageError, staged_recording, staged_run_dir
     from slamreplay.api.store import set_progress
     from slamreplay.replay.errors import ReplayError
-    from slamreplay.replay.run import run_recording
+    from slamreplay.replay.runs.run import run_recording
 
     if report is None:
         def report(fraction: float) -> None:
@@ -189,8 +189,8 @@ def _worker_main(conn: Connection, parent_pid: int, job: Job, limits: JobLimits,
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.nice(WORKER_NICENESS)
     threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
-    import slamreplay.replay.run  # noqa: F401
-    from slamreplay.replay.pipeline import all_pipelines
+    import slamreplay.replay.runs.run  # noqa: F401
+    from slamreplay.replay.engine.pipeline import all_pipelines
 
     all_pipelines()  # pay the import cost before the first job, not during it
 

@@ -6,7 +6,7 @@ import argparse
 import json
 from typing import Any
 
-# The choices of replay/graph_io.py (SOLVERS, INITS, ROBUST), spelled here so that building the parser does not
+# The choices of replay/tools/graph_io.py (SOLVERS, INITS, ROBUST), spelled here so that building the parser does not
 # import the pose-graph solver (scipy) before every command; tests/api/test_cli_startup.py checks they agree.
 SOLVERS = ("gn", "lm")
 INITS = ("odometry", "chordal", "file")
@@ -36,7 +36,7 @@ def add_graph_parser(sub: Any) -> None:
 
 def cmd_graph_optimize(args: argparse.Namespace) -> int:
     from slamreplay.replay.errors import ReplayError
-    from slamreplay.replay.graph_io import GraphFileError, optimize_file
+    from slamreplay.replay.tools.graph_io import GraphFileError, optimize_file
 
     try:
         summary = optimize_file(args.file, args.out, solver=args.solver, init=args.init, robust=args.robust,

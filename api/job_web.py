@@ -81,7 +81,7 @@ def run_files(run_dir: Path) -> list[dict[str, Any]]:
 def log_tail(run_dir: Path, lines: int = LOG_TAIL_LINES) -> str:
     """The last ``lines`` lines of the run's log (read from its last 64 KiB): log.txt once the run has ended, the
     live copy the run appends to while it runs (``replay.run.LIVE_LOG``) before."""
-    from slamreplay.replay.run import LIVE_LOG
+    from slamreplay.replay.runs.run import LIVE_LOG
 
     path = run_dir / "log.txt"
     if not path.exists():
@@ -98,7 +98,7 @@ def log_tail(run_dir: Path, lines: int = LOG_TAIL_LINES) -> str:
 def plots(run_dir: Path) -> list[str]:
     """Inline SVGs: the trajectory against ground truth, and the position error over time (where the files are)."""
     from slamreplay.api.svg_plots import error_svg, trajectory_svg
-    from slamreplay.replay.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, paired_with_truth, read_tum
+    from slamreplay.replay.engine.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, paired_with_truth, read_tum
 
     try:
         t, est = read_tum((run_dir / TUM_ARTIFACT).read_text())

@@ -32,10 +32,10 @@ from slamreplay.api.errors import ConflictError, NotFoundError
 from slamreplay.api.executor import Executor, Outcome, Task
 from slamreplay.api.settings import Settings
 from slamreplay.api.store import JobRow, Store
-from slamreplay.replay.diff_view import write_comparison_rrd
+from slamreplay.replay.engine.pipeline import all_pipelines, get_pipeline, resolve_config
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import normalize
-from slamreplay.replay.pipeline import all_pipelines, get_pipeline, resolve_config
+from slamreplay.replay.runs.diff_view import write_comparison_rrd
 
 log = logging.getLogger("slamreplay.jobs")
 
@@ -266,7 +266,7 @@ class JobService:
         run_a, run_b = self.finished_run(a), self.finished_run(b)
         out = self.settings.runs_dir / "diffs" / f"{a}-{b}.rrd"
         if not out.is_file():
-            from slamreplay.replay.diff import diff_runs
+            from slamreplay.replay.runs.diff import diff_runs
 
             diff = diff_runs(run_a, run_b, compare_rrd=False)
             diff.a, diff.b = self.run_label(a), self.run_label(b)  # its summary's title: not server paths

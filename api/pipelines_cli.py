@@ -33,8 +33,8 @@ def _metric(m: Any) -> dict[str, Any]:
 
 def _row(name: str, plugin: Any) -> dict[str, Any]:
     """What ``pipelines`` says of one pipeline (its ``--json`` object)."""
-    from slamreplay.replay.engine import metric_specs
-    from slamreplay.replay.pipeline import config_schema
+    from slamreplay.replay.engine.pipeline import config_schema
+    from slamreplay.replay.evaluation.score import metric_specs
 
     where = {"name": name, "origin": plugin.origin, "distribution": plugin.distribution,
              "version": plugin.version, "entry_point": plugin.value}
@@ -88,7 +88,7 @@ def cmd_pipelines(args: argparse.Namespace) -> int:
             raise ReplayError(f"unknown pipeline {args.name!r}{did_you_mean(args.name, names, True)}; known "
                               f"pipelines: {', '.join(names)}")
     from slamreplay.recorder.plugins import missing_builtins_hint
-    from slamreplay.replay.pipeline import PIPELINE_GROUP, pipeline_plugins
+    from slamreplay.replay.engine.pipeline import PIPELINE_GROUP, pipeline_plugins
 
     plugins = pipeline_plugins()
     if not plugins:

@@ -89,8 +89,8 @@ def _ray_job(job: Job, task: Task, limits: JobLimits, sink: Any) -> Outcome:
 
 def _warm_up() -> int:
     """Import the pipelines in a Ray worker before the first job needs them."""
-    import slamreplay.replay.run  # noqa: F401
-    from slamreplay.replay.pipeline import all_pipelines
+    import slamreplay.replay.runs.run  # noqa: F401
+    from slamreplay.replay.engine.pipeline import all_pipelines
 
     all_pipelines()
 

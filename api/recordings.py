@@ -38,9 +38,9 @@ from slamreplay.api.settings import Settings
 from slamreplay.api.store import RecordingRow, Store
 from slamreplay.recorder.errors import DamageError, RecorderError
 from slamreplay.recorder.recover import RecoveryReport, recover
+from slamreplay.replay.engine.reader import MCAP_MAGIC, RecordingReader
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.reader import MCAP_MAGIC, RecordingReader
-from slamreplay.replay.run import sha256_file
+from slamreplay.replay.runs.run import sha256_file
 
 _CLI_HINT = re.compile(r"[.;,]? *[Ss]alvage (it|its messages|the readable messages) with `slamreplay recover[^`]*`\.?")
 _UNSAFE = re.compile(r"[^A-Za-z0-9._ -]+")

@@ -42,8 +42,8 @@ SORTS = {
 @functools.cache
 def metric_specs() -> dict[str, MetricSpec]:
     """Every metric any installed pipeline reports, by name (its unit, direction and meaning)."""
-    from slamreplay.replay.engine import metric_specs as specs_of
-    from slamreplay.replay.pipeline import all_pipelines
+    from slamreplay.replay.engine.pipeline import all_pipelines
+    from slamreplay.replay.evaluation.score import metric_specs as specs_of
 
     out: dict[str, MetricSpec] = {}
     for pipeline in all_pipelines().values():

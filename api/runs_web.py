@@ -145,7 +145,7 @@ def _view(request: Request) -> RunsView:
 @router.get("/")
 def home_page(request: Request, uploaded: Annotated[str | None, Query(max_length=64)] = None) -> HTMLResponse:
     """The main page: the runs table first, then recordings, a job form, suites and compare (``/#recordings`` ...)."""
-    from slamreplay.replay.pipeline import all_pipelines
+    from slamreplay.replay.engine.pipeline import all_pipelines
 
     view = _view(request)
     lists = _lists(request)

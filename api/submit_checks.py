@@ -14,9 +14,9 @@ from collections.abc import Mapping
 from typing import Any
 
 from slamreplay.api.store import RecordingRow
+from slamreplay.replay.engine.pipeline import Pipeline, pipelines_fitting
+from slamreplay.replay.engine.reader import resolve_topic_map
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.pipeline import Pipeline, pipelines_fitting
-from slamreplay.replay.reader import resolve_topic_map
 
 MAX_TOPIC_MAP = 100
 

@@ -3,7 +3,7 @@
 Cells of the running code go through the service's executors (``LocalExecutor``: spawned
 worker processes; ``RayExecutor``: Ray tasks), running the same ``run_task`` as service jobs.
 Cells of another revision (``--rev``) run through that revision's own ``slamreplay run``
-(``slamreplay.replay.revisions``).
+(``slamreplay.replay.runs.revisions``).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from slamreplay.replay.errors import ReplayError
 
 if TYPE_CHECKING:  # imported where used: the command line builds its parser from this module, and starts fast
     from slamreplay.api.executor import Outcome, Report, Task
-    from slamreplay.replay.suite_run import CellJob
+    from slamreplay.replay.runs.suite_run import CellJob
 
 
 def suite_job(task: Task, report: Report | None = None) -> Outcome:
@@ -66,7 +66,7 @@ def _one_blas_thread() -> Iterator[None]:
 
 
 def executor_runner(kind: str, jobs: int) -> Any:
-    """``run_cells`` for ``slamreplay.replay.suite_run.run_suite`` on a local process pool or Ray."""
+    """``run_cells`` for ``slamreplay.replay.runs.suite_run.run_suite`` on a local process pool or Ray."""
     from slamreplay.api.executor import Task
 
     def run_cells(todo: list[CellJob]) -> Iterator[tuple[CellJob, str | None]]:
@@ -97,9 +97,9 @@ def run_suite_at(suite_path: str, out: Path, rev: str | None, executor: str, job
 
     ``label`` starts the progress lines and notes (default: ``suite NAME``, with ``@REV`` at a revision).
     """
-    from slamreplay.replay.revisions import find_repo, prepare_revision, run_cells
-    from slamreplay.replay.suite import load_suite
-    from slamreplay.replay.suite_run import cache_dir, code_version, run_suite
+    from slamreplay.replay.runs.revisions import find_repo, prepare_revision, run_cells
+    from slamreplay.replay.runs.suite import load_suite
+    from slamreplay.replay.runs.suite_run import cache_dir, code_version, run_suite
 
     if jobs < 1:
         raise ReplayError(f"--jobs must be >= 1, got {jobs}")
@@ -128,7 +128,7 @@ def cmd_suite_run(args: argparse.Namespace) -> int:
     failed = [r for r in rows if r["status"] != "succeeded"]
     cached = sum(1 for r in rows if r.get("cached"))
     if not args.quiet:
-        from slamreplay.replay.compare import variants_table
+        from slamreplay.replay.runs.compare import variants_table
         print(variants_table(rows))
         for r in failed:
             print(f"  FAILED {Path(r['run_dir']).name}: {r['error']}")
@@ -139,9 +139,9 @@ def cmd_suite_run(args: argparse.Namespace) -> int:
 
 
 def _side(spec: str, suite: str | None, args: argparse.Namespace) -> Any:
-    from slamreplay.replay.compare import load_side
-    from slamreplay.replay.revisions import find_repo, resolve
-    from slamreplay.replay.suite_run import cache_dir
+    from slamreplay.replay.runs.compare import load_side
+    from slamreplay.replay.runs.revisions import find_repo, resolve
+    from slamreplay.replay.runs.suite_run import cache_dir
 
     if not spec.startswith("rev:"):
         return load_side(spec)
@@ -156,14 +156,14 @@ def _side(spec: str, suite: str | None, args: argparse.Namespace) -> Any:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    from slamreplay.replay.compare import compare, format_table
-    from slamreplay.replay.diff import parse_tolerances
-    from slamreplay.replay.report import write_reports
-    from slamreplay.replay.revisions import commit_range, find_repo
+    from slamreplay.replay.runs.compare import compare, format_table
+    from slamreplay.replay.runs.diff import parse_tolerances
+    from slamreplay.replay.runs.report import write_reports
+    from slamreplay.replay.runs.revisions import commit_range, find_repo
 
     tolerances = parse_tolerances(args.tolerance)
     if args.suite is not None:
-        from slamreplay.replay.suite import load_suite
+        from slamreplay.replay.runs.suite import load_suite
         load_suite(args.suite)  # a broken suite fails before anything runs
     a, b = _side(args.a, args.suite, args), _side(args.b, args.suite, args)
     result = compare(a, b, tolerances)
@@ -171,8 +171,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
         result.commits = commit_range(find_repo(), a.sha, b.sha)
     pair_links = None
     if args.rrd_dir is not None:
-        from slamreplay.replay.diff_view import write_comparison_rrd
-        from slamreplay.replay.report import pair_file_links, write_pair_rrds
+        from slamreplay.replay.runs.diff_view import write_comparison_rrd
+        from slamreplay.replay.runs.report import pair_file_links, write_pair_rrds
         pair_links = pair_file_links(write_pair_rrds(result, Path(args.rrd_dir), write_comparison_rrd))
     write_reports(result, args.report, args.markdown, pair_links, base_url=args.base_url)
     if args.json:
@@ -183,10 +183,10 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_bisect(args: argparse.Namespace) -> int:
-    from slamreplay.replay.compare import compare
-    from slamreplay.replay.diff import parse_tolerances
-    from slamreplay.replay.revisions import ancestry, find_repo, one_line, resolve
-    from slamreplay.replay.suite import load_suite
+    from slamreplay.replay.runs.compare import compare
+    from slamreplay.replay.runs.diff import parse_tolerances
+    from slamreplay.replay.runs.revisions import ancestry, find_repo, one_line, resolve
+    from slamreplay.replay.runs.suite import load_suite
 
     tolerances = parse_tolerances(args.tolerance)
     load_suite(args.suite)

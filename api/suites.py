@@ -1,6 +1,6 @@
 """Suites in the service: a suite file's cells as jobs of the job store, and comparisons of them.
 
-A suite sent to the service (TOML or JSON, the form of ``slamreplay.replay.suite``) names uploaded
+A suite sent to the service (TOML or JSON, the form of ``slamreplay.replay.runs.suite``) names uploaded
 recordings by id. Each cell becomes a job in the existing store, run by the existing
 scheduler and executor; a cell whose inputs (recording, pipeline, config values, seed) already
 have a queued, running or succeeded job of the same code is served by that job instead. Which
@@ -24,10 +24,10 @@ from slamreplay.api.errors import ConflictError, NotFoundError
 from slamreplay.api.jobs import JobService
 from slamreplay.api.store import JobRow
 from slamreplay.recorder.version import git_commit
-from slamreplay.replay.compare import Side, run_row, side_of_rows
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.suite import Suite, canonical, parse_suite
-from slamreplay.replay.suite_run import add_metrics
+from slamreplay.replay.runs.compare import Side, run_row, side_of_rows
+from slamreplay.replay.runs.suite import Suite, canonical, parse_suite
+from slamreplay.replay.runs.suite_run import add_metrics
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS suites (
@@ -69,7 +69,7 @@ def _take_topic_maps(text: str, fmt: str) -> tuple[dict[str, dict[str, str]], di
     """({recording name: its topic_map}, the suite document without them); ({}, {}) when there is none or the text
     does not parse (the suite parser then says why)."""
     from slamreplay.api.submit_checks import parse_topic_map
-    from slamreplay.replay.suite import tomllib  # tomllib, or tomli on Python 3.10: the suite parser's own
+    from slamreplay.replay.runs.suite import tomllib  # tomllib, or tomli on Python 3.10: the suite parser's own
 
     try:
         doc = json.loads(text) if fmt == "json" else tomllib.loads(text)
@@ -167,7 +167,7 @@ class SuiteService:
     def _check_cells(self, suite: Suite) -> None:
         """ReplayError for the first (recording, pipeline) whose pipeline needs topics the recording lacks."""
         from slamreplay.api.submit_checks import check_fit
-        from slamreplay.replay.pipeline import get_pipeline
+        from slamreplay.replay.engine.pipeline import get_pipeline
 
         for rec_name, pipeline in dict.fromkeys((c.recording, c.pipeline) for c in suite.cells()):
             spec = suite.recordings[rec_name]
@@ -229,7 +229,7 @@ class SuiteService:
             return conn.execute("SELECT 1 FROM suites WHERE id = ?", (suite_id,)).fetchone() is not None
 
     def result_row(self, c: SuiteCell) -> dict[str, Any]:
-        """A cell as a ``results.jsonl`` row (what ``slamreplay.replay.compare`` reads), with its job id."""
+        """A cell as a ``results.jsonl`` row (what ``slamreplay.replay.runs.compare`` reads), with its job id."""
         run_dir = self.jobs.run_dir(c.job.id)
         row: dict[str, Any] = {**c.cell, "job_id": c.job.id, "reused": c.reused, "run_dir": str(run_dir),
                                "recording_sha256": c.job.recording_id, "status": c.job.status,

@@ -31,9 +31,9 @@ from slamreplay.api.deps import ERRORS, require_token, viewer_href
 from slamreplay.api.errors import ApiError
 from slamreplay.api.models import JOB_ID
 from slamreplay.api.suites import SuiteCell, SuiteRow, SuiteService
-from slamreplay.replay.compare import Comparison, compare
-from slamreplay.replay.diff import parse_tolerances
-from slamreplay.replay.report import Links, render_html
+from slamreplay.replay.runs.compare import Comparison, compare
+from slamreplay.replay.runs.diff import parse_tolerances
+from slamreplay.replay.runs.report import Links, render_html
 
 MAX_SUITE_BYTES = 1 << 20
 SuiteId = Annotated[str, Path(pattern=JOB_ID, description="suite id (32 hex digits)")]

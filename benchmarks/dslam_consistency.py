@@ -15,7 +15,7 @@ drawing). Per seed and estimator:
   NEES values is not chi2(2N)/N (the ``naive_band95``): it is ``e^T B e / N`` with
   ``B = blockdiag(P_ii^-1)``, a sum of chi2(1) terms weighted by the eigenvalues of
   ``P^1/2 B P^1/2 / N``; mean 2, variance ``2 sum(lambda^2)``; the band is Pearson's three-cumulant
-  approximation (``slamreplay.replay.metrics.mean_nees_band``).
+  approximation (``slamreplay.replay.evaluation.metrics.mean_nees_band``).
 
 Over the seeds: the mean of each column, the mean NEES's 95 % bands (naive and correlation-aware,
 the latter from the summed cumulants of the seeds' independent terms), and per seed the landmark RMSE
@@ -43,7 +43,7 @@ from typing import Any  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.stats import chi2  # noqa: E402
 
-from slamreplay.replay.metrics import pearson_band, satterthwaite  # noqa: E402
+from slamreplay.replay.evaluation.metrics import pearson_band, satterthwaite  # noqa: E402
 
 ESTIMATORS: dict[str, tuple[str, dict[str, Any]]] = {
     "dslam": ("dslam", {}),  # the default configuration (final relinearisation on)
@@ -115,9 +115,9 @@ def run_one(args: tuple[int, str, Path, float]) -> dict[str, Any]:
     from slamreplay.algorithms.common import se2
     from slamreplay.algorithms.dslam.recovery import factor
     from slamreplay.recorder.sim import LandmarkSimConfig, simulate_landmarks
-    from slamreplay.replay.engine import replay
-    from slamreplay.replay.pipeline import get_pipeline, resolve_config
-    from slamreplay.replay.reader import RecordingReader
+    from slamreplay.replay.engine.loop import replay
+    from slamreplay.replay.engine.pipeline import get_pipeline, resolve_config
+    from slamreplay.replay.engine.reader import RecordingReader
 
     rec = out / f"sim-seed{seed}.mcap"
     if not rec.exists():

@@ -26,8 +26,8 @@ from typing import Any
 from slamreplay.recorder.importers.mrclam import import_mrclam
 from slamreplay.recorder.messages import TOPIC_RANGE_BEARING
 from slamreplay.recorder.sim import LandmarkSimConfig, simulate_landmarks
-from slamreplay.replay.reader import RecordingReader
-from slamreplay.replay.run import run_recording
+from slamreplay.replay.engine.reader import RecordingReader
+from slamreplay.replay.runs.run import run_recording
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "mrclam-dataset6"
 KEYS = ("landmark_rmse_m", "landmark_nees_mean", "ape_rmse_m", "robot_nees_mean", "landmarks_mapped",

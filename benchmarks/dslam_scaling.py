@@ -267,7 +267,7 @@ def duration_run(duration: float, seed: int, out: Path) -> dict[str, object]:
     """D-SLAM over one paper-scenario recording of ``duration`` s (module docstring; run in its own process)."""
     from slamreplay.algorithms.common.motion import between1
     from slamreplay.recorder.messages import TOPIC_ODOM, TOPIC_RANGE_BEARING
-    from slamreplay.replay.reader import RecordingReader
+    from slamreplay.replay.engine.reader import RecordingReader
 
     rec = recording(duration, seed, out)
     rss0, peak0 = rss_mb(), peak_rss_mb()

@@ -2,7 +2,7 @@
 
 For each run directory given (a finished run with ``trajectory.tum`` and ``truth.tum``), computes APE
 (translation, each alignment; rotation) and RPE (per step; per metre of path) with slamreplay
-(``slamreplay.replay.trajectory_eval``) and with evo's own Python API on the same two TUM files (RPE pairs
+(``slamreplay.replay.runs.trajectory_eval``) and with evo's own Python API on the same two TUM files (RPE pairs
 from the reference's path: evo's ``--pairs_from_reference``, slamreplay's only rule), and prints
 both side by side with their ratio. evo is a peer, not a dependency: install it beside slamreplay
 (``pip install evo``, or into another virtualenv and pass ``--evo-python``).
@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from slamreplay.replay.trajectory_eval import evaluate_run
+from slamreplay.replay.runs.trajectory_eval import evaluate_run
 
 # (label, our alignment, delta, unit, evo's settings), evaluated by the snippet below in evo's interpreter
 CASES: list[tuple[str, str, float, str]] = [

@@ -37,7 +37,7 @@ PAPER_S = 0.016
 def corridor_frames(seed: int, route: str) -> list[tuple[np.ndarray, np.ndarray]]:
     from slamreplay.recorder.messages import CameraImage, OdometryPose
     from slamreplay.recorder.sim.corridor import CorridorConfig, simulate_corridor
-    from slamreplay.replay.reader import RecordingReader
+    from slamreplay.replay.engine.reader import RecordingReader
 
     kwargs = {"route": route} if route else {}
     with tempfile.TemporaryDirectory() as tmp:

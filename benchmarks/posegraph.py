@@ -38,7 +38,7 @@ from slamreplay.algorithms.common.posegraph_init import init_chordal, init_odome
 from slamreplay.algorithms.common.robust import Kernel
 from slamreplay.algorithms.common.se2 import wrap_angle
 from slamreplay.algorithms.common.sparse_cholesky import SparseCholesky
-from slamreplay.replay.graph_io import read_graph
+from slamreplay.replay.tools.graph_io import read_graph
 
 DATASETS = [
     ("m3500 (Vertigo)", "posegraph-m3500/manhattanOlson3500.g2o", 146.077),

@@ -26,10 +26,10 @@ from mcap_protobuf.decoder import DecoderFactory
 
 from slamreplay.algorithms.observe import Observation
 from slamreplay.recorder import GroundTruthPose, OdometryPose, RangeBearingScan, Recorder
-from slamreplay.replay.engine import replay
-from slamreplay.replay.observer import RerunObserver
-from slamreplay.replay.pipeline import MetricSpec, Pipeline, get_pipeline, resolve_config
-from slamreplay.replay.reader import Envelope, RecordingReader
+from slamreplay.replay.engine.loop import replay
+from slamreplay.replay.engine.observer import RerunObserver
+from slamreplay.replay.engine.pipeline import MetricSpec, Pipeline, get_pipeline, resolve_config
+from slamreplay.replay.engine.reader import Envelope, RecordingReader
 
 
 def make_recording(path: Path, n_poses: int) -> int:

@@ -21,7 +21,7 @@ import numpy as np
 
 from slamreplay.recorder.importers.mrclam import import_mrclam
 from slamreplay.recorder.sim import LandmarkSimConfig, simulate_landmarks
-from slamreplay.replay.run import run_recording
+from slamreplay.replay.runs.run import run_recording
 
 KEYS = ("landmarks_mapped", "landmark_rmse_m", "ape_rmse_m", "landmark_nees_mean", "robot_nees_mean")
 

@@ -20,8 +20,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from slamreplay.api.demo import run_demo  # noqa: E402
-from slamreplay.replay.diff_view import write_comparison_rrd  # noqa: E402
-from slamreplay.replay.snapshot import snapshot  # noqa: E402
+from slamreplay.replay.runs.diff_view import write_comparison_rrd  # noqa: E402
+from slamreplay.replay.tools.snapshot import snapshot  # noqa: E402
 
 # (demo run directory, the tabs to keep, picture name)
 PICTURES = (

@@ -2,7 +2,7 @@
 
 ``slamreplay record SIM --field-name VALUE`` and ``record ros2 --pole-...`` (:func:`add_dataclass_options`),
 a suite's ``args = { field-name = value }`` and a pipeline's ``--set key=value`` / ``--config`` (through
-``slamreplay.replay.pipeline``) all convert a value with :func:`parse_value`, so a field takes the same
+``slamreplay.replay.engine.pipeline``) all convert a value with :func:`parse_value`, so a field takes the same
 spellings everywhere and a value that is not of its type is an error, never a silent default.
 """
 

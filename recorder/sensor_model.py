@@ -3,7 +3,7 @@
 A recording says how noisy its sensors are, so that replaying it needs no hidden settings:
 simulators write the model they simulated, importers the dataset's (measured or documented),
 and a user's `Recorder` takes one. Pipelines read it as a configuration layer: a value the user
-gives wins, then the recording's model, then the pipeline's default (`slamreplay.replay.pipeline`).
+gives wins, then the recording's model, then the pipeline's default (`slamreplay.replay.engine.pipeline`).
 
 Fields are optional (``None``: the recording does not say). Units are in the names; the
 odometry noise follows ``algorithms/common/motion.py`` (sigma growing with the square root

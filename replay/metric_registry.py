@@ -9,7 +9,7 @@ the metrics.json each run writes. A plugin may define metrics of its own (its
 ``Pipeline.metrics``); it should reuse these names where it means the same thing.
 
 One number, one name: the trajectory metrics use evo's vocabulary (APE with a stated
-alignment, RPE per step and per metre, :mod:`slamreplay.replay.evaluate`). Runs start at the
+alignment, RPE per step and per metre, :mod:`slamreplay.replay.evaluation.evaluate`). Runs start at the
 true pose, so the APE without alignment is the ATE every earlier name stood for, and evo's
 ``--align_origin`` would be the same number: runs do not report it (``slamreplay trajectory``
 still prints it for estimates made elsewhere). Older names stay readable: :data:`RENAMED`

@@ -23,7 +23,7 @@ def _top(module: str) -> str:
 
 
 def imports_of(path: Path) -> set[str]:
-    """Top-level module names imported by a file (``slamreplay.replay.run`` counts as ``replay``)."""
+    """Top-level module names imported by a file (``slamreplay.replay.runs.run`` counts as ``replay``)."""
     tree = ast.parse(path.read_text(), filename=str(path))
     names = set()
     for node in ast.walk(tree):
@@ -70,6 +70,89 @@ def test_project_imports_follow_layers(package: str) -> None:
     for path in files(package):
         bad = (imports_of(path) & set(PACKAGES)) - ALLOWED_PROJECT[package]
         assert not bad, f"{path.relative_to(REPO)} imports {sorted(bad)}"
+
+
+# replay/'s rooms (replay/__init__.py): which room may import which. The engine produces and never judges;
+# evaluation scores what it produced; tools work beside a run; runs (run directories, suites, diff, compare,
+# revisions) sit on top. errors and metric_registry are the shared vocabulary every room reads.
+ROOMS_ALLOWED = {
+    "engine": {"engine"},
+    "evaluation": {"engine", "evaluation"},
+    "tools": {"engine", "evaluation", "tools"},
+    "pipelines": {"engine", "evaluation", "tools", "pipelines"},
+    "runs": {"engine", "evaluation", "tools", "runs"},
+}
+SHARED = {"errors", "metric_registry"}
+# the flat layout's paths that plugins import, kept as aliases of the moved modules (never used inside the project)
+COMPAT = {"pipeline": "engine", "reader": "engine", "trajectory": "engine", "views": "engine",
+          "metrics": "evaluation", "run": "runs"}
+
+
+def replay_targets(path: Path) -> set[str]:
+    """What a file imports of replay/, by room (``engine``...), shared module (``errors``) or compat path."""
+    targets = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            modules = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            modules = ([f"{node.module}.{a.name}" for a in node.names] if node.module == "slamreplay.replay"
+                       else [node.module])
+        else:
+            continue
+        targets |= {m.split(".")[2] for m in modules if m.startswith("slamreplay.replay.")}
+    return targets
+
+
+def test_replay_is_four_rooms_and_the_pipelines() -> None:
+    """replay/ holds only its rooms, the pipelines, the shared vocabulary and the compat paths; each room's
+    __init__ says what it owns."""
+    top = {p.stem for p in (REPO / "replay").glob("*.py")} - {"__init__"}
+    dirs = {p.name for p in (REPO / "replay").iterdir() if p.is_dir() and p.name != "__pycache__"}
+    assert top == SHARED | set(COMPAT)
+    assert dirs == set(ROOMS_ALLOWED)
+    for room in dirs:
+        doc = ast.get_docstring(ast.parse((REPO / "replay" / room / "__init__.py").read_text()))
+        assert doc and len(doc) > 100, f"replay/{room}/__init__.py does not say what the room owns"
+
+
+@pytest.mark.parametrize("room", sorted(ROOMS_ALLOWED))
+def test_replay_rooms_import_downwards(room: str) -> None:
+    """No import runs from the engine into evaluation, tools or runs, nor from evaluation or tools into runs;
+    nothing inside the project imports a compat path, and the shared modules import no room."""
+    for path in files(f"replay/{room}"):
+        got = replay_targets(path)
+        bad = got - ROOMS_ALLOWED[room] - SHARED
+        assert not bad, f"{path.relative_to(REPO)} imports replay's {sorted(bad)}"
+    for name in SHARED:
+        assert replay_targets(REPO / "replay" / f"{name}.py") <= SHARED
+
+
+def test_nothing_in_the_project_uses_the_compat_paths() -> None:
+    """The flat paths are for plugins outside; the project's own code, tests, benchmarks and docs use the rooms."""
+    offenders = []
+    for package in (*PACKAGES, "tests", "benchmarks", "examples", "docs"):
+        for path in files(package):
+            if (path.parent == REPO / "replay" and path.stem in COMPAT) or path == Path(__file__).resolve():
+                continue  # the compat modules themselves, and the test below that imports them
+            if used := replay_targets(path) & set(COMPAT):
+                offenders.append(f"{path.relative_to(REPO)}: {sorted(used)}")
+    assert not offenders, offenders
+
+
+def test_compat_paths_are_the_moved_modules() -> None:
+    """A plugin importing ``slamreplay.replay.pipeline`` gets the module itself, not a copy: ``MetricSpec`` and
+    ``Pipeline`` are the same objects, and patching one path patches the other."""
+    import importlib
+
+    for old, room in COMPAT.items():
+        assert importlib.import_module(f"slamreplay.replay.{old}") is importlib.import_module(
+            f"slamreplay.replay.{room}.{old}")
+    from slamreplay.replay.engine.pipeline import Pipeline
+    from slamreplay.replay.metric_registry import MetricSpec
+    from slamreplay.replay.pipeline import MetricSpec as OldSpec
+    from slamreplay.replay.pipeline import Pipeline as OldPipeline
+
+    assert OldSpec is MetricSpec and OldPipeline is Pipeline
 
 
 def test_algorithms_are_pure_math() -> None:

@@ -4,7 +4,7 @@ A map is a graph of locations (relaxed poses in the map frame) linked by odometr
 each location keeps the keypoints and BRIEF descriptors of the image that created it (what a
 navigation image is validated against) and the word histogram of all its images, over the
 dictionary built during mapping (section III of [1]_). All arrays are flat with offsets, so the map
-saves as plain arrays (see ``slamreplay.replay.topomap_io``).
+saves as plain arrays (see ``slamreplay.replay.tools.topomap_io``).
 
 References
 ----------

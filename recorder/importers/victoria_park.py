@@ -116,7 +116,7 @@ def sensor_model() -> dict[str, float]:
 
     Landmarks: 0.25 m in range and 0.049 rad in bearing, the sigmas the sightings show about the
     reference (the optimum under :func:`gtsam_noise`), corrected for what the optimum absorbs, as
-    :func:`slamreplay.replay.landmark_reference.measured_noise` computes at import (``slamreplay record
+    :func:`slamreplay.replay.evaluation.landmark_reference.measured_noise` computes at import (``slamreplay record
     victoria-park`` stores its values in the recording's parameters); the file's own convention says
     0.63 m and 0.2 rad. Odometry: the optimum absorbs its residuals almost whole, so its noise cannot
     be measured this way and the file's stands: 0.01 m and 0.002 rad per step, steps of 0.58 m on

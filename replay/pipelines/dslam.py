@@ -21,9 +21,9 @@ import rerun.blueprint as rrb
 from slamreplay.algorithms.dslam import DSlam, DSlamConfig, ScanStatus
 from slamreplay.algorithms.dslam.localization import PoseStatus
 from slamreplay.algorithms.observe import CovarianceEllipses, Image, Points, Pose, Scalar, Segments, State
-from slamreplay.replay import views
+from slamreplay.replay.engine import views
+from slamreplay.replay.engine.pipeline import ReplayContext
 from slamreplay.replay.metric_registry import specs
-from slamreplay.replay.pipeline import ReplayContext
 from slamreplay.replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, LandmarkSlamPipeline
 
 

@@ -46,11 +46,13 @@ from slamreplay.recorder.messages import (
     OdometryPose,
     RangeBearingScan,
 )
-from slamreplay.replay import views
+from slamreplay.replay.engine import views
+from slamreplay.replay.engine.pipeline import MetricSpec, Pipeline, ReplayContext, recording_sensor_model, robots_in
+from slamreplay.replay.engine.reader import ROBOT_NAMESPACE, Envelope
+from slamreplay.replay.engine.trajectory import TrajectoryLog
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.evaluation.metrics import position_errors, rmse
 from slamreplay.replay.metric_registry import specs
-from slamreplay.replay.metrics import position_errors, rmse
-from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext, recording_sensor_model, robots_in
 from slamreplay.replay.pipelines.dslam import DSlamPipeline, DSlamPipelineConfig
 from slamreplay.replay.pipelines.landmark_slam import (
     METRICS,
@@ -60,8 +62,6 @@ from slamreplay.replay.pipelines.landmark_slam import (
     world_pose,
     world_xy,
 )
-from slamreplay.replay.reader import ROBOT_NAMESPACE, Envelope
-from slamreplay.replay.trajectory import TrajectoryLog
 
 MAX_ROBOTS = 9  # robots /robot1/ .. /robot9/ (the pipeline's topics are declared up front)
 REFERENCE = "1"  # the robot whose initial frame is the map frame

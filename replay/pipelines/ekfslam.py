@@ -16,7 +16,7 @@ import rerun.blueprint as rrb
 
 from slamreplay.algorithms.ekfslam import EkfSlam, EkfSlamConfig
 from slamreplay.algorithms.observe import Image
-from slamreplay.replay import views
+from slamreplay.replay.engine import views
 from slamreplay.replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, LandmarkSlamPipeline
 
 

@@ -51,11 +51,11 @@ from slamreplay.algorithms.ifmi.mapping import (
 from slamreplay.algorithms.ifmi.plan import MIN_SIZE
 from slamreplay.algorithms.observe import CovarianceEllipses, Image, LineStrips, Points, Scalar, Segments, State, Text
 from slamreplay.recorder.messages import TOPIC_CAMERA_IMAGE, TOPIC_GROUND_TRUTH_POSE, CameraImage, GroundTruthPose
-from slamreplay.replay import views
+from slamreplay.replay.engine import views
+from slamreplay.replay.engine.pipeline import Pipeline, ReplayContext
+from slamreplay.replay.engine.reader import Envelope
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import specs
-from slamreplay.replay.pipeline import Pipeline, ReplayContext
-from slamreplay.replay.reader import Envelope
 
 SCALE_GATE = 10.83  # chi2 (1 dof) 99.9 % quantile: an edge's scale this far off is left out (calibrated only)
 WEAK_SIGMA = 1e3  # a rejected consecutive registration keeps the graph connected with a nearly free edge

@@ -39,13 +39,13 @@ from slamreplay.recorder.messages import (
     RangeBearingScan,
 )
 from slamreplay.recorder.sensor_model import SensorModel
-from slamreplay.replay import views
+from slamreplay.replay.engine import views
+from slamreplay.replay.engine.pipeline import Pipeline, ReplayContext
+from slamreplay.replay.engine.reader import Envelope
+from slamreplay.replay.engine.trajectory import TrajectoryLog
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.evaluation.metrics import mean_nees_band, position_errors
 from slamreplay.replay.metric_registry import specs
-from slamreplay.replay.metrics import mean_nees_band, position_errors
-from slamreplay.replay.pipeline import Pipeline, ReplayContext
-from slamreplay.replay.reader import Envelope
-from slamreplay.replay.trajectory import TrajectoryLog
 
 Association = Literal["auto", "known", "unknown"]
 

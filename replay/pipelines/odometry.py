@@ -14,11 +14,11 @@ import numpy as np
 from slamreplay.algorithms.deadreckoning import DeadReckoning
 from slamreplay.algorithms.observe import Pose
 from slamreplay.recorder.messages import TOPIC_GROUND_TRUTH_POSE, TOPIC_ODOM, GroundTruthPose, OdometryPose
+from slamreplay.replay.engine.pipeline import Pipeline, ReplayContext
+from slamreplay.replay.engine.reader import Envelope
+from slamreplay.replay.engine.trajectory import TrajectoryLog
+from slamreplay.replay.evaluation.metrics import position_errors
 from slamreplay.replay.metric_registry import specs
-from slamreplay.replay.metrics import position_errors
-from slamreplay.replay.pipeline import Pipeline, ReplayContext
-from slamreplay.replay.reader import Envelope
-from slamreplay.replay.trajectory import TrajectoryLog
 
 
 @dataclass(frozen=True, slots=True)

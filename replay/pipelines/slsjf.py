@@ -27,7 +27,7 @@ from slamreplay.algorithms.ekfslam import EkfSlamConfig
 from slamreplay.algorithms.observe import Image, LineStrips, Points, Scalar
 from slamreplay.algorithms.slsjf import Slsjf, SlsjfConfig
 from slamreplay.algorithms.slsjf.joining import sparsity_image
-from slamreplay.replay import views
+from slamreplay.replay.engine import views
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import specs
 from slamreplay.replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, LandmarkSlamPipeline

@@ -7,7 +7,7 @@ keypoints (``camera/image``), each candidate as the map image beside the current
 and outlier matches and its 2D motion (``camera/candidate``), the filter's posterior over locations
 (``topo/posterior``, plus ``metrics/posterior_*``), the graph (``world/graph/current``) and around
 each relaxation ``world/graph/before`` and ``world/graph/after``, and the decisions as text
-(``topo/log``). The map goes to ``map.npz`` (:mod:`slamreplay.replay.topomap_io`); with ``/ground_truth/pose``
+(``topo/log``). The map goes to ``map.npz`` (:mod:`slamreplay.replay.tools.topomap_io`); with ``/ground_truth/pose``
 it also holds, for evaluation only, each location's true pose (that of its reference image,
 interpolated at the image's log time; NaN outside the ground truth's time span) as ``truth_poses``:
 ``slamreplay navigate`` and ``topometric-nav`` score a drive against the route through these true
@@ -47,11 +47,11 @@ from slamreplay.recorder.messages import (
     GroundTruthPose,
     OdometryPose,
 )
-from slamreplay.replay import views
+from slamreplay.replay.engine import views
+from slamreplay.replay.engine.pipeline import Pipeline, ReplayContext
+from slamreplay.replay.engine.reader import Envelope
 from slamreplay.replay.metric_registry import specs
-from slamreplay.replay.pipeline import Pipeline, ReplayContext
-from slamreplay.replay.reader import Envelope
-from slamreplay.replay.topomap_io import save_map
+from slamreplay.replay.tools.topomap_io import save_map
 
 STAGES = ("features", "bow", "filter", "validation", "relaxation")
 

@@ -18,7 +18,7 @@ true, odometry and estimated trajectories (``world/trajectory/{truth,odometry,es
 the path the drive is scored against (``world/nav/reference_path``).
 
 Scoring, as the paper's Fig. 4 compares the replay and the mapping trajectories, both true
-(:func:`slamreplay.replay.navigate.reference_path`): the cross-track error is the distance of the *true*
+(:func:`slamreplay.replay.tools.navigate.reference_path`): the cross-track error is the distance of the *true*
 position (``/ground_truth/pose``) to the *true path*, the route's nodes at the mapping drive's
 ground-truth poses stored in the map (``truth_poses``), discretized like the global path; the goal
 distance is to the goal node's true pose. A map without them (an older map, or mapping without
@@ -55,10 +55,13 @@ from slamreplay.recorder.messages import (
     VelocityCommand,
 )
 from slamreplay.recorder.writer import METADATA_NAME
-from slamreplay.replay import views
+from slamreplay.replay.engine import views
+from slamreplay.replay.engine.pipeline import Pipeline, ReplayContext
+from slamreplay.replay.engine.reader import Envelope
+from slamreplay.replay.engine.trajectory import TrajectoryLog
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import specs
-from slamreplay.replay.navigate import (
+from slamreplay.replay.tools.navigate import (
     SOURCE,
     MapLocalizer,
     guidance_from_dict,
@@ -67,9 +70,6 @@ from slamreplay.replay.navigate import (
     nav_code_fingerprint,
     reference_path,
 )
-from slamreplay.replay.pipeline import Pipeline, ReplayContext
-from slamreplay.replay.reader import Envelope
-from slamreplay.replay.trajectory import TrajectoryLog
 
 AS_RECORDED = -1.0  # a guidance key of TopometricNavConfig left at the recording's value
 
@@ -176,7 +176,7 @@ class TopometricNavPipeline(Pipeline):
             ctx.log(f"guidance {k} {now} instead of the recorded {was}: the recorded drive replayed with another "
                     f"rule; replay_mismatches count what it changes")
         self.dt = float(rec["control_period_s"])
-        # The navigate runner's generators: odometry, localizer, image noise (replay/navigate.py).
+        # The navigate runner's generators: odometry, localizer, image noise (replay/tools/navigate.py).
         rng_loc = np.random.default_rng(int(rec["seed"])).spawn(3)[1]
         try:
             self.nav = Navigator(nav_map.graph, self.start, self.goal, MapLocalizer(nav_map.topomap, self.start,

@@ -23,7 +23,7 @@ from slamreplay.algorithms.ifmi import (
 from slamreplay.algorithms.ifmi.mapping import flatten_illumination
 from slamreplay.algorithms.observe import Image, Scalar
 from slamreplay.recorder.sim.seabed import procedural_texture
-from slamreplay.replay.observer import MemoryObserver
+from slamreplay.replay.engine.observer import MemoryObserver
 
 N = 256
 

@@ -25,7 +25,7 @@ from slamreplay.algorithms.common.posegraph_incremental import IncrementalConfig
 from slamreplay.algorithms.common.posegraph_init import init_chordal, init_odometry, spanning_tree
 from slamreplay.algorithms.common.robust import Kernel, weights_and_cost
 from slamreplay.algorithms.common.se2 import between, compose, from_matrix, to_matrix, wrap_angle
-from slamreplay.replay.graph_io import read_graph
+from slamreplay.replay.tools.graph_io import read_graph
 
 NONE = OptimizerConfig(kernel=Kernel.NONE)
 angle = st.floats(-np.pi, np.pi, allow_nan=False)

@@ -92,7 +92,7 @@ def test_help_costs_a_few_bare_interpreter_starts() -> None:
 def test_graph_choices_match_the_solver() -> None:
     """The graph command's choices are spelled in the CLI (no scipy import): they must be graph_io's."""
     from slamreplay.api import graph_cli
-    from slamreplay.replay import graph_io
+    from slamreplay.replay.tools import graph_io
 
     assert (graph_cli.SOLVERS, graph_cli.INITS, graph_cli.ROBUST) == (graph_io.SOLVERS, graph_io.INITS,
                                                                        graph_io.ROBUST)

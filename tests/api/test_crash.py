@@ -13,10 +13,10 @@ import pytest
 from conftest import REPO, write_tiny_recording
 
 from slamreplay.api.executor import Task, run_task
-from slamreplay.replay.compare import load_side
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.suite import load_suite
-from slamreplay.replay.suite_run import CellJob, run_suite, unfinished
+from slamreplay.replay.runs.compare import load_side
+from slamreplay.replay.runs.suite import load_suite
+from slamreplay.replay.runs.suite_run import CellJob, run_suite, unfinished
 
 sys.path.insert(0, str(REPO / "benchmarks"))
 import crash_suite_service as cs
@@ -102,8 +102,8 @@ def test_killed_after_its_files_before_its_manifest_reads_unfinished(tmp_path: P
     """The manifest is a run's commit point: a suite killed after a cell's run.rrd and metrics.json landed but
     before its manifest did (the window a random kill once hit) leaves a run diff refuses as unfinished, and the
     re-run runs that cell again instead of reusing it."""
-    import slamreplay.replay.run as run_mod
-    from slamreplay.replay.diff import load_run
+    import slamreplay.replay.runs.run as run_mod
+    from slamreplay.replay.runs.diff import load_run
 
     write_tiny_recording(tmp_path / "tiny.mcap", n=40)
     (tmp_path / "s.toml").write_text('seeds = [0]\n[recordings.tiny]\npath = "tiny.mcap"\n[pipelines.odometry]\n')

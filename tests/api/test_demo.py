@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from slamreplay.api.demo import PIPELINES, run_demo
-from slamreplay.replay.pipeline import all_pipelines
+from slamreplay.replay.engine.pipeline import all_pipelines
 
 
 def test_every_demo_pipeline_exists() -> None:
@@ -31,7 +31,7 @@ def test_next_steps_work_as_printed(tmp_path: Path, monkeypatch: pytest.MonkeyPa
     from conftest import write_tiny_recording
 
     from slamreplay.api.demo import next_steps
-    from slamreplay.replay.run import run_recording
+    from slamreplay.replay.runs.run import run_recording
 
     rec = write_tiny_recording(tmp_path / "tiny.mcap")
     ekf = run_recording(rec, "ekfslam", tmp_path / "runs" / "ekf", seed=1)

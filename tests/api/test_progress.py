@@ -14,7 +14,7 @@ from conftest import write_tiny_recording
 from slamreplay.api import demo
 from slamreplay.api.cli import main
 from slamreplay.api.progress import PlainProgress, duration
-from slamreplay.replay import suite_run
+from slamreplay.replay.runs import suite_run
 
 SLAMREPLAY = str(Path(sys.executable).parent / "slamreplay")
 

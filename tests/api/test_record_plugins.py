@@ -14,7 +14,7 @@ from slamreplay.api.cli import main
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.plugins import refresh
 from slamreplay.recorder.sources import get_importer, importer_plugins
-from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.engine.reader import RecordingReader
 
 BUILTINS = {"images", "mrclam", "ros2", "sim-corridor", "sim-landmarks", "sim-seabed", "victoria-park"}
 

@@ -16,7 +16,7 @@ with warnings.catch_warnings():
 from slamreplay.api.app import create_app
 from slamreplay.api.settings import Settings
 from slamreplay.recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
-from slamreplay.replay.run import sha256_file
+from slamreplay.replay.runs.run import sha256_file
 
 
 @pytest.fixture

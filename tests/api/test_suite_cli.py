@@ -13,7 +13,7 @@ import pytest
 from conftest import REPO, write_tiny_recording
 from test_cli import assert_bad_input, run_cli
 
-from slamreplay.replay import suite_run
+from slamreplay.replay.runs import suite_run
 
 
 @pytest.fixture(autouse=True)

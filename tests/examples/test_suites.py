@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from slamreplay.replay.suite import load_suite
+from slamreplay.replay.runs.suite import load_suite
 
 SUITES = sorted((Path(__file__).resolve().parents[2] / "examples" / "suites").glob("*.toml"))
 
@@ -18,7 +18,7 @@ def test_example_suite_parses(path: Path) -> None:
 
 
 def test_presets_example_writes_the_paper_preset_out() -> None:
-    from slamreplay.replay.pipeline import get_pipeline
+    from slamreplay.replay.engine.pipeline import get_pipeline
 
     suite = load_suite(next(p for p in SUITES if p.stem == "presets"))
     assert suite.pipelines["dslam"] == {"default": {}, "paper": get_pipeline("dslam").presets["paper"]}

@@ -29,9 +29,9 @@ import atheris
 with atheris.instrument_imports(include=["slamreplay", "mcap", "mcap_protobuf", "mcap_ros2"]):
     from slamreplay.recorder.errors import RecorderError
     from slamreplay.recorder.recover import recover
+    from slamreplay.replay.engine.reader import RecordingReader
     from slamreplay.replay.errors import ReplayError
-    from slamreplay.replay.inspect import inspect_recording
-    from slamreplay.replay.reader import RecordingReader
+    from slamreplay.replay.tools.inspect import inspect_recording
 
 # tmpfs when there is one: recover fsyncs what it writes, and every execution writes a file
 _DIR = Path(tempfile.mkdtemp(prefix="fuzz-mcap-", dir="/dev/shm" if os.path.isdir("/dev/shm") else None))

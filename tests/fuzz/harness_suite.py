@@ -30,7 +30,7 @@ except ImportError:  # replaying stored cases (tests/fuzz/test_harness_cases.py)
 # our code only: tomllib and json are C or stdlib, pipelines' numpy would swamp the map
 with atheris.instrument_imports(include=["slamreplay"]) if atheris else contextlib.nullcontext():
     from slamreplay.replay.errors import ReplayError
-    from slamreplay.replay.suite import Suite, load_suite, parse_suite
+    from slamreplay.replay.runs.suite import Suite, load_suite, parse_suite
 
 # tmpfs when there is one: every execution writes the suite file
 _DIR = Path(tempfile.mkdtemp(prefix="fuzz-suite-", dir="/dev/shm" if os.path.isdir("/dev/shm") else None))

@@ -93,8 +93,8 @@ def _call(argv: list[str], time_limit_s: int) -> tuple[str, int | None, str, str
 
 def _check_recovered(stdout: str, out: Path) -> str | None:
     """Why a recover that exited 0 did not tell the truth (None: it did)."""
-    from slamreplay.replay.inspect import inspect_recording
-    from slamreplay.replay.reader import RecordingReader
+    from slamreplay.replay.engine.reader import RecordingReader
+    from slamreplay.replay.tools.inspect import inspect_recording
 
     kept = re.search(r"recovered (\d+) messages", stdout)
     if kept is None:

@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamreplay.recorder.messages import Message, PlanarPose
-from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.engine.reader import RecordingReader
 
 M = TypeVar("M")
 

@@ -28,7 +28,7 @@ from slamreplay.recorder.codec.mcap_io import MAX_CHUNK_BYTES, decompress
 from slamreplay.recorder.codec.protobuf import decode_image_bytes, raw_pixels
 from slamreplay.recorder.errors import CodecError, DamageError
 from slamreplay.recorder.messages import CameraImage, OdometryPose
-from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.engine.reader import RecordingReader
 
 REPO = Path(__file__).resolve().parents[2]
 CORPUS = REPO / "tests" / "fuzz" / "corpus" / "mcap"

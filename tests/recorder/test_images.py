@@ -13,7 +13,7 @@ import pytest
 from slamreplay.api.cli import main
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.importers.images import frame_key, import_images
-from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.engine.reader import RecordingReader
 
 
 def test_sorted_by_frame_counter(tmp_path: Path) -> None:

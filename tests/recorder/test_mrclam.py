@@ -230,7 +230,7 @@ def test_refuses_to_overwrite(tmp_path: Path) -> None:
 def test_all_robots_in_one_recording(tmp_path: Path) -> None:
     """`--robot all`: each robot's topics under /robotN/, the map once, in one time order; `run --robot N` picks one."""
     from slamreplay.replay.errors import ReplayError
-    from slamreplay.replay.run import run_recording
+    from slamreplay.replay.runs.run import run_recording
 
     data = write_dataset(tmp_path / "d", odometry="100.000 1.0 0.0\n101.000 1.0 0.0\n102.000 0.0 0.0\n",
                          measurement="100.500 63 1.5 0.1\n", groundtruth="99.999 0.0 0.0 0.0\n103.000 2.0 0.0 0.0\n")
@@ -239,8 +239,8 @@ def test_all_robots_in_one_recording(tmp_path: Path) -> None:
         (data / f"Robot{k}_Measurement.dat").write_text(HEADER + "101.000 81 2.0 0.2\n")
         (data / f"Robot{k}_Groundtruth.dat").write_text(HEADER + "99.000 0.0 0.0 0.0\n104.000 1.0 0.0 0.0\n")
     summary = import_mrclam(data, "all", tmp_path / "all.mcap")
-    from slamreplay.replay.pipeline import robot_topic_map
-    from slamreplay.replay.reader import RecordingReader
+    from slamreplay.replay.engine.pipeline import robot_topic_map
+    from slamreplay.replay.engine.reader import RecordingReader
 
     info = RecordingReader(tmp_path / "all.mcap").info
     msgs = read_recording(tmp_path / "all.mcap")  # the map; each robot's topics below, read as that robot's

@@ -15,8 +15,8 @@ from slamreplay.recorder import GroundTruthPose, Recorder, RecorderError, codec
 from slamreplay.recorder.codec.mcap_io import MAGIC
 from slamreplay.recorder.errors import DamageError
 from slamreplay.recorder.recover import describe, recover
-from slamreplay.replay.inspect import inspect_recording
-from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.engine.reader import RecordingReader
+from slamreplay.replay.tools.inspect import inspect_recording
 
 
 def big_recording(path: Path, n: int = 30000) -> Path:

@@ -21,8 +21,8 @@ from slamreplay.recorder.messages import (
     OdometryPose,
     RangeBearingScan,
 )
-from slamreplay.replay.reader import RecordingReader
-from slamreplay.replay.run import run_recording
+from slamreplay.replay.engine.reader import RecordingReader
+from slamreplay.replay.runs.run import run_recording
 
 STORAGES = ("sqlite3", "mcap")
 

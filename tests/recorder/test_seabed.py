@@ -10,7 +10,7 @@ import pytest
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.messages import CameraImage, GroundTruthPose, OdometryPose
 from slamreplay.recorder.sim.seabed import SeabedSimConfig, procedural_texture, simulate_seabed
-from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.engine.reader import RecordingReader
 
 SMALL = SeabedSimConfig(image_px=96, legs=2, leg_length_m=1.5, metres_per_pixel=0.01)
 

@@ -36,7 +36,7 @@ from slamreplay.recorder.sim.corridor import (
 )
 from slamreplay.recorder.sim.corridor_plan import TOURS
 from slamreplay.recorder.sim.unicycle import arc_step, wrap_angle
-from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.engine.reader import RecordingReader
 
 SMALL = CorridorConfig(route="left", speed_mps=1.0, turn_rate_dps=60.0, camera_rate_hz=1.0, odom_rate_hz=10.0)
 NO_DRIFT = {"odom_wheel_ratio_error": 0.0, "odom_wheelbase_error": 0.0, "odom_scale_error": 0.0, "odom_sigma_m": 0.0,

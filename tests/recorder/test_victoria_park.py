@@ -12,7 +12,7 @@ from slamreplay.api.cli import main
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.importers.victoria_park import read_victoria_park, sensor_model, write_victoria_park
 from slamreplay.recorder.messages import GroundTruthPose, LandmarkMap, OdometryPose, RangeBearingScan
-from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.engine.reader import RecordingReader
 
 REAL = Path(__file__).resolve().parents[3] / "shared" / "data" / "victoria-park-isam"
 COV = "0.0001 0 0 4e-06 0 4e-06"

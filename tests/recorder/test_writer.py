@@ -125,7 +125,7 @@ def test_partial_holds_header_and_metadata_before_any_message(tmp_path: Path) ->
     a process killed then leaves a truncated recording that says what it was, not an empty file."""
     from slamreplay.recorder.errors import DamageError
     from slamreplay.recorder.recover import recover
-    from slamreplay.replay.inspect import inspect_recording
+    from slamreplay.replay.tools.inspect import inspect_recording
 
     rec = Recorder(tmp_path / "r.mcap", source={"simulator": "test"})
     rec.open()

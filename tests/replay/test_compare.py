@@ -7,9 +7,9 @@ from typing import Any
 
 import pytest
 
-from slamreplay.replay.compare import Side, compare, judge, paired_test
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.report import write_reports
+from slamreplay.replay.runs.compare import Side, compare, judge, paired_test
+from slamreplay.replay.runs.report import write_reports
 
 
 def rows(values: list[float], *, metric: str = "landmark_rmse_m", better: str = "lower", tol: float = 1e-9,
@@ -114,7 +114,7 @@ def test_reports(tmp_path: Path) -> None:
 
 def test_pair_rrds_are_written_once_and_linked(tmp_path: Path) -> None:
     """--rrd-dir: one file per succeeded A/B pair (same seeds), linked relative to each report."""
-    from slamreplay.replay.report import pair_file_links, write_pair_rrds
+    from slamreplay.replay.runs.report import pair_file_links, write_pair_rrds
 
     a = rows(A)
     b = rows([0.075, 0.121, 0.089], code="b")
@@ -144,7 +144,7 @@ def test_pair_rrds_are_written_once_and_linked(tmp_path: Path) -> None:
 
 def test_markdown_summary_lists_regressions_first_and_folds_the_unchanged() -> None:
     """Regressions lead the summary's table; unchanged rows sit in a closed <details> after it."""
-    from slamreplay.replay.report import render_markdown
+    from slamreplay.replay.runs.report import render_markdown
 
     def two(rmse: list[float], ape: list[float], code: str) -> list[dict[str, Any]]:
         out = rows(rmse, code=code)
@@ -162,7 +162,7 @@ def test_markdown_summary_lists_regressions_first_and_folds_the_unchanged() -> N
 
 def test_variants_table_puts_each_variants_seeds_side_by_side() -> None:
     """suite run's closing table: mean ± sd per variant column, failed cells counted out, direction marked."""
-    from slamreplay.replay.compare import variants_table
+    from slamreplay.replay.runs.compare import variants_table
 
     default = rows([0.1, 0.2, 0.3])
     paper = [{**r, "variant": "paper"} for r in rows([0.4, 0.6])] + [

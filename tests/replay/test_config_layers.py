@@ -16,10 +16,10 @@ from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.importers.mrclam import measure_sensor_model
 from slamreplay.recorder.sensor_model import SensorModel
 from slamreplay.recorder.sim.landmarks import LandmarkSimConfig, sensor_model, simulate_landmarks
+from slamreplay.replay.engine.pipeline import get_pipeline, recording_sensor_model, resolve_layers
+from slamreplay.replay.engine.reader import RecordingReader
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.pipeline import get_pipeline, recording_sensor_model, resolve_layers
-from slamreplay.replay.reader import RecordingReader
-from slamreplay.replay.run import run_recording
+from slamreplay.replay.runs.run import run_recording
 from tests.conftest import write_tiny_recording
 
 
@@ -157,7 +157,7 @@ def test_a_setting_that_cannot_apply_is_an_error(tmp_path: Path) -> None:
 
 def test_every_builtin_config_key_has_help() -> None:
     """`slamreplay pipelines` explains every key: each built-in pipeline's config field carries a help text."""
-    from slamreplay.replay.pipeline import config_schema, pipeline_plugins
+    from slamreplay.replay.engine.pipeline import config_schema, pipeline_plugins
 
     builtins = {name: p for name, p in pipeline_plugins().items() if p.builtin}
     assert {"dslam", "ekfslam", "topometric", "topometric-nav"} <= set(builtins)

@@ -9,10 +9,10 @@ import pytest
 from conftest import write_tiny_recording
 from rerun.chunk import RrdReader
 
-from slamreplay.replay.diff import diff_runs, format_table, parse_tolerances
-from slamreplay.replay.diff_view import write_comparison_rrd
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.run import run_recording
+from slamreplay.replay.runs.diff import diff_runs, format_table, parse_tolerances
+from slamreplay.replay.runs.diff_view import write_comparison_rrd
+from slamreplay.replay.runs.run import run_recording
 
 
 @pytest.fixture

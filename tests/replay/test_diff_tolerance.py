@@ -9,11 +9,11 @@ import pytest
 from conftest import write_tiny_recording
 
 from slamreplay.api.cli import main
-from slamreplay.replay.diff import diff_runs, metric_tolerance
-from slamreplay.replay.pipeline import MEASURED_ABS_TOLERANCE, MEASURED_REL_TOLERANCE, MetricSpec
+from slamreplay.replay.engine.pipeline import MEASURED_ABS_TOLERANCE, MEASURED_REL_TOLERANCE, MetricSpec
 from slamreplay.replay.pipelines.ifmi import IfmiPipeline
 from slamreplay.replay.pipelines.landmark_slam import METRICS as LANDMARK_METRICS
-from slamreplay.replay.run import run_recording
+from slamreplay.replay.runs.diff import diff_runs, metric_tolerance
+from slamreplay.replay.runs.run import run_recording
 
 MEASURED = {"tolerance": MEASURED_ABS_TOLERANCE, "rel_tolerance": MEASURED_REL_TOLERANCE}
 

@@ -10,7 +10,7 @@ import pytest
 from conftest import write_tiny_recording
 
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.run import run_recording
+from slamreplay.replay.runs.run import run_recording
 from tests.replay.view_runs import STARTS, write_multi_recording
 
 
@@ -68,10 +68,10 @@ def test_missing_robot_topics_and_bad_config(multi: Path, tmp_path: Path) -> Non
 
 def test_each_robot_is_drawn(multi: Path) -> None:
     """The shared map once; each robot's pose, trajectory estimate and truth under its own entity."""
-    from slamreplay.replay.engine import replay
-    from slamreplay.replay.observer import MemoryObserver
-    from slamreplay.replay.pipeline import all_robots_topic_map, get_pipeline, resolve_config
-    from slamreplay.replay.reader import RecordingReader
+    from slamreplay.replay.engine.loop import replay
+    from slamreplay.replay.engine.observer import MemoryObserver
+    from slamreplay.replay.engine.pipeline import all_robots_topic_map, get_pipeline, resolve_config
+    from slamreplay.replay.engine.reader import RecordingReader
 
     reader = RecordingReader(multi, all_robots_topic_map(RecordingReader(multi).info))
     obs = MemoryObserver()

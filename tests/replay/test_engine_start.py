@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from slamreplay.recorder import GroundTruthPose, OdometryPose, Recorder
-from slamreplay.replay import engine
-from slamreplay.replay.engine import start_from_stream, start_pose
+from slamreplay.replay.engine import loop as engine
+from slamreplay.replay.engine.loop import start_from_stream, start_pose
+from slamreplay.replay.engine.reader import RecordingReader
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.reader import RecordingReader
 
 TOPICS = ["/odom", "/ground_truth/pose"]
 

@@ -14,7 +14,8 @@ from hypothesis import strategies as st
 
 from slamreplay.algorithms.common import se2
 from slamreplay.api.cli import main
-from slamreplay.replay.evaluate import (
+from slamreplay.replay.engine.trajectory import read_tum
+from slamreplay.replay.evaluation.evaluate import (
     TRAJECTORY_METRICS,
     alignment_transform,
     ape,
@@ -24,9 +25,8 @@ from slamreplay.replay.evaluate import (
     to_kitti,
     trajectory_metrics,
 )
-from slamreplay.replay.metrics import truth_at
-from slamreplay.replay.run import run_recording
-from slamreplay.replay.trajectory import read_tum
+from slamreplay.replay.evaluation.metrics import truth_at
+from slamreplay.replay.runs.run import run_recording
 
 
 def _loop(n: int = 200) -> np.ndarray:

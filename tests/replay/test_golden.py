@@ -3,7 +3,7 @@
 The references live in tests/golden/ and are written only on purpose, never by the test itself:
 ``pytest tests/replay/test_golden.py --update-golden`` after an intended change, then review the
 diff of tests/golden/ like code. A metric matches its reference within the metric's own diff
-tolerance (``slamreplay.replay.diff.metric_tolerance``: 0.1 % relative for measured values, exact for
+tolerance (``slamreplay.replay.runs.diff.metric_tolerance``: 0.1 % relative for measured values, exact for
 counts), so the same references hold on every supported Python, numpy and BLAS.
 """
 
@@ -17,12 +17,13 @@ from typing import Any
 import pytest
 from conftest import write_tiny_recording
 
-from slamreplay.replay.diff import metric_tolerance
-from slamreplay.replay.engine import metric_specs, replay
-from slamreplay.replay.metrics import format_metrics
-from slamreplay.replay.observer import MemoryObserver
-from slamreplay.replay.pipeline import get_pipeline, resolve_config
-from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.engine.loop import replay
+from slamreplay.replay.engine.observer import MemoryObserver
+from slamreplay.replay.engine.pipeline import get_pipeline, resolve_config
+from slamreplay.replay.engine.reader import RecordingReader
+from slamreplay.replay.evaluation.metrics import format_metrics
+from slamreplay.replay.evaluation.score import metric_specs, score
+from slamreplay.replay.runs.diff import metric_tolerance
 
 GOLDEN_DIR = Path(__file__).resolve().parents[1] / "golden"
 EVENTS = GOLDEN_DIR / "odometry_tiny.json"
@@ -92,7 +93,7 @@ def test_odometry_golden(tmp_path: Path, update_golden: bool) -> None:
     recording = write_tiny_recording(tmp_path / "golden.mcap", n=25)
     cls = get_pipeline("odometry")
     obs = MemoryObserver()
-    stats = replay(RecordingReader(recording), cls, resolve_config(cls), obs, seed=0, log=lambda s: None)
+    stats = score(replay(RecordingReader(recording), cls, resolve_config(cls), obs, seed=0, log=lambda s: None), cls)
     doc = {"metrics": format_metrics(cls.name, {k: round(v, 9) for k, v in stats.metrics.items()},
                                   metric_specs(cls)),
            "events": obs.to_jsonable(decimals=9)}

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from slamreplay.algorithms.common.posegraph import PoseGraph, chi2
-from slamreplay.replay.graph_io import GraphFileError, format_of, read_graph, write_graph
+from slamreplay.replay.tools.graph_io import GraphFileError, format_of, read_graph, write_graph
 
 G2O = """# a comment
 VERTEX_SE2 10 0 0 0

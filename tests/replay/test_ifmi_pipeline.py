@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from slamreplay.recorder.sim.seabed import SeabedSimConfig, simulate_seabed
-from slamreplay.replay.run import run_recording
+from slamreplay.replay.runs.run import run_recording
 
 CONFIG = SeabedSimConfig(legs=3, leg_length_m=3.0)
 
@@ -58,7 +58,7 @@ def test_images_too_small_for_ifmi_are_a_clear_error(tmp_path: Path) -> None:
     from slamreplay.recorder import Recorder
     from slamreplay.recorder.messages import CameraImage
     from slamreplay.replay.errors import ReplayError
-    from slamreplay.replay.run import run_recording
+    from slamreplay.replay.runs.run import run_recording
 
     rng = np.random.default_rng(0)
     with Recorder(tmp_path / "tiny.mcap", source={"test": "tiny images"}) as rec:

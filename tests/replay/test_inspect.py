@@ -9,7 +9,7 @@ from mcap.writer import Writer
 
 from slamreplay.api.cli import main
 from slamreplay.recorder import GroundTruthPose, Recorder, codec
-from slamreplay.replay.inspect import empty_contradiction, inspect_recording
+from slamreplay.replay.tools.inspect import empty_contradiction, inspect_recording
 
 
 def test_recorder_closed_without_messages_is_empty(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

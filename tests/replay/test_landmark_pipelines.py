@@ -13,13 +13,13 @@ from slamreplay.algorithms.observe import Image, Points, Text
 from slamreplay.recorder import GroundTruthPose, OdometryPose, RangeBearingScan, Recorder
 from slamreplay.recorder.importers.mrclam import import_mrclam
 from slamreplay.recorder.sim import LandmarkSimConfig, simulate_landmarks
-from slamreplay.replay.diff import rerun_cli
-from slamreplay.replay.engine import replay
+from slamreplay.replay.engine.loop import replay
+from slamreplay.replay.engine.observer import MemoryObserver
+from slamreplay.replay.engine.pipeline import get_pipeline, resolve_config
+from slamreplay.replay.engine.reader import RecordingReader
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.observer import MemoryObserver
-from slamreplay.replay.pipeline import get_pipeline, resolve_config
-from slamreplay.replay.reader import RecordingReader
-from slamreplay.replay.run import run_recording
+from slamreplay.replay.runs.diff import rerun_cli
+from slamreplay.replay.runs.run import run_recording
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from slamreplay.recorder.importers.victoria_park import VictoriaPark
-from slamreplay.replay.landmark_reference import measured_noise, victoria_park_reference
+from slamreplay.replay.evaluation.landmark_reference import measured_noise, victoria_park_reference
 
 
 def _world(seed: int) -> tuple[VictoriaPark, np.ndarray, np.ndarray]:

@@ -11,9 +11,8 @@ from typing import Any
 import pytest
 
 from slamreplay.api.cli import main
-from slamreplay.replay.compare import Side, compare
-from slamreplay.replay.diff import diff_runs, judge_metric
-from slamreplay.replay.engine import metric_specs
+from slamreplay.replay.engine.pipeline import pipeline_plugins
+from slamreplay.replay.evaluation.score import metric_specs
 from slamreplay.replay.metric_registry import (
     METRICS,
     RENAMED,
@@ -23,8 +22,9 @@ from slamreplay.replay.metric_registry import (
     spec,
     target_distance,
 )
-from slamreplay.replay.pipeline import pipeline_plugins
-from slamreplay.replay.suite_run import normalized_row
+from slamreplay.replay.runs.compare import Side, compare
+from slamreplay.replay.runs.diff import diff_runs, judge_metric
+from slamreplay.replay.runs.suite_run import normalized_row
 
 GOLDEN = Path(__file__).parent.parent / "golden"
 
@@ -170,7 +170,7 @@ def test_a_results_file_of_the_previous_version_reads_under_the_current_names(tm
     new_row = {**new_row, **{k: {m: v for m, v in OLD_ROW[k].items() if m in new_row["metrics"]}
                              for k in ("better", "tolerance", "rel_tolerance", "units")}}
     new = write_results(tmp_path / "new", [normalized_row(new_row)])
-    from slamreplay.replay.compare import load_side
+    from slamreplay.replay.runs.compare import load_side
     c = compare(load_side(old), load_side(new))
     verdicts = {r.metric: r.verdict for r in c.results}
     assert set(verdicts) == {"ape_rmse_m", "landmark_nees_mean", "landmark_rmse_m"}
@@ -199,7 +199,7 @@ def test_an_overconfident_ekf_is_worse_on_its_nees_alone(tmp_path: Path) -> None
     invariant to a common scale of all variances) and scales its NEES by 1/k^2. With k = 0.3, `diff` finds
     exactly the two NEES worse (about 11 times the consistent run's) and every error metric the same."""
     from slamreplay.recorder.sim import LandmarkSimConfig, simulate_landmarks
-    from slamreplay.replay.run import run_recording
+    from slamreplay.replay.runs.run import run_recording
 
     rec = tmp_path / "sim.mcap"
     simulate_landmarks(rec, LandmarkSimConfig(duration_s=40.0), seed=1)

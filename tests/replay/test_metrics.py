@@ -1,4 +1,4 @@
-"""slamreplay.replay.metrics: the band of a mean landmark NEES."""
+"""slamreplay.replay.evaluation.metrics: the band of a mean landmark NEES."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ def test_mean_nees_band_known_answers() -> None:
     """Independent landmarks: chi2(2k)/k exactly; one shared error: the band of one chi2(2); sampled: it holds."""
     from scipy.stats import chi2
 
-    from slamreplay.replay.metrics import mean_nees_band
+    from slamreplay.replay.evaluation.metrics import mean_nees_band
 
     k = 10
     rng = np.random.default_rng(5)

@@ -28,10 +28,10 @@ import pytest
 
 from slamreplay.api.cli import main as cli
 from slamreplay.recorder.messages import assert_msg_equal
+from slamreplay.replay.engine.reader import RecordingReader
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.navigate import NavigateSummary, NavMap, load_nav_map, navigate, reference_path
-from slamreplay.replay.reader import RecordingReader
-from slamreplay.replay.run import run_recording
+from slamreplay.replay.runs.run import run_recording
+from slamreplay.replay.tools.navigate import NavigateSummary, NavMap, load_nav_map, navigate, reference_path
 from tests.conftest import REPO, write_tiny_recording
 
 pytestmark = pytest.mark.slow
@@ -298,7 +298,7 @@ def test_navigate_help_explains_the_workflow(capsys: pytest.CaptureFixture[str])
 def test_paper_preset_replays_the_drive_with_the_papers_rules(world: dict[str, Path], short: Path) -> None:
     """--preset paper resolves to the paper's rules (reset to the node, an image every 50 cm / 10 deg); on a drive
     recorded with 0.3 m spacing it processes fewer of the recorded images, and the mismatches count the change."""
-    from slamreplay.replay.pipeline import get_pipeline, resolve_layers
+    from slamreplay.replay.engine.pipeline import get_pipeline, resolve_layers
 
     cls = get_pipeline("topometric-nav")
     cfg = resolve_layers(cls, preset="paper").config

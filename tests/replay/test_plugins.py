@@ -12,8 +12,8 @@ from conftest import make_distribution, write_tiny_recording
 
 from slamreplay.api.cli import main
 from slamreplay.recorder.plugins import refresh
+from slamreplay.replay.engine.pipeline import all_pipelines, get_pipeline, pipeline_plugins
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.pipeline import all_pipelines, get_pipeline, pipeline_plugins
 
 BUILTINS = {"dslam", "ekfslam", "ifmi", "odometry", "topometric", "topometric-nav"}
 

@@ -11,8 +11,8 @@ from ros2_fixtures import write_ros2_bag
 
 from slamreplay.recorder import GroundTruthPose, OdometryPose, RangeBearingScan, Recorder, codec
 from slamreplay.recorder.messages import CameraImage
+from slamreplay.replay.engine.reader import RecordingReader
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.reader import RecordingReader
 
 
 def test_order_is_log_time_then_file_position(tmp_path: Path) -> None:

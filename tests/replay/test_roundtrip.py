@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from slamreplay.recorder import GroundTruthPose, OdometryPose, RangeBearingScan, Recorder, assert_msg_equal
-from slamreplay.replay.reader import RecordingReader
+from slamreplay.replay.engine.reader import RecordingReader
 
 coord = st.floats(-1e3, 1e3, allow_nan=False)
 message = st.one_of(

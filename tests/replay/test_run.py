@@ -11,13 +11,13 @@ import pytest
 from conftest import write_tiny_recording
 
 from slamreplay.recorder import GroundTruthPose, OdometryPose, Recorder
-from slamreplay.replay.diff import rerun_cli
-from slamreplay.replay.engine import replay, start_pose
+from slamreplay.replay.engine.loop import replay, start_pose
+from slamreplay.replay.engine.observer import MemoryObserver
+from slamreplay.replay.engine.pipeline import get_pipeline, resolve_config
+from slamreplay.replay.engine.reader import RecordingReader
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.observer import MemoryObserver
-from slamreplay.replay.pipeline import get_pipeline, resolve_config
-from slamreplay.replay.reader import RecordingReader
-from slamreplay.replay.run import run_recording
+from slamreplay.replay.runs.diff import rerun_cli
+from slamreplay.replay.runs.run import run_recording
 
 
 def test_dead_reckoning_known_answer(tmp_path: Path) -> None:
@@ -194,7 +194,7 @@ def test_full_disk_fails_the_run_cleanly(tiny_recording: Path, tmp_path: Path, m
     """ENOSPC while a run writes its files: a ReplayError saying so, and nothing left that looks finished."""
     import errno
 
-    import slamreplay.replay.run as run_module
+    import slamreplay.replay.runs.run as run_module
 
     real = run_module.atomic_write
 
@@ -219,7 +219,7 @@ def test_full_disk_fails_the_run_cleanly(tiny_recording: Path, tmp_path: Path, m
 def test_the_log_is_followed_live_and_ends_whole(tmp_path: Path) -> None:
     """While a run replays, its log lines are in the live copy (the service's job page tails it); at the end
     log.txt holds them all and the live copy is gone."""
-    from slamreplay.replay.run import LIVE_LOG
+    from slamreplay.replay.runs.run import LIVE_LOG
 
     rec = write_tiny_recording(tmp_path / "r.mcap")
     seen: list[str] = []

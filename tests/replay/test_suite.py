@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.suite import key_line, load_suite, parse_suite
+from slamreplay.replay.runs.suite import key_line, load_suite, parse_suite
 
 GOOD = """\
 seeds = [1, 2]                                # run seeds
@@ -52,7 +52,7 @@ def test_parse_and_expand(tmp_path: Path) -> None:
 def test_a_variant_names_a_preset(tmp_path: Path) -> None:
     """``preset`` writes the pipeline's preset into the variant's config; the variant's own keys win over it;
     a pipeline-level preset applies to the variants that name none."""
-    from slamreplay.replay.pipeline import get_pipeline
+    from slamreplay.replay.engine.pipeline import get_pipeline
 
     paper = get_pipeline("dslam").presets["paper"]
     key = next(iter(paper))
@@ -69,7 +69,7 @@ def test_a_variant_names_a_preset(tmp_path: Path) -> None:
 
 
 def _a_dslam_float_key() -> str:
-    from slamreplay.replay.pipeline import config_schema, get_pipeline
+    from slamreplay.replay.engine.pipeline import config_schema, get_pipeline
 
     return next(r["key"] for r in config_schema(get_pipeline("dslam").Config) if r["type"] == "float")
 

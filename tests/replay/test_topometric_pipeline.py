@@ -14,12 +14,12 @@ import pytest
 from slamreplay.algorithms.topometric import Localizer, NavigationConfig
 from slamreplay.recorder.sim.corridor import CorridorConfig, simulate_corridor
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.run import run_recording
-from slamreplay.replay.topomap_io import load_map, save_map
+from slamreplay.replay.runs.run import run_recording
+from slamreplay.replay.tools.topomap_io import load_map, save_map
 
 CONFIG = CorridorConfig(route="left", laps=2, camera_rate_hz=2.0)
 REPO = Path(__file__).resolve().parents[2]
-RUN = ("import sys; from slamreplay.replay.run import run_recording; "
+RUN = ("import sys; from slamreplay.replay.runs.run import run_recording; "
        "run_recording(sys.argv[1], 'topometric', sys.argv[2], seed=0)")
 
 
@@ -84,7 +84,7 @@ def test_map_file_round_trip(runs: tuple[Path, Path]) -> None:
 
 def test_map_holds_the_true_pose_of_each_location(corridor: Path, runs: tuple[Path, Path]) -> None:
     """truth_poses: the ground truth at each location's reference image, near the relaxed pose (ATE scale)."""
-    from slamreplay.replay.reader import RecordingReader
+    from slamreplay.replay.engine.reader import RecordingReader
 
     topo = load_map(runs[0] / "map.npz")
     assert topo.truth_poses is not None and topo.truth_poses.shape == (topo.n_locations, 3)
@@ -140,7 +140,7 @@ def test_paper_preset_resolves_and_the_manifest_records_it(corridor: Path, runs:
                                                            tmp_path: Path) -> None:
     """--preset paper: no odometry gate, plain relaxation, an image every 50 cm / 10 deg, recorded as the preset's
     in the manifest; a key the user sets on top (the robust kernel) wins and is counted apart."""
-    from slamreplay.replay.pipeline import get_pipeline, resolve_layers
+    from slamreplay.replay.engine.pipeline import get_pipeline, resolve_layers
 
     cls = get_pipeline("topometric")
     resolved = resolve_layers(cls, preset="paper")
@@ -168,7 +168,7 @@ def test_paper_preset_resolves_and_the_manifest_records_it(corridor: Path, runs:
 ])
 def test_bad_robust_settings_are_refused_naming_the_key(values: dict, match: str) -> None:
     """A bad relax_robust or odometry_gate is a ReplayError naming the key, before anything runs."""
-    from slamreplay.replay.pipeline import get_pipeline, resolve_layers
+    from slamreplay.replay.engine.pipeline import get_pipeline, resolve_layers
 
     with pytest.raises(ReplayError, match=match):
         resolve_layers(get_pipeline("topometric"), values)

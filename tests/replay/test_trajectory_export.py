@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slamreplay.replay.run import run_recording
-from slamreplay.replay.trajectory import read_tum, to_tum
+from slamreplay.replay.engine.trajectory import read_tum, to_tum
+from slamreplay.replay.runs.run import run_recording
 
 
 def test_tum_round_trip() -> None:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from slamreplay.algorithms.observe import LineStrips
-from slamreplay.replay.trajectory import TrajectoryLog
+from slamreplay.replay.engine.trajectory import TrajectoryLog
 
 
 class Latest:

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
-from slamreplay.replay import views
-from slamreplay.replay.diff_view import _RunContent, first_divergence, write_comparison_rrd
+from slamreplay.replay.engine import views
+from slamreplay.replay.engine.pipeline import get_pipeline
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.pipeline import get_pipeline
+from slamreplay.replay.runs.diff_view import _RunContent, first_divergence, write_comparison_rrd
 from tests.replay.view_runs import blueprint_views, matches, rrd_entities
 
 pytestmark = pytest.mark.slow

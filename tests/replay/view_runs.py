@@ -13,7 +13,7 @@ from rerun.chunk import RrdReader
 
 from slamreplay.algorithms.common import se2
 from slamreplay.recorder import GroundTruthPose, LandmarkMap, OdometryPose, RangeBearingScan, Recorder
-from slamreplay.replay.run import run_recording
+from slamreplay.replay.runs.run import run_recording
 
 
 def make_runs(out: Path) -> dict[str, Path]:
@@ -21,7 +21,7 @@ def make_runs(out: Path) -> dict[str, Path]:
     from slamreplay.recorder.sim.corridor import CorridorConfig, simulate_corridor
     from slamreplay.recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
     from slamreplay.recorder.sim.seabed import SeabedSimConfig, simulate_seabed
-    from slamreplay.replay.navigate import load_nav_map, navigate
+    from slamreplay.replay.tools.navigate import load_nav_map, navigate
 
     out.mkdir(parents=True, exist_ok=True)
     runs: dict[str, Path] = {}
@@ -97,7 +97,7 @@ def rrd_entities(rrd: Path) -> dict[str, dict[str, Any]]:
 
 
 def blueprint_views(bp: rrb.Blueprint) -> list[tuple[str, str, list[str]]]:
-    """(tab name, view name, content patterns) of every view of a blueprint made by `slamreplay.replay.views`."""
+    """(tab name, view name, content patterns) of every view of a blueprint made by `slamreplay.replay.engine.views`."""
     out: list[tuple[str, str, list[str]]] = []
     tabs = bp.root_container
     assert isinstance(tabs, rrb.Tabs), "a run's layout is a row of tabs"

@@ -12,10 +12,10 @@ import pytest
 
 from slamreplay.algorithms.observe import LineStrips
 from slamreplay.api.cli import main as cli
-from slamreplay.replay import views
+from slamreplay.replay.engine import views
+from slamreplay.replay.engine.observer import RerunObserver
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.observer import RerunObserver
-from slamreplay.replay.snapshot import check_graphics, snapshot
+from slamreplay.replay.tools.snapshot import check_graphics, snapshot
 from tests.replay.view_runs import make_runs
 
 pytestmark = pytest.mark.viewer

@@ -19,11 +19,11 @@ from my_pipeline.filter import ConstantVelocityFilter, CvNoise, mean_velocity
 from slamreplay.algorithms.common.motion import between1
 from slamreplay.algorithms.observe import CovarianceEllipses, Pose, Scalar
 from slamreplay.recorder.messages import TOPIC_GROUND_TRUTH_POSE, TOPIC_ODOM, GroundTruthPose, OdometryPose
+from slamreplay.replay.engine.pipeline import MetricSpec, Pipeline, ReplayContext
+from slamreplay.replay.engine.reader import Envelope
+from slamreplay.replay.engine.trajectory import TrajectoryLog
+from slamreplay.replay.evaluation.metrics import position_errors, rmse
 from slamreplay.replay.metric_registry import specs
-from slamreplay.replay.metrics import position_errors, rmse
-from slamreplay.replay.pipeline import MetricSpec, Pipeline, ReplayContext
-from slamreplay.replay.reader import Envelope
-from slamreplay.replay.trajectory import TrajectoryLog
 
 
 def _help(text: str) -> dict[str, str]:

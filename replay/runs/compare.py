@@ -24,7 +24,7 @@ A by more than its tolerance, in its direction (``MetricSpec.better``); an impro
 likewise. A significant change within tolerance, or a change beyond tolerance that is not
 significant (seed noise), is ``unchanged`` / ``noise``. With one pair there is no spread to
 test against: the verdict falls back to the tolerance alone, as ``slamreplay diff`` judges
-it (``slamreplay.replay.diff.judge_metric``). A run that succeeded in A and failed in B is a regression.
+it (``slamreplay.replay.runs.diff.judge_metric``). A run that succeeded in A and failed in B is a regression.
 """
 
 from __future__ import annotations
@@ -40,10 +40,10 @@ import numpy as np
 from scipy import stats
 
 from slamreplay.recorder.options import did_you_mean
-from slamreplay.replay.diff import direction_verdict, judge_metric
+from slamreplay.replay.runs.diff import direction_verdict, judge_metric
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import direction_label, target_distance
-from slamreplay.replay.suite_run import add_metrics, read_results, unfinished
+from slamreplay.replay.runs.suite_run import add_metrics, read_results, unfinished
 
 ALPHA = 0.05
 VERDICT_ORDER = ("regression", "failed", "improvement", "noise", "unchanged", "changed", "missing")

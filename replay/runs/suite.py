@@ -45,7 +45,7 @@ else:  # Python 3.10: the same parser, as the tomli package
 
 from slamreplay.recorder.options import did_you_mean, typed_fields
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.pipeline import get_pipeline, resolve_config
+from slamreplay.replay.engine.pipeline import get_pipeline, resolve_config
 
 SIMULATORS = ("sim-landmarks", "sim-seabed", "sim-corridor")
 TOP_KEYS = {"seeds", "recordings", "pipelines", "name"}

@@ -30,8 +30,8 @@ from pathlib import Path
 from typing import Any
 
 from slamreplay.recorder.files import atomic_write
+from slamreplay.replay.engine.views import STEP
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.views import STEP
 
 VULKAN_ICD_DIRS = ("/usr/share/vulkan/icd.d", "/etc/vulkan/icd.d", "/usr/local/share/vulkan/icd.d")
 INSTALL_HINT = "apt-get install mesa-vulkan-drivers libvulkan1 (Debian/Ubuntu: Mesa's Vulkan software rasterizer)"

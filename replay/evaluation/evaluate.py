@@ -31,8 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamreplay.algorithms.common import se2
-from slamreplay.replay.metric_registry import RPE_METRE_DELTA_M, specs
-from slamreplay.replay.pipeline import MetricSpec
+from slamreplay.replay.metric_registry import RPE_METRE_DELTA_M, MetricSpec, specs
 
 F64 = NDArray[np.float64]
 Alignment = Literal["none", "origin", "se2"]

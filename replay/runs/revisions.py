@@ -29,7 +29,7 @@ from pathlib import Path
 
 from slamreplay.recorder.version import SOURCE_ROOT
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.suite_run import CellJob
+from slamreplay.replay.runs.suite_run import CellJob
 
 BUILD_TIMEOUT_S = 1800
 

@@ -66,10 +66,10 @@ from slamreplay.recorder.messages import (
     VelocityCommand,
 )
 from slamreplay.recorder.writer import METADATA_NAME, Recorder
-from slamreplay.replay.codeprint import code_fingerprint
+from slamreplay.replay.engine.reader import MCAP_MAGIC, RecordingReader
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.reader import MCAP_MAGIC, RecordingReader
-from slamreplay.replay.topomap_io import load_map
+from slamreplay.replay.tools.codeprint import code_fingerprint
+from slamreplay.replay.tools.topomap_io import load_map
 
 SOURCE = "navigate"
 EPOCH_NS = 1_000_000_000
@@ -78,7 +78,7 @@ MAP_FILE = "map.npz"
 NAV_CODE = ("slamreplay.algorithms.common.se2",
             *(f"slamreplay.algorithms.topometric.{m}" for m in ("bayes", "config", "features", "guidance", "navigation",
                                                                "pathfollow", "topomap", "validation", "vocabulary")),
-            "slamreplay.replay.navigate", "slamreplay.replay.topomap_io")
+            "slamreplay.replay.tools.navigate", "slamreplay.replay.tools.topomap_io")
 Progress = Callable[[int, int], None]
 
 

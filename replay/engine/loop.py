@@ -18,13 +18,10 @@ import numpy as np
 from slamreplay.algorithms.common import se2
 from slamreplay.algorithms.observe import Text
 from slamreplay.recorder.messages import TOPIC_GROUND_TRUTH_POSE
+from slamreplay.replay.engine.pipeline import Pipeline, ReplayContext, ReplayObserver, pipelines_fitting
+from slamreplay.replay.engine.reader import Envelope, RecordingReader
+from slamreplay.replay.engine.trajectory import trajectory_artifacts
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.evaluate import TRAJECTORY_METRICS, trajectory_metrics
-from slamreplay.replay.metric_registry import MetricSpec
-from slamreplay.replay.metrics import truth_at
-from slamreplay.replay.pipeline import Pipeline, ReplayContext, ReplayObserver, pipelines_fitting
-from slamreplay.replay.reader import Envelope, RecordingReader
-from slamreplay.replay.trajectory import TRUTH_TUM_ARTIFACT, to_tum, trajectory_artifacts
 
 Progress = Callable[[int, int], None]
 
@@ -37,13 +34,10 @@ class ReplayStats:
     step_times_ns: np.ndarray | None  # the log_time of each of those messages
     timings: dict[str, float] = field(default_factory=dict)  # the pipeline's own (Pipeline.timings), seconds
     artifacts: dict[str, bytes] = field(default_factory=dict)  # files for the run directory (Pipeline.artifacts)
-
-
-def metric_specs(pipeline: type[Pipeline]) -> dict[str, MetricSpec]:
-    """Every metric a run of ``pipeline`` may report: its own, and the trajectory metrics the engine adds
-    (`replay.evaluate`) when it exports a trajectory (``Pipeline.trajectory_metrics``) and the recording has
-    ground truth; a pipeline's own spec of the same name wins."""
-    return {**(TRAJECTORY_METRICS if pipeline.trajectory_metrics else {}), **pipeline.metrics}
+    # the pipeline's trajectory (times ns, N x 3 poses) and the recording's ground truth seen during the replay,
+    # for evaluation.score, which adds the trajectory metrics; None when there is none
+    trajectory: tuple[np.ndarray, np.ndarray] | None = None
+    truth: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def check_topics(reader: RecordingReader, pipeline: type[Pipeline]) -> list[str]:
@@ -137,7 +131,10 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
            seed: int, start_ns: int | None = None, end_ns: int | None = None, log: Callable[[str], None],
            progress: Progress | None = None, log_timings: bool = False,
            config_sources: Mapping[str, str] | None = None) -> ReplayStats:
-    """Run one pipeline over a recording and return its metrics."""
+    """Run one pipeline over a recording: its own metrics, its trajectory and the ground truth seen.
+
+    The trajectory metrics (APE, RPE) are evaluation's: ``slamreplay.replay.evaluation.score.score(stats, cls)``.
+"""
     topics = check_topics(reader, pipeline_cls)
     stream = reader.messages(topics, start_ns=start_ns, end_ns=end_ns)
     t0, T_world_start, held = start_from_stream(reader, stream, topics, pipeline_cls.start_topic, start_ns, end_ns)
@@ -176,15 +173,10 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
     if unknown:
         raise RuntimeError(f"pipeline {pipeline_cls.name} returned metrics without a spec: {sorted(unknown)}")
     trajectory = pipeline.trajectory()
-    artifacts = trajectory_artifacts(trajectory)
-    if trajectory is not None and len(trajectory[0]) and t_gt:
-        mask, ref = truth_at(trajectory[0], np.asarray(t_gt, np.int64), np.stack(gt).astype(np.float64))
-        if len(ref):  # the truth at the estimate's times: both files pair line by line (evo, KITTI)
-            metrics = {**trajectory_metrics(trajectory[1][mask], ref), **metrics}
-            artifacts[TRUTH_TUM_ARTIFACT] = to_tum(trajectory[0][mask], ref)
+    truth = (np.asarray(t_gt, np.int64), np.stack(gt).astype(np.float64)) if t_gt else None
     return ReplayStats(metrics, n, np.asarray(durations) if log_timings else None,
                        np.asarray(times, np.int64) if log_timings else None, pipeline.timings(),
-                       {**artifacts, **pipeline.artifacts()})
+                       {**trajectory_artifacts(trajectory), **pipeline.artifacts()}, trajectory, truth)
 
 
 def text_logger(observer: ReplayObserver, lines: list[str]) -> Callable[[str], None]:

@@ -118,7 +118,7 @@ def metric_tolerance(entry: Mapping[str, Any], a: float | None, override: str | 
     The default is ``max(tolerance, rel_tolerance * |A|)``: relative, so that floating-point
     noise between environments (other numpy/scipy/BLAS, another summation order) is absorbed at
     any scale, with an absolute floor for values near zero. Measured metrics get 0.1 % and 1e-6
-    (``slamreplay.replay.pipeline.MEASURED_REL_TOLERANCE``: a 1 % change is still worse); counts get 0.
+    (``slamreplay.replay.engine.pipeline.MEASURED_REL_TOLERANCE``: a 1 % change is still worse); counts get 0.
     """
     if override is not None:
         if override.endswith("%"):

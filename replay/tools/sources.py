@@ -1,5 +1,6 @@
 """The ``victoria-park`` importer (``slamreplay record victoria-park``): in replay/ because the reference it
-records, the batch least-squares optimum of the measurements, is computed by ``slamreplay.replay.landmark_reference``.
+records, the batch least-squares optimum of the measurements, is computed by
+``slamreplay.replay.evaluation.landmark_reference``.
 
 It implements ``slamreplay.recorder.sources.Importer`` and is found through the entry-point group
 ``slamreplay.importers``.
@@ -38,7 +39,7 @@ class VictoriaPark:
         data = read_victoria_park(Path(options["dir"]))
         reference, note, measured = None, "", None
         if not options["no_reference"]:
-            from slamreplay.replay.landmark_reference import measured_noise, victoria_park_reference
+            from slamreplay.replay.evaluation.landmark_reference import measured_noise, victoria_park_reference
 
             log("computing the reference: the batch least-squares optimum of the measurements (2-3 minutes)")
             poses, landmarks, res = victoria_park_reference(data)

@@ -35,8 +35,8 @@ from slamreplay.recorder.files import atomic_write, replacing
 from slamreplay.recorder.version import SOURCE_ROOT, git_commit, version
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import normalize
-from slamreplay.replay.run import sha256_file
-from slamreplay.replay.suite import Cell, RecordingSpec, Suite, canonical, sim_config_class, sim_kwargs
+from slamreplay.replay.runs.run import sha256_file
+from slamreplay.replay.runs.suite import Cell, RecordingSpec, Suite, canonical, sim_config_class, sim_kwargs
 
 RESULTS_FORMAT = 1
 SIM_MODULES = {sim: tuple(f"slamreplay.recorder.sim.{m}" for m in modules) for sim, modules in {
@@ -63,7 +63,7 @@ def code_version() -> str:
     if commit == "unknown":
         import sys
 
-        from slamreplay.replay.codeprint import code_fingerprint
+        from slamreplay.replay.tools.codeprint import code_fingerprint
         mods = [m for m in sys.modules if m.split(".")[0] in ("replay", "algorithms", "recorder")]
         return f"{version()}+code.{code_fingerprint(mods)}"
     if not commit.endswith("-dirty"):
@@ -96,7 +96,7 @@ def _simulate(spec: RecordingSpec, seed: int, out: Path) -> None:
 
 def sim_recording(spec: RecordingSpec, seed: int, cache: Path) -> Path:
     """The recording of ``spec`` at ``seed``, simulated once and cached by its inputs and code."""
-    from slamreplay.replay.codeprint import code_fingerprint
+    from slamreplay.replay.tools.codeprint import code_fingerprint
 
     sim = spec.sim or ""
     key = hashlib.sha256(canonical({"sim": sim, "args": sim_kwargs(sim, spec.args), "seed": seed,

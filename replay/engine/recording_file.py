@@ -3,7 +3,7 @@
 ``slamreplay run`` refuses an input that does not exist, is empty, is not an MCAP file (or a ROS 2
 bag folder holding one) or has no MCAP footer before it creates the run directory, and the command
 line checks it before it imports the replay stack, so that a typo costs neither a second nor a
-failed run directory. ``slamreplay.replay.reader`` opens the file with the same two checks.
+failed run directory. ``slamreplay.replay.engine.reader`` opens the file with the same two checks.
 """
 
 from __future__ import annotations

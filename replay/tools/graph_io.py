@@ -349,8 +349,8 @@ def _log_rrd(path: Path, source: Path, before: PoseGraph, after: PoseGraph, resu
     import rerun as rr  # deferred: only --rrd needs Rerun
     import rerun.blueprint as rrb
 
-    from slamreplay.replay import views
-    from slamreplay.replay.observer import deterministic_batcher
+    from slamreplay.replay.engine import views
+    from slamreplay.replay.engine.observer import deterministic_batcher
 
     digest = hashlib.sha256(source.read_bytes()).hexdigest()
     rec_id = uuid.uuid5(uuid.NAMESPACE_URL, f"slamreplay/graph-optimize/{digest}/{config}")

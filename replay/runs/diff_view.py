@@ -28,10 +28,10 @@ import rerun.blueprint as rrb
 from rerun.chunk import Chunk, RrdReader
 
 from slamreplay.recorder.files import replacing
-from slamreplay.replay import views
-from slamreplay.replay.diff import RunDiff, diff_runs, formatted
+from slamreplay.replay.engine import views
+from slamreplay.replay.runs.diff import RunDiff, diff_runs, formatted
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.observer import deterministic_batcher
+from slamreplay.replay.engine.observer import deterministic_batcher
 
 COLOR_COLUMNS = {"Points2D:colors": rr.Points2D, "LineStrips2D:colors": rr.LineStrips2D,
                  "Arrows2D:colors": rr.Arrows2D}

@@ -2,7 +2,7 @@
 
 Reads the run's ``trajectory.tum`` (the estimate) and ``truth.tum`` (the ground truth at the same times,
 written when the recording has ground truth), so its figures are those ``evo_ape``/``evo_rpe`` give on
-the same two files (definitions in :mod:`slamreplay.replay.evaluate`).
+the same two files (definitions in :mod:`slamreplay.replay.evaluation.evaluate`).
 """
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ from typing import Any
 import numpy as np
 
 from slamreplay.recorder.files import atomic_write
-from slamreplay.replay.diff import load_run
+from slamreplay.replay.runs.diff import load_run
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.evaluate import Alignment, DeltaUnit, ErrorStats, ape, rpe, to_kitti
-from slamreplay.replay.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, paired_with_truth, read_tum
+from slamreplay.replay.evaluation.evaluate import Alignment, DeltaUnit, ErrorStats, ape, rpe, to_kitti
+from slamreplay.replay.engine.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, paired_with_truth, read_tum
 
 KITTI_ESTIMATE, KITTI_TRUTH = "estimate.kitti", "truth.kitti"
 

@@ -13,9 +13,9 @@ from typing import Any
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.sensor_model import SensorModel
 from slamreplay.recorder.writer import METADATA_NAME
+from slamreplay.replay.engine.pipeline import robots_in
+from slamreplay.replay.engine.reader import RecordingReader, check_framing, resolve_mcap_path
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.pipeline import robots_in
-from slamreplay.replay.reader import RecordingReader, check_framing, resolve_mcap_path
 
 
 def empty_contradiction(metadata: Mapping[str, Mapping[str, str]], topics: list[str]) -> str | None:
@@ -99,7 +99,8 @@ def inspect_recording(path: str | Path, topic_map: Mapping[str, str] | None = No
             for t in info.topics
         ],
         "metadata": info.metadata,
-        # what pipelines use where the user sets nothing (`slamreplay.replay.pipeline.resolve_layers`); None: not stated
+        # what pipelines use where the user sets nothing (`slamreplay.replay.engine.pipeline.resolve_layers`);
+        # None: not stated
         "sensor_model": models.pop(""),
         # a multi-robot recording (topics under /robotN/): each robot's model, by N
         "robot_sensor_models": models,

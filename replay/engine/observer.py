@@ -1,7 +1,7 @@
 """Observers that replay hands to pipelines and algorithms: Rerun (a run's ``.rrd``) and memory (tests).
 
 Replay sets the time (`set_time`) before each message; algorithms only ``log``. The Rerun
-observer turns observations into archetypes under the entity conventions of `slamreplay.replay.views`
+observer turns observations into archetypes under the entity conventions of `slamreplay.replay.engine.views`
 (which owns frames, colours and timelines) and, at the end, mirrors the final state of the
 map into the static ``summary/`` subtree that a run's first tab shows.
 """
@@ -33,8 +33,8 @@ from slamreplay.algorithms.observe import (
     State,
     Text,
 )
-from slamreplay.replay import views
-from slamreplay.replay.views import role_color
+from slamreplay.replay.engine import views
+from slamreplay.replay.engine.views import role_color
 
 
 def deterministic_batcher() -> rr.ChunkBatcherConfig:
