@@ -19,6 +19,7 @@ References
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
@@ -121,6 +122,8 @@ def _optimal_omega(ia: F64, ib: F64, criterion: Criterion, xatol: float) -> floa
         g = h = 0.0
         for li, wi in zip(lam, weight, strict=True):
             d = 1.0 + w * li
+            if d <= 0.0:  # only at w = 1 with a singular ib: C is unbounded there, the criterion rises to it
+                return math.inf, math.inf
             if det:
                 g -= li / d
                 h += li * li / (d * d)
@@ -146,3 +149,37 @@ def _optimal_omega(ia: F64, ib: F64, criterion: Criterion, xatol: float) -> floa
             return new
         w = new
     return 0.5 * (lo + hi)
+
+
+def covariance_intersection_update(mean: ArrayLike, cov: ArrayLike, innovation: ArrayLike, h: ArrayLike,
+                                   s: ArrayLike, criterion: Criterion = "det", angular: Sequence[int] = (),
+                                   xatol: float = 1e-10) -> CIResult:
+    """Covariance Intersection of an estimate ``(mean, cov)`` with an observation of part of it ([1]_, the
+    second paper: CI as a Kalman update whose observation error is correlated with the estimate in an unknown way).
+
+    The observation is linearized at ``mean``: ``innovation = z - h(mean)`` (m,), Jacobian ``h`` (m, n) and
+    covariance ``s`` (m, m), which carries everything in the observation that is not the state (sensor noise,
+    and the uncertainty of the map the observation is taken against). With ``I_z = H^T S^-1 H`` (rank m, possibly
+    below n), ``C^-1 = w cov^-1 + (1 - w) I_z`` and ``c = mean + (1 - w) C H^T S^-1 innovation``; ``w`` minimises
+    det(C) or trace(C) as in :func:`covariance_intersection` (``omega`` is the weight of the estimate). Whatever
+    the correlation between the estimate's error and the observation's, the result is consistent.
+    """
+    x = np.asarray(mean, dtype=np.float64)
+    n = len(x)
+    hm = np.asarray(h, dtype=np.float64)
+    nu = np.asarray(innovation, dtype=np.float64)
+    if hm.ndim != 2 or hm.shape[1] != n or nu.shape != (hm.shape[0],) or not np.all(np.isfinite(nu)):
+        raise ValueError(f"h must be (m, {n}) and innovation finite (m,), got {hm.shape} and {nu.shape}")
+    ia = _information("cov", np.asarray(cov, dtype=np.float64), n)
+    s_inv = _information("s", np.asarray(s, dtype=np.float64), len(nu))
+    iz = hm.T @ s_inv @ hm
+    iz = 0.5 * (iz + iz.T)
+    # the observation's information is singular when it sees part of the state: the weight is found with the
+    # estimate's (positive definite) information as the metric, and given back as the estimate's weight
+    omega = 1.0 - _optimal_omega(iz, ia, criterion, xatol)
+    c = np.linalg.inv(omega * ia + (1.0 - omega) * iz)
+    c = 0.5 * (c + c.T)
+    out = x + (1.0 - omega) * (c @ hm.T @ s_inv @ nu)
+    if angular:
+        out[list(angular)] = wrap_angle(out[list(angular)])
+    return CIResult(mean=out, cov=c, omega=omega)

@@ -8,16 +8,30 @@ then its end pose and features, with their covariance, are joined into the globa
 pose. Features are matched across local maps by their known ids (data association with the gates,
 for unknown ids, is not implemented: the filter refuses ``association="unknown"``).
 
-Between joins the robot's estimate is the global pose of the current local map's start frame
-composed with the local map's robot estimate; its covariance adds the start frame's marginal
+Between joins the robot's estimate in the paper is the global pose of the current local map's start
+frame composed with the local map's robot estimate; its covariance adds the start frame's marginal
 covariance (from the global information matrix) and the local one, independent of it because the
-local map starts with zero uncertainty ([1]_ eq. 13). A feature not yet joined is drawn the same way;
-one already in the global map keeps its global estimate until the local map that saw it again is joined.
+local map starts with zero uncertainty ([1]_ eq. 13): ``robot_estimate="composed"``. A feature not
+yet joined is drawn the same way; one already in the global map keeps its global estimate until the
+local map that saw it again is joined.
+
+Departure, ``robot_estimate="tracked"`` (the default): the composed robot sees the global map only at
+joins, so between them it drifts on its local map alone, and where sightings are sparse (MRCLAM: one
+landmark every few seconds) a local map holds little to hold it. The tracked robot is a pose filter in
+the global frame, predicted by odometry, updated at every scan by the sightings of features already in
+the global map (their joint covariance from the global information matrix added to the sensor noise),
+and fused with the composed estimate; both fusions are Covariance Intersection
+(:func:`~slamreplay.algorithms.common.ci.covariance_intersection_update`), as D-SLAM fuses its robot
+with the map ([2]_ section 2.3), because the map's and the robot's errors are correlated in an unknown
+way. Nothing flows back: the local maps and the global map are the paper's, whichever estimate the
+robot reports.
 
 References
 ----------
 .. [1] S. Huang, Z. Wang, G. Dissanayake, "Sparse local submap joining filter for building large-scale
    maps", IEEE Transactions on Robotics 24(5), 2008.
+.. [2] Z. Wang, S. Huang, G. Dissanayake, "Implementation issues and experimental evaluation of D-SLAM",
+   FSR 2005.
 """
 
 from __future__ import annotations
@@ -25,17 +39,21 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.common import motion, rangebearing, se2
+from slamreplay.algorithms.common.ci import covariance_intersection, covariance_intersection_update
 from slamreplay.algorithms.ekfslam import EkfSlam, EkfSlamConfig
 from slamreplay.algorithms.observe import NULL_OBSERVER, Observer, Scalar
 from slamreplay.algorithms.slsjf.joining import GlobalMap, Linearization
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
+RobotEstimate = Literal["tracked", "composed"]
+FLOOR = 1e-12  # m^2, rad^2: added to a covariance that is exactly zero (the start) before a fusion
 
 
 @dataclass(frozen=True, slots=True)
@@ -47,11 +65,14 @@ class SlsjfConfig:
     local_map_distance_m: float = 30.0
     linearization: Linearization = "iterated"
     max_iterations: int = 10
+    robot_estimate: RobotEstimate = "tracked"  # "composed": the paper's (eq. 13); module docstring
 
     def __post_init__(self) -> None:
         if self.local.association != "known":
             raise ValueError("SLSJF matches features across local maps by their ids: association must be 'known' "
                              "(unknown ids across local maps are not implemented)")
+        if self.robot_estimate not in ("tracked", "composed"):
+            raise ValueError(f"robot_estimate must be 'tracked' or 'composed', got {self.robot_estimate!r}")
         if self.local_map_scans < 1 or not self.local_map_distance_m > 0:
             raise ValueError(f"local_map_scans must be >= 1 and local_map_distance_m > 0, got "
                              f"{self.local_map_scans} and {self.local_map_distance_m}")
@@ -107,6 +128,9 @@ class Slsjf:
         self.gated = 0  # local feature estimates left out at a join (outside the outlier gate)
         self._clock = clock
         self.profile: dict[str, list[float]] = {}
+        self._track = np.zeros(3)  # the tracked robot (robot_estimate="tracked") in the global frame
+        self._track_cov = np.zeros((3, 3))
+        self.tracked_sightings = 0  # sightings of global features used by the tracked robot
 
     # -- the EkfSlam-like interface the landmark pipelines use
     @property
@@ -115,10 +139,19 @@ class Slsjf:
 
     @property
     def pose(self) -> F64:
-        return se2.compose(self._start_pose, self.local.pose)
+        return self._track.copy() if self.config.robot_estimate == "tracked" else self.composed_pose
 
     @property
     def pose_cov(self) -> F64:
+        return self._track_cov.copy() if self.config.robot_estimate == "tracked" else self.composed_cov
+
+    @property
+    def composed_pose(self) -> F64:
+        """The current local map's start frame composed with its robot estimate ([1]_ eq. 13)."""
+        return se2.compose(self._start_pose, self.local.pose)
+
+    @property
+    def composed_cov(self) -> F64:
         return compose_cov(self._start_pose, self._start_cov, self.local.pose, self.local.pose_cov)
 
     @property
@@ -169,6 +202,9 @@ class Slsjf:
     def predict(self, increment: ArrayLike) -> None:
         u = np.asarray(increment, np.float64)
         self.local.predict(u)
+        if self.config.robot_estimate == "tracked":
+            q = self.config.local.odometry_noise.covariance(u)
+            self._track, self._track_cov, _ = motion.predict(self._track, self._track_cov, u, q)
         self.local_distance_m += float(math.hypot(u[0], u[1]))
         if self.local_distance_m >= self.config.local_map_distance_m:
             self.join()
@@ -193,11 +229,52 @@ class Slsjf:
                 self.feature_ids.append(fid)
                 new.append(self.by_id[fid])
             features[j] = self.by_id[fid]
-        pose, pose_cov = self.pose, self.pose_cov
         joined = self.local_scans >= self.config.local_map_scans
+        if self.config.robot_estimate == "tracked":
+            self._track_update(ranges, bearings, ids_arr, range_sigma, bearing_sigma)
+        pose, pose_cov = self.pose, self.pose_cov
         if joined:
             self.join()
         return SlsjfScanResult(pred, pred_cov, pose, pose_cov, features, tuple(new), joined)
+
+    def _track_update(self, ranges: ArrayLike, bearings: ArrayLike, ids: I64, range_sigma: float,
+                      bearing_sigma: float) -> None:
+        """The tracked robot: CI-updated by this scan's sightings of global features, then CI-fused with the
+        composed estimate (module docstring)."""
+        r, b = rangebearing.check_scan(ranges, bearings)
+        sr = range_sigma if range_sigma > 0 else self.config.local.default_range_sigma_m
+        sb = bearing_sigma if bearing_sigma > 0 else self.config.local.default_bearing_sigma_rad
+        r_cov = np.diag([sr**2, sb**2])
+        gate = self.config.local.association_params.outlier_gate
+        x, p = self._track, self._track_cov + FLOOR * np.eye(3)
+        seen = [(j, self.by_id[int(i)]) for j, i in enumerate(ids.tolist())
+                if int(i) in self.by_id and self.map.has_feature(self.by_id[int(i)])]
+        if seen:
+            gs = [g for _, g in seen]
+            xy = np.array([self.map.feature(g) for g in gs])
+            joint = self.map.joint_feature_covariance(gs)
+            z_pred, h_r, h_l = rangebearing.predict(x, xy)
+            js = [j for j, _ in seen]
+            nu = np.stack([r[js], b[js]], -1) - z_pred
+            nu[:, 1] = se2.wrap_angle(nu[:, 1])
+            keep = []
+            for k in range(len(gs)):  # the known-id outlier gate on each sighting alone
+                s_k = h_r[k] @ p @ h_r[k].T + h_l[k] @ joint[2 * k:2 * k + 2, 2 * k:2 * k + 2] @ h_l[k].T + r_cov
+                if not np.isfinite(gate) or float(nu[k] @ np.linalg.solve(s_k, nu[k])) <= gate:
+                    keep.append(k)
+            if keep:
+                rows = (2 * np.array(keep)[:, None] + np.arange(2)).reshape(-1)
+                hl = np.zeros((2 * len(keep), 2 * len(keep)))
+                for n, k in enumerate(keep):
+                    hl[2 * n:2 * n + 2, 2 * n:2 * n + 2] = h_l[k]
+                s = hl @ joint[np.ix_(rows, rows)] @ hl.T + np.kron(np.eye(len(keep)), r_cov)
+                fused = covariance_intersection_update(x, p, nu[keep].reshape(-1), h_r[keep].reshape(-1, 3), s,
+                                                       angular=(2,))
+                x, p = fused.mean, fused.cov
+                self.tracked_sightings += len(keep)
+        fused = covariance_intersection(x, p, self.composed_pose, self.composed_cov + FLOOR * np.eye(3),
+                                        angular=(2,))
+        self._track, self._track_cov = fused.mean, fused.cov
 
     def _gate(self, features: I64, z: F64, P: F64) -> NDArray[np.bool_]:
         """Which local features to join: a feature already in the global map whose local estimate is outside the

@@ -81,9 +81,11 @@ def test_noisy_joining_recovers_the_truth_within_its_covariance() -> None:
 
 
 def test_one_unending_local_map_is_ekf_slam() -> None:
-    """With local maps larger than the run, SLSJF is EkfSlam on the same inputs, to rounding."""
+    """With local maps larger than the run, SLSJF (the paper's composed robot) is EkfSlam on the same inputs, to
+    rounding."""
     cfg = EkfSlamConfig()
-    ekf, sl = EkfSlam(cfg), Slsjf(SlsjfConfig(cfg, local_map_scans=10**6, local_map_distance_m=1e9))
+    ekf = EkfSlam(cfg)
+    sl = Slsjf(SlsjfConfig(cfg, local_map_scans=10**6, local_map_distance_m=1e9, robot_estimate="composed"))
     rng = np.random.default_rng(3)
     for k in range(40):
         u = np.array([0.2, 0.0, 0.05]) + rng.normal(0, 0.01, 3)
@@ -116,9 +118,48 @@ def test_bad_settings_are_refused() -> None:
         SlsjfConfig(EkfSlamConfig(association="unknown"))
     with pytest.raises(ValueError, match="local_map_scans"):
         SlsjfConfig(local_map_scans=0)
+    with pytest.raises(ValueError, match="robot_estimate"):
+        SlsjfConfig(robot_estimate="smoothed")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="linearization"):
         GlobalMap("twice")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="3 \\+ 2m"):
         GlobalMap().join(-1, np.zeros(3), np.array([0]), np.zeros(3), np.eye(3))
     with pytest.raises(ValueError, match="ids"):
         Slsjf().observe([3.0], [0.1], None)
+
+
+def _circling(robot_estimate: str, seed: int) -> tuple[float, float]:
+    """A robot circling (radius 6 m) inside eight landmarks (radius 10 m), seeing only the nearest one every third
+    step, local maps of 15 scans: the position RMSE and mean NEES of its estimate over the second half."""
+    rng = np.random.default_rng(seed)
+    cfg = EkfSlamConfig()
+    marks = np.array([[10 * np.cos(a), 6 + 10 * np.sin(a)] for a in np.linspace(0, 2 * np.pi, 9)[:-1]])
+    sl = Slsjf(SlsjfConfig(cfg, local_map_scans=15, robot_estimate=robot_estimate))  # type: ignore[arg-type]
+    truth, errs, nees = np.zeros(3), [], []
+    u = np.array([0.2, 0.0, 0.2 / 6.0])
+    for k in range(600):
+        truth = se2.compose(truth, u)
+        sl.predict(u + rng.multivariate_normal(np.zeros(3), cfg.odometry_noise.covariance(u)))
+        if k % 3 == 0:
+            i = int(np.argmin(np.linalg.norm(marks - truth[:2], axis=1)))
+            d = marks[i] - truth[:2]
+            bearing = np.arctan2(d[1], d[0]) - truth[2] + rng.normal(0, cfg.default_bearing_sigma_rad)
+            sl.observe([np.hypot(*d) + rng.normal(0, cfg.default_range_sigma_m)], [se2.wrap_angle(bearing)], [i])
+        if k >= 300:
+            e = sl.pose - truth
+            e[2] = se2.wrap_angle(e[2])
+            errs.append(e[0] ** 2 + e[1] ** 2)
+            nees.append(float(e @ np.linalg.solve(sl.pose_cov, e)))
+    return float(np.sqrt(np.mean(errs))), float(np.mean(nees))
+
+
+def test_the_tracked_robot_uses_the_global_map_between_joins() -> None:
+    """Sightings of one landmark at a time: the robot tracked against the global map (CI) is closer to the truth
+    than the paper's composed robot on each of four seeds (measured: 0.16/0.31/0.14/0.20 m against
+    0.20/0.42/0.22/0.29 m) and stays consistent, on the conservative side as CI is (mean NEES 1.4-2.8 for 3 dof)."""
+    tracked = [_circling("tracked", s) for s in range(4)]
+    composed = [_circling("composed", s) for s in range(4)]
+    for (t_rmse, _), (c_rmse, _) in zip(tracked, composed, strict=True):
+        assert t_rmse < 0.9 * c_rmse
+    nees = float(np.mean([n for _, n in tracked]))
+    assert 1.0 < nees < 4.0  # chi2(3) has mean 3; CI trades some of it for consistency under unknown correlation
