@@ -11,6 +11,7 @@ DATA   ?= ../shared/data
 ARGS   ?=
 
 .PHONY: venv demo serve test test-ray test-docs test-pythons test-viewer test-browser snapshots readme-figures fuzz viewer-deps lint bench cholmod clean
+.PHONY: examples test-examples
 
 venv: $(STAMP)
 
@@ -37,6 +38,19 @@ serve: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -n 2 -q -m "not ray and not docs and not viewer and not browser" $(ARGS)
+
+# The compiled external-pipeline example (docs/external.md), built with Debian's C compiler: installed with
+# apt-get when there is none, as test-browser installs chromium. test-examples runs its tests with it.
+EXAMPLE_C := examples/external_c/build/deadreckon
+examples: $(EXAMPLE_C)
+
+$(EXAMPLE_C): examples/external_c/deadreckon.c
+	@command -v cc >/dev/null || { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q gcc libc6-dev; }
+	mkdir -p $(dir $@)
+	cc -O2 -std=c99 -Wall -Wextra -o $@ $< -lm
+
+test-examples: $(STAMP) examples
+	$(BIN)/python -m pytest -q tests/replay/test_external_examples.py $(ARGS)
 
 # The headless Rerun viewer draws with Vulkan; without a GPU, Mesa's software rasterizer (lavapipe).
 VIEWER_DEBS := mesa-vulkan-drivers libvulkan1 libegl1

@@ -17,8 +17,10 @@ from typing import Any
 # Only light modules here (a test checks it): the parser is built before every command, --help included, and
 # each command imports the heavy stack (numpy, rerun, mcap, fastapi ...) in its function.
 from slamreplay.api.cli_parser import SuggestingParser, VersionAction, command_of
+from slamreplay.api.external_cli import add_external_parsers
 from slamreplay.api.graph_cli import add_graph_parser
 from slamreplay.api.hints import spell_commands, tool, view_hint
+from slamreplay.api.history_cli import add_history_parsers
 from slamreplay.api.pipelines_cli import add_pipelines_parser
 from slamreplay.api.progress import progress_bar
 from slamreplay.api.suite_cli import add_suite_parsers
@@ -210,6 +212,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     from slamreplay.replay.runs.run import run_recording
 
     config = {**_load_config_file(args.config), **parse_assignments(args.set)}
+    if args.check_determinism:
+        from slamreplay.api.external_cli import determinism_config
+
+        config.update(determinism_config(args.pipeline))
     with progress_bar(f"run {args.pipeline} on {Path(args.file).name}", args.quiet, unit="messages") as update:
         result = run_recording(args.file, args.pipeline, args.out, seed=args.seed, config=config,
                                topic_map=_parse_pairs(args.topic_map, "--topic-map"),
@@ -416,6 +422,9 @@ def build_parser(command: str | None = None) -> SuggestingParser:
     run.add_argument("--end-ns", type=int, default=None, help="replay up to this log time (exclusive)")
     run.add_argument("--log-timings", action="store_true",
                      help="also log per-step wall-clock durations to run.rrd (timings/step_ms)")
+    run.add_argument("--check-determinism", action="store_true",
+                     help="external pipelines: run the program twice and record whether its outputs are identical "
+                          "(docs/external.md; the same as --set check_determinism=true)")
     run.set_defaults(func=cmd_run)
 
     nv = sub.add_parser("navigate", parents=[quiet],
@@ -547,6 +556,8 @@ def build_parser(command: str | None = None) -> SuggestingParser:
 
     add_graph_parser(sub)
     add_suite_parsers(sub, quiet)
+    add_history_parsers(sub, quiet)
+    add_external_parsers(sub, quiet)
     return p
 
 

@@ -19,6 +19,12 @@ class ApiError(Exception):
         self.extra = extra
 
 
+class ForbiddenError(ApiError):
+    """The service's operator does not allow this (an external pipeline: SLAMREPLAY_ALLOW_EXTERNAL_PIPELINES)."""
+
+    status = 403
+
+
 class NotFoundError(ApiError):
     """An id that names nothing."""
 

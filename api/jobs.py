@@ -208,6 +208,12 @@ class JobService:
         from slamreplay.api.submit_checks import check_fit, parse_topic_map
 
         pipeline_cls = get_pipeline(pipeline)
+        if getattr(pipeline_cls, "declaration", None) is not None and not self.settings.allow_external_pipelines:
+            from slamreplay.api.errors import ForbiddenError
+
+            raise ForbiddenError(f"pipeline {pipeline} is an external program (docs/external.md); this service runs "
+                                 f"external pipelines only when its operator allows it "
+                                 f"(SLAMREPLAY_ALLOW_EXTERNAL_PIPELINES=true)")
         resolve_config(pipeline_cls, config)
         try:
             json.dumps(config, allow_nan=False)

@@ -83,7 +83,10 @@ def cmd_pipelines(args: argparse.Namespace) -> int:
     if args.name is not None:  # a mistyped NAME is told from the entry points' names, before any pipeline loads
         from importlib.metadata import entry_points
 
+        from slamreplay.replay.engine.declared import declaration_files
+
         names = sorted({ep.name for ep in entry_points(group="slamreplay.pipelines")})
+        names = [] if declaration_files() else names  # declared pipelines (docs/external.md) are checked below
         if names and args.name not in names:
             raise ReplayError(f"unknown pipeline {args.name!r}{did_you_mean(args.name, names, True)}; known "
                               f"pipelines: {', '.join(names)}")

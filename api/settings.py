@@ -25,6 +25,8 @@
 | ``SLAMREPLAY_BODY_TIMEOUT_S`` | ``30`` | longest wait for the next bytes of a request body, else 408 and closed |
 | ``SLAMREPLAY_MIN_BODY_RATE`` | ``1024`` | lowest average body rate in bytes/s, checked from ``BODY_TIMEOUT_S`` |
 | | | after the request's start, else 408 (0: no rate) |
+| ``SLAMREPLAY_ALLOW_EXTERNAL_PIPELINES`` | ``false`` | run jobs of external pipelines (programs declared in TOML by |
+| | | the operator, ``SLAMREPLAY_PIPELINES``: docs/external.md); otherwise such a job is refused with 403 |
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ from slamreplay.api.timeouts import BODY_TIMEOUT_S, HEADER_TIMEOUT_S, MIN_BODY_R
 ENV_PREFIX = "SLAMREPLAY_"
 ENV_FIELDS = ("data_dir", "token", "workers", "max_upload_bytes", "executor", "ray_address", "storage_url",
               "job_memory_mib", "job_timeout_s", "allowed_hosts", "header_timeout_s", "body_timeout_s",
-              "min_body_rate")
+              "min_body_rate", "allow_external_pipelines")
 LIST_FIELDS = ("allowed_hosts",)  # comma-separated in the environment
 
 
@@ -65,6 +67,7 @@ class Settings(BaseModel):
     header_timeout_s: float = Field(default=HEADER_TIMEOUT_S, gt=0)
     body_timeout_s: float = Field(default=BODY_TIMEOUT_S, gt=0)
     min_body_rate: int = Field(default=MIN_BODY_RATE, ge=0)
+    allow_external_pipelines: bool = False  # programs declared in TOML run only when the operator says so
 
     @field_validator("allowed_hosts")
     @classmethod

@@ -29,6 +29,8 @@ from starlette.concurrency import run_in_threadpool
 from slamreplay.api.compare_web import router as compare_router
 from slamreplay.api.deps import JobsDep, RecordingsDep, SettingsDep, rrd_key
 from slamreplay.api.errors import ApiError, UnauthorizedError
+from slamreplay.api.history_routes import page as history_page_router
+from slamreplay.api.history_routes import router as history_router
 from slamreplay.api.idprefix import IdPrefixes
 from slamreplay.api.job_web import install_job_files
 from slamreplay.api.job_web import job_ctx as _job_ctx  # the job page's parts (api/job_web.py)
@@ -245,6 +247,8 @@ def install_web(app: FastAPI) -> None:
     app.state.suites = SuiteService(app.state.jobs)
     app.add_exception_handler(LoginRequiredError, login_required)
     app.include_router(suites_router)
+    app.include_router(history_router)  # GET /history/suites/{name}, /ui/history/{name} (api/history_routes.py)
+    app.include_router(history_page_router)
     app.include_router(public)
     app.include_router(runs_router)  # the runs table at / and /runs (api/runs_web.py)
     app.include_router(install_job_files([web_session]))  # a run's files, for its page

@@ -18,6 +18,15 @@ settings.register_profile("explore", derandomize=False)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "repeatable"))
 
 
+@pytest.fixture(autouse=True)
+def _no_declared_pipelines(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each test starts without $SLAMREPLAY_PIPELINES and leaves none behind: a suite with ``declarations`` adds
+    its files to the process's environment (for the workers it starts), which would leak into the next test of
+    the same worker. setenv records the variable's absence; its undo, last, removes whatever a test set."""
+    monkeypatch.setenv("SLAMREPLAY_PIPELINES", "")
+    monkeypatch.delenv("SLAMREPLAY_PIPELINES")
+
+
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--update-golden", action="store_true", help="rewrite tests/golden/ from this run")
 

@@ -38,6 +38,7 @@ class ReplayStats:
     # for evaluation.score, which adds the trajectory metrics; None when there is none
     trajectory: tuple[np.ndarray, np.ndarray] | None = None
     truth: tuple[np.ndarray, np.ndarray] | None = None
+    provenance: dict[str, Any] = field(default_factory=dict)  # Pipeline.provenance: manifest.json's pipeline_run
 
 
 def check_topics(reader: RecordingReader, pipeline: type[Pipeline]) -> list[str]:
@@ -176,7 +177,8 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
     truth = (np.asarray(t_gt, np.int64), np.stack(gt).astype(np.float64)) if t_gt else None
     return ReplayStats(metrics, n, np.asarray(durations) if log_timings else None,
                        np.asarray(times, np.int64) if log_timings else None, pipeline.timings(),
-                       {**trajectory_artifacts(trajectory), **pipeline.artifacts()}, trajectory, truth)
+                       {**trajectory_artifacts(trajectory), **pipeline.artifacts()}, trajectory, truth,
+                       pipeline.provenance())
 
 
 def text_logger(observer: ReplayObserver, lines: list[str]) -> Callable[[str], None]:

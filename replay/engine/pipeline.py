@@ -27,6 +27,7 @@ from slamreplay.recorder.plugins import Plugin, discover, missing_builtins_hint
 from slamreplay.recorder.sensor_model import SensorModel
 from slamreplay.recorder.writer import METADATA_NAME
 from slamreplay.replay.engine import views
+from slamreplay.replay.engine.declared import DECLARED, DeclaredPlugin, declared_pipelines
 from slamreplay.replay.engine.reader import ROBOT_NAMESPACE, Envelope, RecordingInfo, topic_type
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import (  # noqa: F401  (MetricSpec's import path for plugins)
@@ -115,6 +116,11 @@ class Pipeline(ABC):
         """Wall-clock timings of the pipeline's own (seconds), for manifest.json only; none by default."""
         return {}
 
+    def provenance(self) -> dict[str, Any]:
+        """What this replay did besides its config, for manifest.json under ``pipeline_run`` (called after
+        ``finish``; none by default): an external program's command, version and determinism check."""
+        return {}
+
     def artifacts(self) -> dict[str, bytes]:
         """Extra files for the run directory, by file name (called after ``finish``; none by default).
 
@@ -170,8 +176,16 @@ def _check_pipeline(name: str, obj: Any) -> str | None:
 
 
 def pipeline_plugins() -> dict[str, Plugin]:
-    """Every pipeline entry point (group ``slamreplay.pipelines``), built-in or a user's, working or broken."""
-    return discover(PIPELINE_GROUP, _check_pipeline)
+    """Every pipeline entry point (group ``slamreplay.pipelines``), built-in or a user's, working or broken, and
+    every pipeline declared in a TOML file (`declared_pipelines`: external programs)."""
+    found = discover(PIPELINE_GROUP, _check_pipeline)
+    declared = declared_pipelines(PIPELINE_GROUP, _check_pipeline)
+    if not declared:
+        return found
+    for name, plugin in declared.items():
+        if name in found and isinstance(plugin, DeclaredPlugin) and plugin.error is None:
+            plugin.refuse(f"has the name of an installed pipeline ({found[name].origin}): rename it")
+    return {**found, **declared}
 
 
 def get_pipeline(name: str) -> type[Pipeline]:
@@ -192,6 +206,9 @@ def get_pipeline(name: str) -> type[Pipeline]:
 def pipeline_origin(name: str) -> dict[str, str]:
     """Where pipeline ``name`` comes from: its distribution, version and entry point (for run manifests)."""
     p = pipeline_plugins()[name]
+    if isinstance(p, DeclaredPlugin):
+        return dict(getattr(p.load(), "declared_origin", {})) or {"distribution": DECLARED, "version": "",
+                                                                  "entry_point": f"{p.path}:{name}"}
     return {"distribution": p.distribution, "version": p.version, "entry_point": p.value}
 
 

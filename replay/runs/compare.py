@@ -40,7 +40,7 @@ import numpy as np
 from scipy import stats
 
 from slamreplay.recorder.options import did_you_mean
-from slamreplay.replay.runs.diff import direction_verdict, judge_metric
+from slamreplay.replay.runs.diff import determinism_of, direction_verdict, judge_metric
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import direction_label, target_distance
 from slamreplay.replay.runs.suite_run import add_metrics, read_results, unfinished
@@ -101,6 +101,7 @@ class Comparison:
     only_a: list[str] = field(default_factory=list)
     only_b: list[str] = field(default_factory=list)
     failures: list[dict[str, Any]] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)  # e.g. cells whose program is not deterministic
 
     @property
     def regressions(self) -> list[MetricResult]:
@@ -109,7 +110,7 @@ class Comparison:
     def to_json(self) -> dict[str, Any]:
         return {"a": self.a.label, "b": self.b.label, "code_versions": {"a": self.a.code_versions,
                 "b": self.b.code_versions}, "commits": self.commits, "changes": self.changes,
-                "only_in_a": self.only_a, "only_in_b": self.only_b, "failures": self.failures,
+                "only_in_a": self.only_a, "only_in_b": self.only_b, "failures": self.failures, "notes": self.notes,
                 "results": [asdict(r) for r in self.results],
                 "regressions": [f"{r.recording}/{r.pipeline}/{r.variant}: {r.metric}" for r in self.regressions]}
 
@@ -133,6 +134,8 @@ def _run_row(run_dir: Path) -> dict[str, Any]:
                            "recording_sha256": rec.get("sha256"), "status": manifest.get("status"),
                            "error": manifest.get("error"), "code_version": manifest.get("slamreplay", {}).get(
                                "git_commit"), "metrics": {}, "better": {}, "tolerance": {}, "units": {}}
+    if (deterministic := determinism_of(manifest)) is not None:
+        out["deterministic"] = deterministic
     if out["status"] == "succeeded":
         try:
             metrics = json.loads((run_dir / "metrics.json").read_text())["metrics"]
@@ -303,6 +306,10 @@ def compare(a: Side, b: Side, tolerances: Mapping[str, str] | None = None) -> Co
     for lib in sorted(set(a.libraries) | set(b.libraries)):
         if a.libraries.get(lib) != b.libraries.get(lib):
             out.changes.append({"field": f"library {lib}", "a": a.libraries.get(lib), "b": b.libraries.get(lib)})
+    flaky = sorted({"/".join(_key(r)) for r in (*a.rows, *b.rows) if r.get("deterministic") is False})
+    if flaky:
+        out.notes.append(f"not deterministic (--check-determinism: two runs on the same input differed): "
+                         f"{', '.join(flaky)}; their verdicts rest on the spread over seeds and the tolerances")
     return out
 
 
@@ -323,6 +330,7 @@ def format_table(c: Comparison) -> str:
                      f"{fmt(r.delta, signed=True):>11} {fmt(r.p_value, 3):>7}  {verdict}")
     for f in c.failures:
         lines.append(f"failed in {f['side']}: {f['cell']} seeds {f['seeds']}: {f['error']}")
+    lines += [f"note: {n}" for n in c.notes]
     if c.only_a or c.only_b:
         lines.append(f"not compared: only in A: {', '.join(c.only_a) or '-'}; only in B: {', '.join(c.only_b) or '-'}")
     reg = c.regressions

@@ -56,6 +56,7 @@ class RunDiff:
     metrics: list[MetricDelta] = field(default_factory=list)
     rrd_equal: bool | None = None
     rrd_detail: str = ""
+    notes: list[str] = field(default_factory=list)  # e.g. a run found not deterministic (docs/external.md)
 
     @property
     def worse(self) -> list[str]:
@@ -63,7 +64,7 @@ class RunDiff:
 
     def to_json(self) -> dict[str, Any]:
         return {"a": self.a, "b": self.b, "changes": self.changes, "metrics": [asdict(m) for m in self.metrics],
-                "worse": self.worse, "rrd_equal": self.rrd_equal, "rrd_detail": self.rrd_detail}
+                "worse": self.worse, "rrd_equal": self.rrd_equal, "rrd_detail": self.rrd_detail, "notes": self.notes}
 
 
 def load_run(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -186,13 +187,18 @@ def diff_runs(a_dir: str | Path, b_dir: str | Path, tolerances: Mapping[str, str
         raise ReplayError(f"--tolerance names unknown metrics: {', '.join(sorted(unknown))}{hint}; "
                           f"the runs have: {', '.join(sorted(known))}")
     out = RunDiff(str(a_dir), str(b_dir))
+    for side, m in (("A", ma), ("B", mb)):
+        if determinism_of(m) is False:
+            out.notes.append(f"run {side} is not deterministic (--check-determinism: two runs of its program on the "
+                             f"same input differed): a metric change within the tolerances is noise, and the run.rrd "
+                             f"content is not expected to match; compare over seeds (`slamreplay compare`)")
     for key in MANIFEST_FIELDS:
         va, vb = _get(ma, key), _get(mb, key)
         if va != vb:
             out.changes.append({"field": key, "a": va, "b": vb})
     oa, ob = ma.get("pipeline_origin"), mb.get("pipeline_origin")
     if oa and ob:  # where the pipeline came from (a plugin's distribution and version); older runs lack it
-        for key in ("distribution", "version"):
+        for key in ("distribution", "version", "executable_sha256"):  # the last: an external program's (external.md)
             if oa.get(key) != ob.get(key):
                 out.changes.append({"field": f"pipeline_origin.{key}", "a": oa.get(key), "b": ob.get(key)})
     for section in ("config", "libraries"):
@@ -250,9 +256,18 @@ def formatted(m: MetricDelta) -> tuple[str, str, str]:
     return fa, fb, fd
 
 
+def determinism_of(manifest: Mapping[str, Any]) -> bool | None:
+    """Whether a run's program was found deterministic (``--check-determinism``); None when not checked."""
+    run = manifest.get("pipeline_run")
+    det = run.get("determinism") if isinstance(run, Mapping) else None
+    value = det.get("deterministic") if isinstance(det, Mapping) else None
+    return value if isinstance(value, bool) else None
+
+
 def format_table(diff: RunDiff) -> str:
     """Human-readable diff."""
     lines = [f"A: {diff.a}", f"B: {diff.b}", ""]
+    lines += [f"note: {n}" for n in diff.notes] + ([""] if diff.notes else [])
     if diff.changes:
         lines.append("What changed:")
         for c in diff.changes:

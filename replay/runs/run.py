@@ -199,7 +199,7 @@ def _check_robot_chosen(reader: RecordingReader, pipeline_cls: type[Pipeline], r
                           f"{', '.join(robots)}); pipeline {pipeline_cls.name} replays one: choose it with --robot N")
 
 
-def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, seed: int = 0,
+def run_recording(recording: str | Path, pipeline: str | type[Pipeline], out_dir: str | Path, *, seed: int = 0,
                   config: Mapping[str, Any] | None = None, topic_map: Mapping[str, str] | None = None,
                   start_ns: int | None = None, end_ns: int | None = None, log_timings: bool = False,
                   progress: Progress | None = None, run_id: str | None = None,
@@ -220,7 +220,10 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
         ``error``) and log before the error is raised.
     """
     recording, out_dir = Path(recording), Path(out_dir)
-    pipeline_cls = get_pipeline(pipeline)
+    # a class: a pipeline made for this run (`slamreplay evaluate`), its origin in its ``declared_origin``
+    pipeline_cls = pipeline if isinstance(pipeline, type) else get_pipeline(pipeline)
+    pipeline = pipeline_cls.name
+    origin = getattr(pipeline_cls, "declared_origin", None) or pipeline_origin(pipeline)
     resolve_layers(pipeline_cls, config, preset=preset)  # bad keys, values and presets fail before anything is written
     check_recording(recording)  # so does an input that is missing or not a recording: no failed run dir for a typo
     prepare_run_dir(out_dir)
@@ -231,7 +234,7 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
     manifest: dict[str, Any] = {
         "format": MANIFEST_FORMAT, "run_id": run_id, "status": "running", "error": None,
         "recording": {"path": str(recording.resolve()), "sha256": None, "topic_map": dict(topic_map or {})},
-        "pipeline": pipeline, "pipeline_origin": pipeline_origin(pipeline),
+        "pipeline": pipeline, "pipeline_origin": dict(origin),
         "config": None, "config_hash": None, "config_sources": None, "preset": preset,
         "seed": seed,
         "window_ns": {"start": start_ns, "end": end_ns},
@@ -281,6 +284,8 @@ def run_recording(recording: str | Path, pipeline: str, out_dir: str | Path, *, 
             observer.send_series("timings/step_ms", np.arange(len(stats.step_durations_s)), stats.step_times_ns,
                                  stats.step_durations_s * 1e3)
         manifest["messages_replayed"] = stats.messages
+        if stats.provenance:
+            manifest["pipeline_run"] = stats.provenance
         log(f"finished: {stats.messages:,} messages replayed; " + (", ".join(
             f"{k} {v:.4g}" for k, v in sorted(values.items())) or "no metric applies"))
         specs = metric_specs(pipeline_cls)

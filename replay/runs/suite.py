@@ -45,10 +45,11 @@ else:  # Python 3.10: the same parser, as the tomli package
 
 from slamreplay.recorder.options import did_you_mean, typed_fields
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.engine.declared import use_declarations
 from slamreplay.replay.engine.pipeline import get_pipeline, resolve_config
 
 SIMULATORS = ("sim-landmarks", "sim-seabed", "sim-corridor")
-TOP_KEYS = {"seeds", "recordings", "pipelines", "name"}
+TOP_KEYS = {"seeds", "recordings", "pipelines", "name", "declarations"}
 RECORDING_KEYS = {"path", "url", "sim", "args", "seeds", "topic_map"}
 ID_RECORDING_KEYS = {"id"}  # a suite sent to the service names uploaded recordings by id, nothing else
 PIPELINE_KEYS = {"variants", "config", "preset"}
@@ -337,6 +338,17 @@ def _pipeline(chk: _Checker, name: str, doc: Any) -> dict[str, dict[str, Any]]:
     return variants
 
 
+def _declarations(chk: _Checker, value: Any, base: Path) -> None:
+    """``declarations = ["file.toml", ...]``: pipeline declaration files, used from here on (and by workers)."""
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise chk.fail(["declarations"], f"must be a list of declaration file paths, got {value!r}")
+    files = [base / v for v in value]
+    for v, f in zip(value, files, strict=True):
+        if not f.is_file():
+            raise chk.fail(["declarations"], f"{v}: no such file (paths are relative to the suite file)")
+    use_declarations(files)
+
+
 def parse_suite(text: str, path: Path, *, ids: Callable[[str], Path] | None = None, fmt: str = "toml") -> Suite:
     """Validate a suite's TOML ``text`` (from ``path``, the base of relative recording paths).
 
@@ -368,6 +380,11 @@ def parse_suite(text: str, path: Path, *, ids: Callable[[str], Path] | None = No
     if not pipes:
         raise chk.fail([], "names no pipelines: add a [pipelines.NAME] table (see `slamreplay pipelines`)")
     base = path.resolve().parent
+    if "declarations" in doc:  # files declaring external pipelines (docs/external.md), relative to the suite file
+        if ids is not None:
+            raise chk.fail(["declarations"], "a suite sent to the service cannot declare pipelines: its operator "
+                                             "declares them (SLAMREPLAY_PIPELINES, docs/external.md)")
+        _declarations(chk, doc["declarations"], base)
     recordings = {name: _recording(chk, name, d, base, ids) for name, d in recs.items()}
     pipelines = {name: _pipeline(chk, name, d) for name, d in pipes.items()}
     name = doc.get("name", path.stem)

@@ -35,6 +35,7 @@ from slamreplay.recorder.files import atomic_write, replacing
 from slamreplay.recorder.version import SOURCE_ROOT, git_commit, version
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import normalize
+from slamreplay.replay.runs.diff import determinism_of
 from slamreplay.replay.runs.run import sha256_file
 from slamreplay.replay.runs.suite import Cell, RecordingSpec, Suite, canonical, sim_config_class, sim_kwargs
 
@@ -182,7 +183,24 @@ def cell_key(cell: Cell, recording: Recording, code: str) -> str:
     """sha256 of the cell's inputs (see the module docstring)."""
     doc = {"recording_sha256": recording.sha256, "pipeline": cell.pipeline, "config": cell.config,
            "seed": cell.seed, "topic_map": recording.topic_map, "code_version": code}
+    program = _external_program(cell.pipeline)
+    if program:  # an external pipeline (docs/external.md): its program is an input too (a rebuild is a new run)
+        doc["program"] = program
     return hashlib.sha256(canonical(doc).encode()).hexdigest()
+
+
+def _external_program(pipeline: str) -> dict[str, Any]:
+    """An external pipeline's version, executable, files and declaration hashes; {} for any other pipeline."""
+    from slamreplay.replay.engine.declared import DeclaredPlugin
+    from slamreplay.replay.engine.pipeline import pipeline_origin, pipeline_plugins
+
+    if not isinstance(pipeline_plugins().get(pipeline), DeclaredPlugin):
+        return {}
+    try:
+        origin = pipeline_origin(pipeline)
+    except (KeyError, ReplayError):
+        return {}
+    return {k: origin.get(k) for k in ("version", "executable_sha256", "files_sha256", "declaration_sha256")}
 
 
 def plan(suite: Suite, recordings: dict[tuple[str, int | None], Recording], out: Path, code: str
@@ -239,6 +257,8 @@ def row(job: CellJob, code: str, error: str | None = None, cached: bool = False)
     out.update(status=manifest.get("status", "failed"), error=manifest.get("error") or error,
                config_hash=manifest.get("config_hash"), wall_s=timings.get("wall_s"),
                peak_rss_mib=timings.get("max_rss_mib"), git_commit=manifest.get("slamreplay", {}).get("git_commit"))
+    if (deterministic := determinism_of(manifest)) is not None:  # checked: an external program (external.md)
+        out["deterministic"] = deterministic
     if out["status"] == "succeeded":
         try:
             metrics = json.loads((job.run_dir / "metrics.json").read_text())["metrics"]

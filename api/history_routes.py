@@ -1,0 +1,132 @@
+"""A suite's history in the service: its metrics over the code versions it was run on, and where they changed.
+
+Every cell a service suite runs records the code it ran on (the job's manifest, ``git_commit``); the
+suites sent under one name, oldest first, are grouped by that version, each version a point of the
+history (the rows of its latest suites, one per cell), and the changes are found as
+``slamreplay history`` finds them (``slamreplay.replay.runs.changepoints``). ``GET
+/history/suites/{name}`` returns it as JSON for dashboards; ``/ui/history/{name}`` draws it.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from datetime import datetime, timezone
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import APIRouter, Depends, Path, Request
+from fastapi.responses import HTMLResponse
+from markupsafe import Markup
+
+from slamreplay.api.deps import ERRORS, require_token
+from slamreplay.api.errors import NotFoundError
+from slamreplay.api.pages import PAGE_ERRORS, web_session
+from slamreplay.api.pages import error_response as _error
+from slamreplay.api.pages import page_response as _page
+from slamreplay.api.suites import SuiteService
+from slamreplay.api.suites_routes import SuitesDep
+from slamreplay.replay.runs.changepoints import Change, detect_changes
+from slamreplay.replay.runs.history import Commit, History, history_of_versions, series
+
+SUITES_READ = 10_000
+SuiteName = Annotated[str, Path(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$", description="a suite's name")]
+router = APIRouter(dependencies=[Depends(require_token)], responses=ERRORS, tags=["suites"])
+page = APIRouter(dependencies=[Depends(web_session)], include_in_schema=False)
+
+
+def _subjects(shas: list[str]) -> dict[str, str]:
+    """Commit subjects when the service runs from a git checkout that has them; else none."""
+    from slamreplay.replay.errors import ReplayError
+    from slamreplay.replay.runs.history import commit_info
+    from slamreplay.replay.runs.revisions import find_repo
+
+    clean = [s for s in shas if len(s) == 40 and all(ch in "0123456789abcdef" for ch in s)]
+    try:
+        return {sha: c.subject for sha, c in commit_info(find_repo(), clean).items()}
+    except (ReplayError, OSError):
+        return {}
+
+
+def suite_history(suites: SuiteService, name: str) -> tuple[History, dict[str, list[str]]]:
+    """The history of the ended suites named ``name``, and the suite ids of each version; NotFoundError if none."""
+    named = sorted((s for s in suites.recent(SUITES_READ) if s.name == name), key=lambda s: s.created)
+    if not named:
+        raise NotFoundError(f"no suite named {name!r}: GET /suites lists the suites and their names")
+    rows: dict[str, dict[tuple[Any, ...], dict[str, Any]]] = {}
+    first: dict[str, float] = {}
+    ids: dict[str, list[str]] = {}
+    for s in named:
+        _, _, cells = suites.get(s.id)
+        progress = suites.progress(cells)
+        if progress["ended"] < progress["cells"]:
+            continue
+        got = [suites.result_row(c) for c in cells]
+        seen = Counter(str(r["code_version"]) for r in got if r.get("code_version"))
+        version = seen.most_common(1)[0][0] if seen else "unknown"
+        first.setdefault(version, s.created)
+        ids.setdefault(version, []).append(s.id)
+        for r in got:  # a later suite of the same version wins for the same cell
+            rows.setdefault(version, {})[(r["recording"], r.get("recording_seed"), r["pipeline"], r["variant"],
+                                          r.get("seed"))] = r
+    order = sorted(first, key=lambda v: first[v])
+    subjects = _subjects(order)
+    versions = [(Commit(v, datetime.fromtimestamp(first[v], timezone.utc).isoformat(timespec="seconds"),
+                        subjects.get(v, "")), list(rows[v].values())) for v in order]
+    return history_of_versions(versions), ids
+
+
+def history_json(history: History, changes: list[Change], ids: dict[str, list[str]], name: str) -> dict[str, Any]:
+    """The history for dashboards: versions, each series' points (mean, sd, seeds), the changes."""
+    out_series = []
+    for (rec, pipe, variant), by_metric in sorted(series(history).items()):
+        for metric, values in sorted(by_metric.items()):
+            points = []
+            for c, v in zip(history.commits, values, strict=True):
+                xs = list(v.values())
+                points.append({"version": c.sha, "n": len(xs), "values": xs,
+                               "mean": float(np.mean(xs)) if xs else None,
+                               "sd": float(np.std(xs, ddof=1)) if len(xs) > 1 else None})
+            out_series.append({"recording": rec, "pipeline": pipe, "variant": variant, "metric": metric,
+                               "points": points})
+    return {"suite": name,
+            "versions": [{"code_version": c.sha, "first_run": c.date, "subject": c.subject,
+                          "suites": ids.get(c.sha, []), "status": history.status.get(c.sha, {}).get("status")}
+                         for c in history.commits],
+            "series": out_series, "changes": [ch.to_json() for ch in changes]}
+
+
+@router.get("/history/suites/{name}")
+def get_suite_history(name: SuiteName, suites: SuitesDep) -> dict[str, Any]:
+    """The metrics of the suites sent under ``name`` over the code versions they ran on, and the changes found
+    between versions (the method of ``slamreplay history``)."""
+    history, ids = suite_history(suites, name)
+    return history_json(history, detect_changes(history), ids, name)
+
+
+@page.get("/ui/history/{name}")
+def history_page(request: Request, name: SuiteName, suites: SuitesDep) -> HTMLResponse:
+    from slamreplay.replay.runs.compare import fmt
+    from slamreplay.replay.runs.history_report import plot_svg
+
+    try:
+        history, ids = suite_history(suites, name)
+    except PAGE_ERRORS as err:
+        return _error(request, err)
+    changes = detect_changes(history)
+    groups = []
+    for group, by_metric in sorted(series(history).items()):
+        plots = [(m, Markup(plot_svg(v, [ch for ch in changes if (ch.recording, ch.pipeline, ch.variant) == group
+                                         and ch.metric == m])))  # our own SVG, its text escaped
+                 for m, v in sorted(by_metric.items())]
+        groups.append({"name": "/".join(group), "plots": plots})
+    versions = []
+    for k, c in enumerate(history.commits):
+        prev = ids.get(history.commits[k - 1].sha, []) if k else []
+        mine = ids.get(c.sha, [])
+        link = f"/ui/compare?a={prev[-1]}&b={mine[-1]}" if prev and mine else None
+        versions.append({"k": k, "version": c.sha, "short": c.sha[:10], "date": c.date, "subject": c.subject,
+                         "suites": mine, "compare": link})
+    shown = [{**ch.to_json(), "short": ch.commit[:10], "before": fmt(ch.mean_before), "after": fmt(ch.mean_after),
+              "delta": fmt(ch.delta, signed=True), "rel": f"{ch.relative:+.1%}" if ch.relative is not None else "",
+              "k": ch.index} for ch in changes]
+    return _page(request, "suite_history.html", suite_name=name, groups=groups, versions=versions, changes=shown)

@@ -1,0 +1,117 @@
+"""The command line and the service for SLAM systems outside slamreplay: evaluate, export, run
+--check-determinism, diff/compare on programs that are not deterministic, and the service's permission."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import pytest
+from conftest import write_tiny_recording
+from service_helpers import InlineExecutor, wait_for
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", DeprecationWarning)
+    from fastapi.testclient import TestClient
+
+from slamreplay.api.app import create_app
+from slamreplay.api.cli import main
+from slamreplay.api.settings import Settings
+from slamreplay.recorder.plugins import refresh
+from slamreplay.replay.engine.declared import DECLARATIONS_ENV
+
+# dead reckoning of odometry.csv on stdin, plus noise from os.urandom when argv[2] == "noisy"
+PROGRAM = '''
+import math, os, sys
+out = open(sys.argv[1], "w")
+noisy = sys.argv[2:] == ["noisy"]
+x = 0.0
+for line in sys.stdin.read().splitlines()[1:]:
+    t, ox, oy, oth = line.split(",")
+    t = int(t)
+    x = float(ox) + (int.from_bytes(os.urandom(2), "big") * 1e-6 if noisy else 0.0)
+    out.write(f"{t // 10**9}.{t % 10**9:09d} {x!r} {float(oy)!r} 0 0 0 0 1\\n")
+'''
+
+
+@pytest.fixture
+def declared(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Two external pipelines, ``steady`` and ``noisy``, declared through $SLAMREPLAY_PIPELINES; a recording."""
+    (tmp_path / "prog.py").write_text(PROGRAM)
+    (tmp_path / "ext.toml").write_text(
+        "[pipelines.steady]\ncommand = ['{python}', 'prog.py', '{out}/trajectory.tum']\nexports = ['odometry_csv']\n"
+        "stdin = '{exports}/odometry.csv'\n"
+        "[pipelines.noisy]\ncommand = ['{python}', 'prog.py', '{out}/trajectory.tum', 'noisy']\n"
+        "exports = ['odometry_csv']\nstdin = '{exports}/odometry.csv'\n")
+    monkeypatch.setenv(DECLARATIONS_ENV, str(tmp_path / "ext.toml"))
+    refresh()
+    return write_tiny_recording(tmp_path / "tiny.mcap")
+
+
+def test_evaluate_and_export_commands(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`evaluate` of a run's trajectory.tum prints the run's ATE; `export` writes odometry.csv; a bad estimate is
+    one line and exit 2."""
+    rec = write_tiny_recording(tmp_path / "tiny.mcap")
+    assert main(["run", str(rec), "--pipeline", "odometry", "--out", str(tmp_path / "odo"), "-q"]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", str(tmp_path / "odo" / "trajectory.tum"), "--recording", str(rec),
+                 "--out", str(tmp_path / "ev")]) == 0
+    ate = json.loads((tmp_path / "odo" / "metrics.json").read_text())["metrics"]["ape_rmse_m"]["value"]
+    assert f"ape_rmse_m                   {ate:.6g}" in capsys.readouterr().out
+    assert main(["trajectory", str(tmp_path / "ev"), "--json"]) == 0
+    capsys.readouterr()
+    assert main(["export", str(rec), "--out", str(tmp_path / "exp"), "--what", "odometry_csv,range_bearing_csv",
+                 "-q"]) == 0
+    lines = (tmp_path / "exp" / "odometry.csv").read_text().splitlines()
+    assert lines[0] == "t_ns,x_m,y_m,yaw_rad" and len(lines) == 101 and lines[1] == "1000000000,0.0,0.0,0.0"
+    assert (tmp_path / "exp" / "range_bearing.csv").read_text().count("\n") == 1 + 20 * 4
+    (tmp_path / "bad.tum").write_text("1.0 2 3\n")
+    assert main(["evaluate", str(tmp_path / "bad.tum"), "--recording", str(rec), "--out", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "bad.tum, line 1: expected 8 fields" in err
+    assert main(["export", str(rec), "--out", str(tmp_path / "x"), "--what", "lidar"]) == 2
+    assert "unknown export 'lidar'" in capsys.readouterr().err
+
+
+def test_check_determinism_diff_and_compare(declared: Path, tmp_path: Path,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """run --check-determinism records it; diff and compare name the run that is not deterministic; the flag
+    on a built-in pipeline is one line, exit 2; `pipelines NAME` shows a declared pipeline."""
+    rec = declared
+    for name in ("steady", "noisy"):
+        assert main(["run", str(rec), "--pipeline", name, "--out", str(tmp_path / name), "--check-determinism",
+                     "-q"]) == 0
+    det = {n: json.loads((tmp_path / n / "manifest.json").read_text())["pipeline_run"]["determinism"]["deterministic"]
+           for n in ("steady", "noisy")}
+    assert det == {"steady": True, "noisy": False}
+    capsys.readouterr()
+    main(["diff", str(tmp_path / "steady"), str(tmp_path / "noisy")])
+    assert "note: run B is not deterministic" in capsys.readouterr().out
+    assert main(["run", str(rec), "--pipeline", "noisy", "--out", str(tmp_path / "noisy2"), "-q"]) == 0
+    capsys.readouterr()
+    main(["compare", str(tmp_path / "noisy"), str(tmp_path / "noisy2")])
+    assert "note: not deterministic (--check-determinism" in capsys.readouterr().out
+    assert main(["run", str(rec), "--pipeline", "odometry", "--out", str(tmp_path / "o"), "--check-determinism"]) == 2
+    assert "pipeline odometry is slamreplay code" in capsys.readouterr().err
+    assert main(["pipelines", "steady"]) == 0
+    assert "declared in" in capsys.readouterr().out
+
+
+def test_service_runs_external_pipelines_only_when_allowed(declared: Path, tmp_path: Path) -> None:
+    """By default a job of an external pipeline is 403 naming the setting; with it, the job runs."""
+    for allowed in (False, True):
+        app = create_app(Settings(allowed_hosts=("testserver",), data_dir=tmp_path / f"data-{allowed}", workers=1,
+                                  allow_external_pipelines=allowed), executor=InlineExecutor())
+        with TestClient(app) as client:
+            rid = client.post("/recordings", content=declared.read_bytes(), params={"filename": "t.mcap"}).json()["id"]
+            r = client.post("/jobs", json={"recording_id": rid, "pipeline": "steady"})
+            if not allowed:
+                assert r.status_code == 403 and "SLAMREPLAY_ALLOW_EXTERNAL_PIPELINES" in r.json()["detail"]
+                suite = ('declarations = ["x.toml"]\n[recordings.r]\nid = "' + rid + '"\n[pipelines.odometry]\n')
+                s = client.post("/suites", content=suite, headers={"content-type": "application/toml"})
+                assert s.status_code == 422 and "cannot declare pipelines" in s.json()["detail"]
+                continue
+            assert r.status_code == 202, r.json()
+            assert wait_for(client, r.json()["id"])["status"] == "succeeded"
+    assert Settings.from_env({"SLAMREPLAY_ALLOW_EXTERNAL_PIPELINES": "true"}).allow_external_pipelines
