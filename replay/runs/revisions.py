@@ -193,10 +193,11 @@ def _source_cli(src: Path) -> str:
 
 def run_cell(revision: Revision, job: CellJob) -> str | None:
     """Run one cell with the revision's ``slamreplay run``; an error message, or None on success."""
-    cfg = job.run_dir.parent / f".{job.run_dir.name}.config.json"
+    run_dir = job.run_dir.resolve()  # the command runs in the worktree: a path relative to here would miss
+    cfg = run_dir.parent / f".{run_dir.name}.config.json"
     cfg.write_text(json.dumps(job.cell.config, sort_keys=True))
-    cmd = [*revision.command, "run", str(job.recording.path), "--pipeline", job.cell.pipeline,
-           "--out", str(job.run_dir), "--seed", str(job.cell.seed), "--config", str(cfg), "--quiet"]
+    cmd = [*revision.command, "run", str(job.recording.path.resolve()), "--pipeline", job.cell.pipeline,
+           "--out", str(run_dir), "--seed", str(job.cell.seed), "--config", str(cfg), "--quiet"]
     for k, v in sorted(job.recording.topic_map.items()):
         cmd += ["--topic-map", f"{k}={v}"]
     env = {**os.environ, **revision.env}

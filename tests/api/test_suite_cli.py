@@ -226,7 +226,8 @@ def git(repo: Path, *args: str) -> str:
 @pytest.mark.slow
 def test_suite_at_a_revision(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                              monkeypatch: pytest.MonkeyPatch) -> None:
-    """--rev runs cells with that revision's code (its worktree), reused on a second run."""
+    """--rev runs cells with that revision's code (its worktree), reused on a second run; a relative --out is
+    relative to where the command was typed, not to the worktree."""
     clone = tmp_path / "clone"
     subprocess.run(["git", "clone", "-q", "--no-hardlinks", str(REPO), str(clone)], check=True)
     sha = git(clone, "rev-parse", "HEAD")
@@ -235,8 +236,8 @@ def test_suite_at_a_revision(tmp_path: Path, capsys: pytest.CaptureFixture[str],
     suite = tmp_path / "s.toml"
     write_tiny_recording(tmp_path / "tiny.mcap", n=40)
     suite.write_text('seeds = [0, 1]\n[recordings.tiny]\npath = "tiny.mcap"\n[pipelines.odometry]\n')
-    out = tmp_path / "res"
-    code, stdout, err = run_cli(["suite", "run", str(suite), "--out", str(out), "--rev", "HEAD", "-q"], capsys)
+    out = clone / "res"  # given relative to here: the cells run in the worktree, which must not change its meaning
+    code, stdout, err = run_cli(["suite", "run", str(suite), "--out", "res", "--rev", "HEAD", "-q"], capsys)
     assert code == 0, err
     rows = suite_run.read_results(out)
     assert [r["status"] for r in rows] == ["succeeded", "succeeded"], rows
