@@ -7,6 +7,7 @@ import json
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import write_tiny_recording
 from service_helpers import InlineExecutor, wait_for
@@ -115,3 +116,33 @@ def test_service_runs_external_pipelines_only_when_allowed(declared: Path, tmp_p
             assert r.status_code == 202, r.json()
             assert wait_for(client, r.json()["id"])["status"] == "succeeded"
     assert Settings.from_env({"SLAMREPLAY_ALLOW_EXTERNAL_PIPELINES": "true"}).allow_external_pipelines
+
+
+def test_export_ros2_bag_reads_back(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The ros2_bag export: rosbags reads every odometry pose and range-bearing scan back exactly (CDR float64),
+    and slamreplay's own ROS 2 importer records its /odom as the original /odom."""
+    from rosbags.highlevel import AnyReader
+
+    from slamreplay.recorder.messages import TOPIC_ODOM, TOPIC_RANGE_BEARING
+    from slamreplay.replay.engine.reader import RecordingReader
+
+    rec = write_tiny_recording(tmp_path / "tiny.mcap")
+    assert main(["export", str(rec), "--out", str(tmp_path / "exp"), "--what", "ros2_bag", "-q"]) == 0
+    bag = tmp_path / "exp" / "ros2_bag"
+    assert sorted(p.name for p in bag.iterdir()) == ["metadata.yaml", "ros2_bag.db3"]
+    orig = RecordingReader(rec)
+    odom = [e.msg.xy_yaw for e in orig.messages([TOPIC_ODOM])]
+    scans = [e.msg for e in orig.messages([TOPIC_RANGE_BEARING])]
+    with AnyReader([bag]) as reader:
+        got: dict[str, list[object]] = {}
+        for conn, _t, raw in reader.messages():
+            got.setdefault(conn.topic, []).append(reader.deserialize(raw, conn.msgtype))
+    assert len(got["/odom"]) == len(odom) == 100 and len(got["/landmarks/range_bearing"]) == len(scans) == 20
+    last = got["/odom"][-1]
+    assert (last.pose.pose.position.x, last.pose.pose.position.y) == (odom[-1][0], odom[-1][1])
+    assert 2 * np.arctan2(last.pose.pose.orientation.z, last.pose.pose.orientation.w) == pytest.approx(odom[-1][2])
+    for a, b in zip(got["/landmarks/range_bearing"], scans, strict=True):
+        assert a.landmark_ids.tolist() == b.landmark_ids.tolist() and a.ranges_m.tolist() == b.ranges_m.tolist()
+    assert main(["record", "ros2", str(bag), "--out", str(tmp_path / "back.mcap"), "-q"]) == 0
+    back = [e.msg.xy_yaw for e in RecordingReader(tmp_path / "back.mcap").messages([TOPIC_ODOM])]
+    np.testing.assert_allclose(np.array(back), np.array(odom), atol=1e-12)
