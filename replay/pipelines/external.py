@@ -41,7 +41,8 @@ from slamreplay.replay.tools.export import EXPORTS, export_recording, export_top
 
 PLACEHOLDERS = ("recording", "exports", "out", "seed", "config", "here", "python")
 KEYS = {"command", "summary", "exports", "stdin", "output", "version_command", "timeout_s", "memory_mib", "frame",
-        "topics", "config", "env", "adapter"}
+        "topics", "config", "env", "adapter", "build"}
+BUILD_TIMEOUT_S = 600.0
 LOG_LINES = 200  # lines of each stream copied into the run's log; the whole stream is an artifact
 
 
@@ -63,6 +64,7 @@ class Declaration:
     topics: tuple[str, ...] = (TOPIC_ODOM,)
     config: Mapping[str, Any] = field(default_factory=dict)
     env: Mapping[str, str] = field(default_factory=dict)
+    build: tuple[str, ...] = ()  # run in ``here`` before the program is first used in a process (e.g. make)
 
     @property
     def here(self) -> Path:
@@ -94,6 +96,11 @@ def parse_declaration(name: str, table: Mapping[str, Any], path: Path) -> Declar
         raise ReplayError(f"{where}: no command (the program's command line)")
     command = _argv(table["command"], "command", where)
     version = _argv(table["version_command"], "version_command", where) if "version_command" in table else ()
+    build = _argv(table["build"], "build", where) if "build" in table else ()
+    for arg in build:
+        _check_placeholders(arg, "build", where)
+        if any(f"{{{n}}}" in arg for n in PLACEHOLDERS if n not in ("here", "python")):
+            raise ReplayError(f"{where}: build may name only {{here}} and {{python}} (it runs before any recording)")
     exports = table.get("exports", [])
     if not isinstance(exports, list) or any(e not in EXPORTS for e in exports):
         raise ReplayError(f"{where}: exports must be a list of {', '.join(EXPORTS)}, got {exports!r}")
@@ -122,7 +129,7 @@ def parse_declaration(name: str, table: Mapping[str, Any], path: Path) -> Declar
     return Declaration(name, path, command, str(table.get("summary") or f"external program {command[0]}"),
                        tuple(exports), table.get("stdin"), str(table.get("output", "{out}/trajectory.tum")),
                        version, float(timeout), memory, frame, tuple(topics), dict(config),
-                       {str(k): str(v) for k, v in env.items()})
+                       {str(k): str(v) for k, v in env.items()}, build)
 
 
 def _expand(text: str, values: Mapping[str, str]) -> str:
@@ -159,6 +166,31 @@ def program_version(decl: Declaration) -> str:
         return f"unknown ({type(err).__name__})"
     lines = (out.stdout or out.stderr).strip().splitlines()
     return lines[0][:200] if lines else ""
+
+
+def build_program(decl: Declaration) -> None:
+    """Run the declaration's ``build`` command in its folder (once per process and declaration; a lock keeps two
+    processes from building one folder at once). It should be idempotent and quick when nothing changed (make):
+    at a git revision (``compare rev:``, ``history``) the declaration is read from that revision's worktree, so
+    the program built is that revision's."""
+    if not decl.build:
+        return
+    import fcntl
+
+    argv = [_expand(a, static_values(decl)) for a in decl.build]
+    lock = Path(tempfile.gettempdir()) / f"slamreplay-build-{hashlib.sha256(str(decl.here).encode()).hexdigest()[:16]}"
+    with open(lock, "w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        try:
+            done = subprocess.run(argv, cwd=decl.here, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S,
+                                  check=False)
+        except (OSError, subprocess.TimeoutExpired) as err:
+            raise ReplayError(f"external pipeline {decl.name}: build {' '.join(argv)} in {decl.here} did not run: "
+                              f"{err}") from None
+    if done.returncode != 0:
+        last = _last_line(done.stderr) or _last_line(done.stdout)
+        raise ReplayError(f"external pipeline {decl.name}: build {' '.join(argv)} in {decl.here} exited with "
+                          f"{done.returncode}: {last}")
 
 
 def origin_of(decl: Declaration) -> dict[str, Any]:
@@ -361,6 +393,7 @@ def _config_class(decl: Declaration) -> type:
 def pipeline_from_declaration(name: str, table: Mapping[str, Any], path: Path) -> type[ExternalPipeline]:
     """The pipeline class of one declaration (the default adapter of ``slamreplay.replay.engine.declared``)."""
     decl = parse_declaration(name, table, path)
+    build_program(decl)
     attrs = {"name": name, "summary": decl.summary, "required_topics": decl.topics, "start_topic": decl.topics[0],
              "Config": _config_class(decl), "presets": {}, "declaration": decl, "declared_origin": origin_of(decl)}
     return type(f"External[{name}]", (ExternalPipeline,), attrs)

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from slamreplay.recorder.version import SOURCE_ROOT
+from slamreplay.replay.engine.declared import DECLARATIONS_ENV
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.runs.suite_run import CellJob
 
@@ -43,6 +44,24 @@ class Revision:
     worktree: Path
     command: tuple[str, ...]
     env: dict[str, str]
+    repo: Path | None = None  # the checkout the worktree was made from
+
+
+def revision_env(revision: Revision, env: dict[str, str]) -> dict[str, str]:
+    """``env`` for a command at ``revision``: pipeline declarations (``$SLAMREPLAY_PIPELINES``) inside the checkout
+    are read from the same path in the revision's worktree, so an external program declared in the repository
+    (and built by its ``build`` key) is that revision's, as the Python code is."""
+    files = env.get(DECLARATIONS_ENV)
+    if not files or revision.repo is None:
+        return env
+    repo = revision.repo.resolve()
+    mapped = []
+    for entry in files.split(os.pathsep):
+        p = Path(entry).resolve() if entry else None
+        if p is not None and p.is_relative_to(repo):
+            p = revision.worktree / p.relative_to(repo)
+        mapped.append(str(p) if p is not None else entry)
+    return {**env, DECLARATIONS_ENV: os.pathsep.join(mapped)}
 
 
 def _git(repo: Path, *args: str) -> str:
@@ -172,8 +191,8 @@ def prepare_revision(repo: Path, rev: str, cache: Path, note: Callable[[str], No
                                           f"see {keep}")
             (root / "ready").write_text(sha + "\n")
     if override:
-        return Revision(rev, sha, src, (override, "-c", _source_cli(src), str(src)), {})
-    return Revision(rev, sha, src, (str(venv / "bin" / "slamreplay"),), {})
+        return Revision(rev, sha, src, (override, "-c", _source_cli(src), str(src)), {}, repo)
+    return Revision(rev, sha, src, (str(venv / "bin" / "slamreplay"),), {}, repo)
 
 
 # ``python -c`` programs running a checkout's CLI without installing it: since the packages moved under the
@@ -200,7 +219,7 @@ def run_cell(revision: Revision, job: CellJob) -> str | None:
            "--out", str(run_dir), "--seed", str(job.cell.seed), "--config", str(cfg), "--quiet"]
     for k, v in sorted(job.recording.topic_map.items()):
         cmd += ["--topic-map", f"{k}={v}"]
-    env = {**os.environ, **revision.env}
+    env = revision_env(revision, {**os.environ, **revision.env})
     try:
         done = subprocess.run(cmd, cwd=revision.worktree, capture_output=True, text=True, env=env)
     except OSError as err:

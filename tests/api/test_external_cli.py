@@ -146,3 +146,49 @@ def test_export_ros2_bag_reads_back(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert main(["record", "ros2", str(bag), "--out", str(tmp_path / "back.mcap"), "-q"]) == 0
     back = [e.msg.xy_yaw for e in RecordingReader(tmp_path / "back.mcap").messages([TOPIC_ODOM])]
     np.testing.assert_allclose(np.array(back), np.array(odom), atol=1e-12)
+
+
+@pytest.mark.slow
+def test_compare_two_revisions_of_an_external_program(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """A program declared in the repository with a ``build`` key: ``compare rev:A rev:B`` builds and runs each
+    revision's own program in its worktree, so a bias introduced in B's source fails the comparison (exit 1)
+    naming the trajectory metrics; the program's source at A is unchanged in the checkout."""
+    import subprocess
+    import sys
+
+    from conftest import REPO
+
+    def git(*args: str) -> None:
+        subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", "-C", str(clone), *args], check=True,
+                       capture_output=True)
+
+    clone = tmp_path / "clone"
+    subprocess.run(["git", "clone", "-q", "--no-hardlinks", str(REPO), str(clone)], check=True)
+    ext = clone / "ext"
+    ext.mkdir()
+    (ext / "prog_src.py").write_text(PROGRAM)
+    # the "compiler": build/ is ignored by git, so each worktree holds only the source until its build runs
+    (ext / "build.py").write_text("import pathlib, shutil\npathlib.Path('build').mkdir(exist_ok=True)\n"
+                                  "shutil.copy('prog_src.py', 'build/prog.py')\n")
+    (ext / "pipeline.toml").write_text(
+        "[pipelines.dr]\ncommand = ['{python}', 'build/prog.py', '{out}/trajectory.tum']\n"
+        "exports = ['odometry_csv']\nstdin = '{exports}/odometry.csv'\nbuild = ['{python}', 'build.py']\n")
+    git("add", "ext")
+    git("commit", "-qm", "dead reckoning")
+    (ext / "prog_src.py").write_text(PROGRAM.replace("x = float(ox)", "x = 1.05 * float(ox)"))
+    git("commit", "-qam", "a 5 % scale bias")
+    write_tiny_recording(tmp_path / "tiny.mcap")
+    suite = tmp_path / "s.toml"
+    suite.write_text(f'declarations = ["{ext / "pipeline.toml"}"]\nseeds = [0]\n[recordings.tiny]\n'
+                     'path = "tiny.mcap"\n[pipelines.dr]\n')
+    monkeypatch.chdir(clone)
+    monkeypatch.setenv("SLAMREPLAY_REV_PYTHON", sys.executable)  # no virtualenv built: still each worktree's code
+    monkeypatch.setenv("SLAMREPLAY_CACHE", str(tmp_path / "cache"))
+    refresh()
+    code = main(["compare", "rev:HEAD~1", "rev:HEAD", "--suite", str(suite)])
+    out = capsys.readouterr().out
+    assert code == 1, out
+    assert "ape_rmse_m" in out and "regression" in out
+    code = main(["compare", "rev:HEAD~1", "rev:HEAD~1", "--suite", str(suite)])
+    assert code == 0, capsys.readouterr().out
