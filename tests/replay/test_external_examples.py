@@ -27,6 +27,7 @@ def build(out: Path, bias: float = 0.0) -> Path:
     subprocess.run([str(CC), "-O2", "-std=c99", f"-DSCALE_BIAS={bias}", "-o", str(out / "deadreckon"),
                     str(EXAMPLES / "external_c" / "deadreckon.c"), "-lm"], check=True)
     text = (EXAMPLES / "external_c" / "pipeline.toml").read_text().replace("build/deadreckon", str(out / "deadreckon"))
+    text = "\n".join(line for line in text.splitlines() if not line.startswith("build ="))  # built above instead
     (out / "pipeline.toml").write_text(text)
     return out / "pipeline.toml"
 
