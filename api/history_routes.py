@@ -29,7 +29,8 @@ from slamreplay.replay.runs.changepoints import Change, detect_changes
 from slamreplay.replay.runs.history import Commit, History, history_of_versions, series
 
 SUITES_READ = 10_000
-SuiteName = Annotated[str, Path(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$", description="a suite's name")]
+# a suite's name is any string its file gives (spaces, slashes...): the route takes the rest of the path
+SuiteName = Annotated[str, Path(min_length=1, max_length=256, description="a suite's name, URL-encoded")]
 router = APIRouter(dependencies=[Depends(require_token)], responses=ERRORS, tags=["suites"])
 page = APIRouter(dependencies=[Depends(web_session)], include_in_schema=False)
 
@@ -95,7 +96,7 @@ def history_json(history: History, changes: list[Change], ids: dict[str, list[st
             "series": out_series, "changes": [ch.to_json() for ch in changes]}
 
 
-@router.get("/history/suites/{name}")
+@router.get("/history/suites/{name:path}")
 def get_suite_history(name: SuiteName, suites: SuitesDep) -> dict[str, Any]:
     """The metrics of the suites sent under ``name`` over the code versions they ran on, and the changes found
     between versions (the method of ``slamreplay history``)."""
@@ -103,7 +104,7 @@ def get_suite_history(name: SuiteName, suites: SuitesDep) -> dict[str, Any]:
     return history_json(history, detect_changes(history), ids, name)
 
 
-@page.get("/ui/history/{name}")
+@page.get("/ui/history/{name:path}")
 def history_page(request: Request, name: SuiteName, suites: SuitesDep) -> HTMLResponse:
     from slamreplay.replay.runs.compare import fmt
     from slamreplay.replay.runs.history_report import plot_svg
@@ -116,7 +117,8 @@ def history_page(request: Request, name: SuiteName, suites: SuitesDep) -> HTMLRe
     groups = []
     for group, by_metric in sorted(series(history).items()):
         plots = [(m, Markup(plot_svg(v, [ch for ch in changes if (ch.recording, ch.pipeline, ch.variant) == group
-                                         and ch.metric == m])))  # our own SVG, its text escaped
+                                         and ch.metric == m], label=f"{m} of {'/'.join(group)} over versions")))
+                 # our own SVG, its text escaped
                  for m, v in sorted(by_metric.items())]
         groups.append({"name": "/".join(group), "plots": plots})
     versions = []

@@ -74,7 +74,8 @@ def pair_reports(history: History, changes: Sequence[Change], out: Path) -> tupl
     return reports, linked
 
 
-def plot_svg(values: Sequence[dict[int, float]], marks: Sequence[Change], width: int = 240, height: int = 90) -> str:
+def plot_svg(values: Sequence[dict[int, float]], marks: Sequence[Change], width: int = 240, height: int = 90,
+             label: str = "a metric over commits") -> str:
     """One series as inline SVG: the mean line, the seeds' range as whiskers, changes as dashed lines; point k
     links to ``#c<k>`` (its commit's row), a commit without a succeeded run is a red cross."""
     n = len(values)
@@ -92,7 +93,8 @@ def plot_svg(values: Sequence[dict[int, float]], marks: Sequence[Change], width:
     def y(v: float) -> float:
         return height - 6 - (height - 12) * (v - lo) / (hi - lo)
 
-    parts = [f"<svg width='{width}' height='{height}' role='img'>"]
+    # its points are links: a named group, not an image (which may hold no interactive control)
+    parts = [f"<svg width='{width}' height='{height}' role='group' aria-label='{html.escape(label, quote=True)}'>"]
     for ch in marks:
         xm = (x(ch.index) + x(ch.index - 1)) / 2 if ch.index > 0 else x(0)
         parts.append(f"<line x1='{xm:.1f}' x2='{xm:.1f}' y1='2' y2='{height - 2}' stroke='{COLOURS[ch.verdict]}' "
@@ -161,7 +163,8 @@ def render_index(history: History, changes: Sequence[Change], out: Path, reports
             marks = [ch for ch in changes if (ch.recording, ch.pipeline, ch.variant) == group and ch.metric == m]
             if i and i % 4 == 0:
                 body.append("</tr><tr>")
-            body.append(f"<td><div class='small'>{e(m)}</div>{plot_svg(by_metric[m], marks)}</td>")
+            plot = plot_svg(by_metric[m], marks, label=f"{m} of {'/'.join(group)} over commits")
+            body.append(f"<td><div class='small'>{e(m)}</div>{plot}</td>")
         body.append("</tr></table>")
     body.append("<h2>Commits</h2><table><tr><th>#</th><th>commit</th><th>date</th><th>status</th><th>runs</th>"
                 "<th>against the commit before</th></tr>")

@@ -64,3 +64,9 @@ def test_history_of_a_suite_over_two_versions(client: TestClient, tmp_path: Path
     assert 'href="/ui/history/nightly"' in client.get(f"/ui/suites/{second['id']}").text
     assert client.get("/history/suites/nope").status_code == 404
     assert client.get("/ui/history/nope").status_code == 404
+    spaced = client.post("/suites", content=suite_toml(rid, "[0]", "tiny").replace(
+        "seeds", "name = 'nightly odometry/v2'\nseeds", 1)).json()  # a name is any string the suite file gives
+    wait_suite(client, spaced["id"])
+    assert 'href="/ui/history/nightly%20odometry/v2"' in client.get(f"/ui/suites/{spaced['id']}").text
+    assert client.get("/ui/history/nightly%20odometry/v2").status_code == 200
+    assert client.get("/history/suites/nightly%20odometry/v2").json()["versions"][0]["suites"] == [spaced["id"]]

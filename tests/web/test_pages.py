@@ -29,6 +29,7 @@ PAGES: dict[str, Callable[[dict[str, str]], str]] = {
     "job-running": lambda ids: f"/ui/jobs/{ids['running']}",
     "job-edit": lambda ids: f"/ui/jobs/{ids['baseline']}/edit",
     "suite": lambda ids: f"/ui/suites/{ids['suite']}",
+    "suite-history": lambda ids: "/ui/history/nightly%20odometry",  # the suite's metrics over the versions it ran on
     "compare": lambda ids: f"/ui/compare?a={ids['baseline']}&b={ids['worn']}",
     "compare-runs": lambda ids: f"/ui/compare?runs={ids['baseline']},{ids['worn']}",
     "compare-selected": lambda ids: f"/ui/runs/compare?sel={ids['baseline']}&sel={ids['dslam']}",
