@@ -118,6 +118,37 @@ def test_service_runs_external_pipelines_only_when_allowed(declared: Path, tmp_p
     assert Settings.from_env({"SLAMREPLAY_ALLOW_EXTERNAL_PIPELINES": "true"}).allow_external_pipelines
 
 
+def test_a_suite_of_external_and_builtin_pipelines_in_the_service(declared: Path, tmp_path: Path) -> None:
+    """The operator allows external pipelines and declares them ($SLAMREPLAY_PIPELINES): a suite of two external
+    programs and odometry runs in the service, every cell lands in the runs table (filterable by pipeline), the
+    external one equals odometry (both dead reckoning), and two of its runs compare on the compare page."""
+    import time
+
+    app = create_app(Settings(allowed_hosts=("testserver",), data_dir=tmp_path / "data", workers=1,
+                              allow_external_pipelines=True), executor=InlineExecutor())
+    with TestClient(app) as client:
+        rid = client.post("/recordings", content=declared.read_bytes(), params={"filename": "t.mcap"}).json()["id"]
+        suite = ('name = "external"\nseeds = [0, 1]\n[recordings.r]\nid = "' + rid + '"\n'
+                 "[pipelines.steady]\n[pipelines.noisy]\n[pipelines.odometry]\n")
+        r = client.post("/suites", content=suite, headers={"content-type": "application/toml"})
+        assert r.status_code == 202, r.text
+        deadline = time.monotonic() + 60
+        while (doc := client.get(f"/suites/{r.json()['id']}").json())["progress"]["ended"] < 6:
+            assert time.monotonic() < deadline, doc
+            time.sleep(0.05)
+        assert {c["status"] for c in doc["cells"]} == {"succeeded"}
+        table = client.get("/runs", params={"cols": "ape_rmse_m"}).text
+        for name in ("steady", "noisy", "odometry"):
+            assert f">{name}<" in table
+        rows = client.get("/runs.csv", params={"pipeline": "steady", "cols": "ape_rmse_m"}).text.strip().splitlines()
+        assert len(rows) == 3 and all(",steady," in row for row in rows[1:])  # a header and the two seeds
+        jobs = {(c["pipeline"], c["seed"]): c["job_id"] for c in doc["cells"]}
+        ape = {(c["pipeline"], c["seed"]): c["metrics"]["ape_rmse_m"] for c in doc["cells"]}
+        assert ape[("steady", 0)] == pytest.approx(ape[("odometry", 0)], rel=1e-9)
+        page = client.get("/ui/compare", params={"runs": f"{jobs[('steady', 0)]},{jobs[('odometry', 0)]}"})
+        assert page.status_code == 200 and "ape_rmse_m" in page.text
+
+
 def test_export_ros2_bag_reads_back(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """The ros2_bag export: rosbags reads every odometry pose and range-bearing scan back exactly (CDR float64),
     and slamreplay's own ROS 2 importer records its /odom as the original /odom."""
