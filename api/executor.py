@@ -61,6 +61,8 @@ class Task:
     run_dir: str
     db_path: str  # where a local worker reports progress ("" for none: a suite's cells)
     topic_map: dict[str, str] = field(default_factory=dict)  # file topic -> slamreplay topic (suites)
+    rev: str | None = None  # a commit sha: run that revision's own code (``run_at_revision``); None: this code
+    rev_cache: str = ""  # where revisions are built (``<cache>/revs/<sha>``), for a ``rev`` task
 
 
 @dataclass(frozen=True, slots=True)
@@ -140,8 +142,13 @@ def run_task(task: Task, report: Report | None = None) -> Outcome:
 
     try:
         with staged_recording(task.recording) as recording, staged_run_dir(task.run_dir) as run_dir:
-            run_recording(recording, task.pipeline, run_dir, seed=task.seed, config=task.config,
-                          topic_map=task.topic_map, progress=progress, run_id=task.job_id)
+            if task.rev is not None:
+                error = run_at_revision(task, task.rev, recording, run_dir)
+                if error is not None:
+                    return Outcome("failed", service_words(error, task.recording))
+            else:
+                run_recording(recording, task.pipeline, run_dir, seed=task.seed, config=task.config,
+                              topic_map=task.topic_map, progress=progress, run_id=task.job_id)
     except ReplayError as err:
         return Outcome("failed", service_words(str(err), task.recording))
     except StorageError as err:
@@ -149,6 +156,20 @@ def run_task(task: Task, report: Report | None = None) -> Outcome:
     except Exception as err:  # noqa: BLE001 -- any other error is this job's failure, not the worker's
         return Outcome("failed", f"internal error: {type(err).__name__}: {err}")
     return Outcome("succeeded")
+
+
+def run_at_revision(task: Task, rev: str, recording: Path, run_dir: Path) -> str | None:
+    """Run ``task`` with the code of the revision ``rev`` (its worktree, built once per commit under
+    ``task.rev_cache``, running its own ``slamreplay run``), in the git checkout the service runs from; an
+    error message (one line: the checkout is gone, the revision does not build, the run failed), or None."""
+    from slamreplay.replay.errors import ReplayError
+    from slamreplay.replay.runs.revisions import find_repo, prepare_revision, run_at
+
+    try:
+        revision = prepare_revision(find_repo(), rev, Path(task.rev_cache))
+    except ReplayError as err:
+        return str(err)
+    return run_at(revision, recording, task.pipeline, run_dir, task.seed, task.config, task.topic_map)
 
 
 def run_limited(job: Job, task: Task, limits: JobLimits, report: Report | None = None,

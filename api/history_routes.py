@@ -5,26 +5,33 @@ suites sent under one name, oldest first, are grouped by that version, each vers
 history (the rows of its latest suites, one per cell), and the changes are found as
 ``slamreplay history`` finds them (``slamreplay.replay.runs.changepoints``). ``GET
 /history/suites/{name}`` returns it as JSON for dashboards; ``/ui/history/{name}`` draws it.
+
+When the service runs from a git checkout, ``POST /history/suites/{name}/runs`` (``{"rev": "..."}``) and the
+page's "Run this suite on commit" form send the latest suite of that name again, its cells run by that
+commit's own code (``slamreplay.replay.runs.revisions``): a new point of the history.
 """
 
 from __future__ import annotations
 
 from collections import Counter
 from datetime import datetime, timezone
+from pathlib import Path as FsPath
 from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, Depends, Path, Request
-from fastapi.responses import HTMLResponse
+from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from markupsafe import Markup
+from pydantic import BaseModel, Field
+from starlette.concurrency import run_in_threadpool
 
 from slamreplay.api.deps import ERRORS, require_token
-from slamreplay.api.errors import NotFoundError
+from slamreplay.api.errors import ConflictError, NotFoundError
 from slamreplay.api.pages import PAGE_ERRORS, web_session
 from slamreplay.api.pages import error_response as _error
 from slamreplay.api.pages import page_response as _page
-from slamreplay.api.suites import SuiteService
-from slamreplay.api.suites_routes import SuitesDep
+from slamreplay.api.suites import SuiteRow, SuiteService
+from slamreplay.api.suites_routes import SuiteOut, SuitesDep
 from slamreplay.replay.runs.changepoints import Change, detect_changes
 from slamreplay.replay.runs.history import Commit, History, history_of_versions, series
 
@@ -46,6 +53,41 @@ def _subjects(shas: list[str]) -> dict[str, str]:
         return {sha: c.subject for sha, c in commit_info(find_repo(), clean).items()}
     except (ReplayError, OSError):
         return {}
+
+
+def service_repo() -> FsPath | None:
+    """The git checkout the service runs from (``find_repo``), or None."""
+    from slamreplay.replay.errors import ReplayError
+    from slamreplay.replay.runs.revisions import find_repo
+
+    try:
+        return find_repo()
+    except ReplayError:
+        return None
+
+
+def run_on_revision(suites: SuiteService, name: str, rev: str) -> SuiteRow:
+    """Send the latest suite named ``name`` again, its cells run by the code of commit ``rev``.
+
+    NotFoundError for an unknown name; ConflictError when the service does not run from a git checkout;
+    ReplayError (422) for a revision git does not know."""
+    from slamreplay.replay.errors import ReplayError
+    from slamreplay.replay.runs.revisions import resolve
+
+    latest = max((s for s in suites.recent(SUITES_READ) if s.name == name), key=lambda s: s.created, default=None)
+    if latest is None:
+        raise NotFoundError(f"no suite named {name!r}: GET /suites lists the suites and their names")
+    repo = service_repo()
+    if repo is None:
+        raise ConflictError("this service does not run from a git checkout, so it runs suites on its own code "
+                            "only: start it from a clone of the slamreplay repository to run other commits")
+    try:
+        sha = resolve(repo, rev.strip())
+    except ReplayError:  # its message names the server's folder
+        raise ReplayError(f"unknown revision {rev.strip()!r}: give a commit, branch or tag that `git rev-parse` "
+                          "knows in the checkout the service runs from") from None
+    row, text, _ = suites.get(latest.id)
+    return suites.submit(text, row.format, rev=sha)
 
 
 def suite_history(suites: SuiteService, name: str) -> tuple[History, dict[str, list[str]]]:
@@ -131,4 +173,27 @@ def history_page(request: Request, name: SuiteName, suites: SuitesDep) -> HTMLRe
     shown = [{**ch.to_json(), "short": ch.commit[:10], "before": fmt(ch.mean_before), "after": fmt(ch.mean_after),
               "delta": fmt(ch.delta, signed=True), "rel": f"{ch.relative:+.1%}" if ch.relative is not None else "",
               "k": ch.index} for ch in changes]
-    return _page(request, "suite_history.html", suite_name=name, groups=groups, versions=versions, changes=shown)
+    return _page(request, "suite_history.html", suite_name=name, groups=groups, versions=versions, changes=shown,
+                 can_run=service_repo() is not None)
+
+
+class RevIn(BaseModel):
+    rev: str = Field(min_length=1, max_length=256, description="a commit, branch or tag that `git rev-parse` knows")
+
+
+@router.post("/history/suites/{name:path}/runs", status_code=202)
+def run_suite_on_revision(name: SuiteName, body: RevIn, suites: SuitesDep) -> SuiteOut:
+    """Send the latest suite named ``name`` again with its cells run by the code of commit ``rev`` (the service
+    must run from a git checkout: else 409; an unknown revision is a 422); the new suite, as ``POST /suites``."""
+    row = run_on_revision(suites, name, body.rev)
+    return SuiteOut.of(suites, row, suites.get(row.id)[2])
+
+
+@page.post("/ui/history/{name:path}/runs")
+async def run_suite_form(request: Request, name: SuiteName, suites: SuitesDep) -> Response:
+    form = await request.form()
+    try:
+        row = await run_in_threadpool(run_on_revision, suites, name, str(form.get("rev", ""))[:256])
+    except PAGE_ERRORS as err:
+        return _error(request, err)
+    return RedirectResponse(f"/ui/suites/{row.id}", 303)

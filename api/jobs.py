@@ -149,7 +149,7 @@ class JobService:
                 storage.put_file(Path(recording), remote)
             recording, run_dir = remote, storage.join(base, "runs", job.id)
         return Task(job.id, recording, job.pipeline, job.config, job.seed, run_dir, str(self.settings.db_path),
-                    dict(job.topic_map or {}))
+                    dict(job.topic_map or {}), job.rev, str(self.rev_cache))
 
     def _collect(self, job_id: str, outcome: Outcome) -> Outcome:
         """With a storage URL, copy the run directory back into ``runs/`` (what it has, however the job ended)."""
@@ -193,14 +193,21 @@ class JobService:
     def run_dir(self, job_id: str) -> Path:
         return self.settings.runs_dir / job_id
 
+    @property
+    def rev_cache(self) -> Path:
+        """Where jobs of other git revisions build them: ``<data dir>/cache/revs/<sha>`` (a worktree and its
+        environment, ``slamreplay.replay.runs.revisions``)."""
+        return self.settings.data_dir.resolve() / "cache"
+
     # -- requests ------------------------------------------------------------------------------
 
     def submit(self, recording_id: str, pipeline: str, config: dict[str, Any], seed: int,
-               topic_map: dict[str, str] | None = None) -> JobRow:
+               topic_map: dict[str, str] | None = None, rev: str | None = None) -> JobRow:
         """Validate and queue a job.
 
         ``recording_id``: a whole id or an unambiguous prefix of one; ``topic_map``: file topic -> slamreplay
-        topic, applied when the recording is read. ReplayError (422) names an unknown pipeline or config key, a
+        topic, applied when the recording is read; ``rev``: the full commit sha whose code runs it (resolved by the
+        caller), None for the service's own. ReplayError (422) names an unknown pipeline or config key, a
         bad topic map, or the topics the pipeline needs that the recording lacks (and the pipelines it fits);
         NotFoundError an unknown recording, ConflictError an ambiguous prefix.
         """
@@ -227,7 +234,7 @@ class JobService:
         rec = self.store.get_recording(recording_id)
         if rec is not None:  # else add_job answers 404 below
             check_fit(rec, pipeline_cls, topic_map)
-        job = self.store.add_job(uuid.uuid4().hex, recording_id, pipeline, config, seed, topic_map or None)
+        job = self.store.add_job(uuid.uuid4().hex, recording_id, pipeline, config, seed, topic_map or None, rev)
         if job is None:
             raise NotFoundError(f"recording {recording_id} not found; upload it with POST /recordings first")
         self.wake()

@@ -64,13 +64,14 @@ CREATE TABLE IF NOT EXISTS jobs (
     finished REAL,
     name TEXT,                      -- given on the page; NULL: none
     metrics TEXT,                   -- JSON {metric: value} of a succeeded job; NULL: not read yet
-    topic_map TEXT                  -- JSON {file topic: slamreplay topic}; NULL: none
+    topic_map TEXT,                 -- JSON {file topic: slamreplay topic}; NULL: none
+    rev TEXT                        -- commit sha whose code runs it; NULL: the service's own
 );
 CREATE INDEX IF NOT EXISTS jobs_status ON jobs (status, seq);
 CREATE INDEX IF NOT EXISTS jobs_recording ON jobs (recording_id);
 """
 # Columns added since the first schema: (name, declaration), added by ALTER TABLE to an older file.
-ADDED_COLUMNS = (("name", "TEXT"), ("metrics", "TEXT"), ("topic_map", "TEXT"))
+ADDED_COLUMNS = (("name", "TEXT"), ("metrics", "TEXT"), ("topic_map", "TEXT"), ("rev", "TEXT"))
 # Run after the columns exist (an index on a column an old file lacks would fail in SCHEMA).
 SCHEMA_AFTER = """
 CREATE TABLE IF NOT EXISTS job_tags (
@@ -234,14 +235,15 @@ class Store(RunsTableMixin):
     # -- jobs ------------------------------------------------------------------------------
 
     def add_job(self, job_id: str, recording_id: str, pipeline: str, config: dict[str, Any],
-                seed: int, topic_map: dict[str, str] | None = None) -> JobRow | None:
-        """Queue a job; None when the recording is unknown (checked in the same transaction)."""
+                seed: int, topic_map: dict[str, str] | None = None, rev: str | None = None) -> JobRow | None:
+        """Queue a job (``rev``: the commit sha whose code runs it, None for the service's own); None when the
+        recording is unknown (checked in the same transaction)."""
         with self._tx() as conn:
             cur = conn.execute(
-                "INSERT INTO jobs (id, recording_id, pipeline, config, seed, status, created, topic_map) "
-                "SELECT ?, ?, ?, ?, ?, 'queued', ?, ? WHERE EXISTS (SELECT 1 FROM recordings WHERE id = ?)",
+                "INSERT INTO jobs (id, recording_id, pipeline, config, seed, status, created, topic_map, rev) "
+                "SELECT ?, ?, ?, ?, ?, 'queued', ?, ?, ? WHERE EXISTS (SELECT 1 FROM recordings WHERE id = ?)",
                 (job_id, recording_id, pipeline, json.dumps(config), seed, time.time(),
-                 json.dumps(topic_map) if topic_map else None, recording_id))
+                 json.dumps(topic_map) if topic_map else None, rev, recording_id))
             if cur.rowcount != 1:
                 return None
             row = conn.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()

@@ -43,6 +43,7 @@ class JobRow:
     tags: tuple[str, ...] = ()
     metrics: dict[str, float] | None = None  # succeeded jobs, once read from metrics.json
     topic_map: dict[str, str] | None = None  # file topic -> slamreplay topic, as submitted
+    rev: str | None = None  # the commit sha whose code runs it (replay/runs/revisions.py); None: the service's own
 
 
 def job_row(row: sqlite3.Row) -> JobRow:
@@ -53,7 +54,8 @@ def job_row(row: sqlite3.Row) -> JobRow:
     topic_map = json.loads(row["topic_map"]) if "topic_map" in keys and row["topic_map"] else None
     return JobRow(row["id"], row["recording_id"], row["pipeline"], json.loads(row["config"]), row["seed"],
                   row["status"], row["progress"], row["error"], row["note"], row["attempts"], row["created"],
-                  row["started"], row["finished"], row["name"] if "name" in keys else None, tags, metrics, topic_map)
+                  row["started"], row["finished"], row["name"] if "name" in keys else None, tags, metrics, topic_map,
+                  row["rev"] if "rev" in keys else None)
 
 
 @dataclass(frozen=True, slots=True)

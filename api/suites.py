@@ -147,20 +147,21 @@ class SuiteService:
         return replace(suite, text=text)
 
     def _reusable(self, rid: str, pipeline: str, config: dict[str, Any], seed: int,
-                  topic_map: dict[str, str]) -> JobRow | None:
-        """A job with these inputs that is queued, running, or succeeded with the code running now."""
-        want = canonical(config)
+                  topic_map: dict[str, str], rev: str | None = None) -> JobRow | None:
+        """A job with these inputs that is queued or running with the same code (``rev``, else the code running
+        now), or succeeded with it (its manifest says so)."""
+        want, code = canonical(config), rev or self._code
         for job in self.jobs.store.list_jobs(recording_id=rid, pipeline=pipeline, limit=1000):
             if job.seed != seed or canonical(job.config) != want or (job.topic_map or {}) != topic_map:
                 continue
-            if job.status in ("queued", "running"):
+            if job.status in ("queued", "running") and (job.rev or self._code) == code:
                 return job
-            if job.status == "succeeded" and not self._code.endswith("-dirty") and self._code != "unknown":
+            if job.status == "succeeded" and not code.endswith("-dirty") and code != "unknown":
                 try:
                     manifest = json.loads((self.jobs.run_dir(job.id) / "manifest.json").read_text())
                 except (OSError, json.JSONDecodeError):
                     continue
-                if manifest.get("slamreplay", {}).get("git_commit") == self._code:
+                if manifest.get("slamreplay", {}).get("git_commit") == code:
                     return job
         return None
 
@@ -175,8 +176,11 @@ class SuiteService:
             if rec is not None:
                 check_fit(rec, get_pipeline(pipeline), dict(spec.topic_map))
 
-    def submit(self, text: str, fmt: str) -> SuiteRow:
-        """Validate the suite, queue a job per cell (or reuse one), and record the suite."""
+    def submit(self, text: str, fmt: str, rev: str | None = None) -> SuiteRow:
+        """Validate the suite, queue a job per cell (or reuse one of the same code), and record the suite.
+
+        ``rev``: a full commit sha whose code runs the cells (resolved by the caller), None for the service's own.
+        """
         suite = self.parse(text, fmt)
         cells = suite.cells()
         suite_id = uuid.uuid4().hex
@@ -186,10 +190,10 @@ class SuiteService:
             spec = suite.recordings[cell.recording]
             rid = self._full_id(spec.id or "")
             topic_map = dict(spec.topic_map)  # the suite's `topic_map` of this recording, as `suite run` uses it
-            job = self._reusable(rid, cell.pipeline, cell.config, cell.seed, topic_map)
+            job = self._reusable(rid, cell.pipeline, cell.config, cell.seed, topic_map, rev)
             reused = job is not None
             if job is None:
-                job = self.jobs.submit(rid, cell.pipeline, dict(cell.config), cell.seed, topic_map)
+                job = self.jobs.submit(rid, cell.pipeline, dict(cell.config), cell.seed, topic_map, rev)
             rows.append((suite_id, i, json.dumps(cell.to_json(), sort_keys=True), job.id, int(reused)))
         created = time.time()
         with self._conn() as conn:

@@ -13,12 +13,10 @@ run did (``pipeline_run``).
 
 from __future__ import annotations
 
-import ctypes
 import dataclasses
 import hashlib
 import json
 import os
-import resource
 import shlex
 import shutil
 import signal
@@ -36,6 +34,7 @@ import numpy as np
 
 from slamreplay.recorder.messages import TOPIC_ODOM
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.tools.child import child_setup
 from slamreplay.replay.tools.estimates import F64, I64, EstimateReplay, anchor_at, read_tum_ns
 from slamreplay.replay.tools.export import EXPORTS, export_recording, export_topics
 
@@ -217,28 +216,6 @@ class ProgramRun:
     output: bytes | None
 
 
-PR_SET_PDEATHSIG = 1
-
-
-def _limits(memory_mib: int | None) -> Any:
-    """What the child does before exec: its memory limit, and (Linux) dying with the replay's process, so that a
-    job killed past its own limits leaves no program running in its separate session."""
-    try:
-        libc: Any = ctypes.CDLL(None, use_errno=True)
-        prctl = libc.prctl
-    except (OSError, AttributeError):
-        prctl = None
-
-    def apply() -> None:  # in the child: its address space, not slamreplay's
-        if memory_mib is not None:
-            limit = memory_mib * 1024 * 1024
-            resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
-        if prctl is not None:
-            prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
-
-    return apply
-
-
 def run_program(decl: Declaration, values: Mapping[str, str], out_dir: Path) -> ProgramRun:
     """Run the program once with ``values`` for the placeholders, its output folder ``out_dir`` (created)."""
     out_dir.mkdir(parents=True)
@@ -255,7 +232,7 @@ def run_program(decl: Declaration, values: Mapping[str, str], out_dir: Path) -> 
     with open(stdin_path if stdin_path else os.devnull, "rb") as stdin:
         try:
             proc = subprocess.Popen(argv, cwd=decl.here, stdin=stdin, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                    env=env, start_new_session=True, preexec_fn=_limits(decl.memory_mib))
+                                    env=env, start_new_session=True, preexec_fn=child_setup(decl.memory_mib))
         except OSError as err:
             raise ReplayError(f"external pipeline {decl.name}: cannot start {argv[0]}: {err.strerror}") from None
         try:

@@ -21,15 +21,17 @@ import os
 import shutil
 import subprocess
 import sys
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from slamreplay.recorder.version import SOURCE_ROOT
 from slamreplay.replay.engine.declared import DECLARATIONS_ENV
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.tools.child import child_setup
 from slamreplay.replay.runs.suite_run import CellJob
 
 BUILD_TIMEOUT_S = 1800
@@ -212,16 +214,26 @@ def _source_cli(src: Path) -> str:
 
 def run_cell(revision: Revision, job: CellJob) -> str | None:
     """Run one cell with the revision's ``slamreplay run``; an error message, or None on success."""
-    run_dir = job.run_dir.resolve()  # the command runs in the worktree: a path relative to here would miss
+    return run_at(revision, job.recording.path, job.cell.pipeline, job.run_dir, job.cell.seed, job.cell.config,
+                  job.recording.topic_map)
+
+
+def run_at(revision: Revision, recording: Path, pipeline: str, run_dir: Path, seed: int, config: Mapping[str, Any],
+           topic_map: Mapping[str, str]) -> str | None:
+    """Replay ``recording`` through ``pipeline`` into ``run_dir`` (which must not exist) with the revision's
+    ``slamreplay run``; an error message (the command's last line), or None on success."""
+    run_dir = run_dir.resolve()  # the command runs in the worktree: a relative path would miss (so would the
+    # recording's, made absolute without resolving a link: the service names its files by link)
     cfg = run_dir.parent / f".{run_dir.name}.config.json"
-    cfg.write_text(json.dumps(job.cell.config, sort_keys=True))
-    cmd = [*revision.command, "run", str(job.recording.path.resolve()), "--pipeline", job.cell.pipeline,
-           "--out", str(run_dir), "--seed", str(job.cell.seed), "--config", str(cfg), "--quiet"]
-    for k, v in sorted(job.recording.topic_map.items()):
+    cfg.write_text(json.dumps(dict(config), sort_keys=True))
+    cmd = [*revision.command, "run", str(recording.absolute()), "--pipeline", pipeline,
+           "--out", str(run_dir), "--seed", str(seed), "--config", str(cfg), "--quiet"]
+    for k, v in sorted(topic_map.items()):
         cmd += ["--topic-map", f"{k}={v}"]
     env = revision_env(revision, {**os.environ, **revision.env})
     try:
-        done = subprocess.run(cmd, cwd=revision.worktree, capture_output=True, text=True, env=env)
+        done = subprocess.run(cmd, cwd=revision.worktree, capture_output=True, text=True, env=env,
+                              preexec_fn=child_setup())  # dies with the worker that started it (a cancel)
     except OSError as err:
         return f"cannot start {cmd[0]}: {err}"
     finally:

@@ -394,11 +394,12 @@ def test_old_database_is_migrated_in_place(tmp_path: Path) -> None:
     store = Store(db)
     job = store.get_job(jid(1))
     assert job is not None and (job.name, job.tags, job.metrics, job.note) == (None, (), None, "re-queued once")
+    assert job.rev is None  # a job of an older server ran the service's own code
     Store(db)  # opening it again changes nothing
     with sqlite3.connect(db) as conn:
         columns = {r[1] for r in conn.execute("PRAGMA table_info(jobs)")}
         tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
-    assert {"name", "metrics"} <= columns and "job_tags" in tables
+    assert {"name", "metrics", "rev"} <= columns and "job_tags" in tables
     client = app_for(tmp_path)
     html = client.get("/runs", params={"cols": "ape_rmse_m"}).text
     assert row_ids(html) == [1] and "old.mcap" in html and "0.25" in html and "3.0 s" in html
