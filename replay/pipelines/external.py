@@ -32,15 +32,18 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from slamreplay.recorder.messages import TOPIC_ODOM
+from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.observe import Points
+from slamreplay.recorder.messages import TOPIC_GROUND_TRUTH_LANDMARKS, TOPIC_ODOM, LandmarkMap
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.metric_registry import specs
 from slamreplay.replay.tools.child import child_setup
 from slamreplay.replay.tools.estimates import F64, I64, EstimateReplay, anchor_at, read_tum_ns
 from slamreplay.replay.tools.export import EXPORTS, export_recording, export_topics
 
 PLACEHOLDERS = ("recording", "exports", "out", "seed", "config", "here", "python")
 KEYS = {"command", "summary", "exports", "stdin", "output", "version_command", "timeout_s", "memory_mib", "frame",
-        "topics", "config", "env", "adapter", "build"}
+        "topics", "config", "env", "adapter", "build", "landmarks"}
 BUILD_TIMEOUT_S = 600.0
 LOG_LINES = 200  # lines of each stream copied into the run's log; the whole stream is an artifact
 
@@ -64,6 +67,7 @@ class Declaration:
     config: Mapping[str, Any] = field(default_factory=dict)
     env: Mapping[str, str] = field(default_factory=dict)
     build: tuple[str, ...] = ()  # run in ``here`` before the program is first used in a process (e.g. make)
+    landmarks: str | None = None  # the program's landmark map, CSV ``id,x_m,y_m`` (``read_landmarks``); optional
 
     @property
     def here(self) -> Path:
@@ -104,7 +108,7 @@ def parse_declaration(name: str, table: Mapping[str, Any], path: Path) -> Declar
     if not isinstance(exports, list) or any(e not in EXPORTS for e in exports):
         raise ReplayError(f"{where}: exports must be a list of {', '.join(EXPORTS)}, got {exports!r}")
     for key, text in [*(("command", c) for c in command), ("stdin", table.get("stdin") or ""),
-                      ("output", table.get("output", "{out}"))]:
+                      ("output", table.get("output", "{out}")), ("landmarks", table.get("landmarks") or "")]:
         _check_placeholders(str(text), key, where)
     timeout = table.get("timeout_s", 600.0)
     memory = table.get("memory_mib")
@@ -128,7 +132,8 @@ def parse_declaration(name: str, table: Mapping[str, Any], path: Path) -> Declar
     return Declaration(name, path, command, str(table.get("summary") or f"external program {command[0]}"),
                        tuple(exports), table.get("stdin"), str(table.get("output", "{out}/trajectory.tum")),
                        version, float(timeout), memory, frame, tuple(topics), dict(config),
-                       {str(k): str(v) for k, v in env.items()}, build)
+                       {str(k): str(v) for k, v in env.items()}, build,
+                       str(table["landmarks"]) if table.get("landmarks") else None)
 
 
 def _expand(text: str, values: Mapping[str, str]) -> str:
@@ -214,6 +219,7 @@ class ProgramRun:
     stderr: str
     wall_s: float
     output: bytes | None
+    landmarks: bytes | None = None  # the landmark map the program wrote (``Declaration.landmarks``), if any
 
 
 def run_program(decl: Declaration, values: Mapping[str, str], out_dir: Path) -> ProgramRun:
@@ -244,8 +250,38 @@ def run_program(decl: Declaration, values: Mapping[str, str], out_dir: Path) -> 
                               f"{decl.timeout_s:g} s and was killed (timeout_s in {decl.path})") from None
     stdout, stderr = out.decode(errors="replace"), err_bytes.decode(errors="replace")
     output = Path(_expand(decl.output, values))
+    marks = Path(_expand(decl.landmarks, values)) if decl.landmarks else None
     return ProgramRun(argv, proc.returncode, stdout, stderr, time.perf_counter() - tic,
-                      output.read_bytes() if output.is_file() else None)
+                      output.read_bytes() if output.is_file() else None,
+                      marks.read_bytes() if marks is not None and marks.is_file() else None)
+
+
+def read_landmarks(data: bytes, what: str) -> tuple[I64, F64]:
+    """A landmark map ``id,x_m,y_m`` per line (a header line and ``#`` comments allowed): ids (n,) and positions
+    (n, 2), in the same frame as the trajectory; ReplayError naming the line that is wrong."""
+    try:
+        text = data.decode()
+    except UnicodeDecodeError:
+        raise ReplayError(f"{what} is not text (CSV id,x_m,y_m expected)") from None
+    ids: list[int] = []
+    xy: list[tuple[float, float]] = []
+    for n, line in enumerate(text.splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#") or (n == 1 and not line[0].isdigit() and line[0] != "-"):
+            continue
+        parts = [p.strip() for p in line.split(",")]
+        try:
+            i, x, y = int(parts[0]), float(parts[1]), float(parts[2])
+        except (ValueError, IndexError):
+            raise ReplayError(f"{what}, line {n}: expected id,x_m,y_m (an integer and two numbers), got "
+                              f"{line[:80]!r}") from None
+        if len(parts) != 3 or i < 0 or not (np.isfinite(x) and np.isfinite(y)):
+            raise ReplayError(f"{what}, line {n}: expected id >= 0 and two finite numbers, got {line[:80]!r}")
+        ids.append(i)
+        xy.append((x, y))
+    if len(set(ids)) != len(ids):
+        raise ReplayError(f"{what}: landmark ids must be unique")
+    return np.asarray(ids, np.int64), np.asarray(xy, np.float64).reshape(-1, 2)
 
 
 def _last_line(text: str) -> str:
@@ -278,6 +314,8 @@ class ExternalPipeline(EstimateReplay):
 
     def __init__(self, config: Any, ctx: Any) -> None:
         super().__init__(config, ctx)
+        self.true_landmarks: LandmarkMap | None = None
+        self.landmark_map: tuple[I64, F64] | None = None  # the program's, in the world frame
         self.runs: list[ProgramRun] = []
         self.deterministic: bool | None = None
         self.max_difference_m: float | None = None
@@ -313,10 +351,45 @@ class ExternalPipeline(EstimateReplay):
         if len(self.runs) == 2:
             self._compare_runs(t_ns, poses)
         world = anchor_at(t_ns, poses, self.ctx.T_world_start) if decl.frame == "start" else poses
+        if decl.landmarks:
+            if first.landmarks is None:
+                raise ReplayError(f"external pipeline {decl.name}: {Path(first.argv[0]).name} exited 0 but wrote no "
+                                  f"{decl.landmarks}: {_last_line(first.stderr)}")
+            ids, xy = read_landmarks(first.landmarks, f"external pipeline {decl.name}: {Path(decl.landmarks).name}")
+            if len(poses) and decl.frame == "start":  # the map moves with the trajectory to the true start
+                to_world = se2.compose(world[0], se2.inverse(poses[0]))
+                xy = se2.transform_points(to_world, xy) if len(xy) else xy
+            self.landmark_map = (ids, xy)
         self.ctx.log(f"{Path(first.argv[0]).name}: {len(t_ns):,} poses in {first.wall_s:.2f} s" +
                      (" (moved to the true start pose)" if decl.frame == "start" and
                       self.ctx.T_world_start is not None else ""))
         return t_ns, world
+
+    def step(self, env: Any) -> None:
+        if isinstance(env.msg, LandmarkMap):
+            self.true_landmarks = env.msg
+        super().step(env)
+
+    def finish(self) -> dict[str, float]:
+        """The trajectory's metrics, and with a declared landmark map its own: matched to the truth by id."""
+        metrics = super().finish()
+        if self.landmark_map is None:
+            return metrics
+        ids, xy = self.landmark_map
+        self.ctx.observer.log("world/landmarks/estimate", Points(xy, radius=0.15))
+        metrics["landmarks_mapped"] = float(len(ids))
+        truth = self.true_landmarks
+        if truth is None:
+            return metrics
+        self.ctx.observer.log("world/landmarks/truth", Points(np.asarray(truth.positions_m), radius=0.1))
+        where = {int(i): k for k, i in enumerate(truth.landmark_ids.tolist())}
+        matched = [k for k, i in enumerate(ids.tolist()) if i in where]
+        metrics["landmarks_true"] = float(len(where))
+        metrics["false_landmarks"] = float(len(ids) - len(matched))
+        if matched:
+            ref = np.asarray(truth.positions_m)[[where[int(ids[k])] for k in matched]]
+            metrics["landmark_rmse_m"] = float(np.sqrt(np.mean(np.sum((xy[matched] - ref) ** 2, axis=1))))
+        return metrics
 
     def _log_streams(self, run: ProgramRun, k: int, times: int) -> None:
         tag = f" (run {k + 1} of {times})" if times > 1 else ""
@@ -371,6 +444,10 @@ def pipeline_from_declaration(name: str, table: Mapping[str, Any], path: Path) -
     """The pipeline class of one declaration (the default adapter of ``slamreplay.replay.engine.declared``)."""
     decl = parse_declaration(name, table, path)
     build_program(decl)
+    landmark_specs = specs("landmarks_mapped", "landmarks_true", "false_landmarks", "landmark_rmse_m")
     attrs = {"name": name, "summary": decl.summary, "required_topics": decl.topics, "start_topic": decl.topics[0],
+             "metrics": {**ExternalPipeline.metrics, **(landmark_specs if decl.landmarks else {})},
+             "optional_topics": (*ExternalPipeline.optional_topics,
+                                 *((TOPIC_GROUND_TRUTH_LANDMARKS,) if decl.landmarks else ())),
              "Config": _config_class(decl), "presets": {}, "declaration": decl, "declared_origin": origin_of(decl)}
     return type(f"External[{name}]", (ExternalPipeline,), attrs)
