@@ -120,30 +120,34 @@ test-pythons:
 	else echo "test-pythons: the cross-interpreter diff needs both 3.10 and 3.13: skipped"; fi
 
 # Coverage-guided fuzzing (atheris, the fuzz extra) of every byte parser, one harness after the other, each
-# for a quarter of FUZZ_SECONDS from its stored seed corpus: the MCAP reader, inspect and recover
-# (tests/fuzz/harness_mcap.py), suite files (harness_suite.py), form uploads (harness_upload.py) and ROS 2
-# bags (harness_ros2bag.py). New inputs go to FUZZ_DIR/<harness> (the committed corpus is read only, never
-# written), findings to FUZZ_DIR/<harness>-crash-* (then store them as cases); the first finding fails the run.
+# for a fifth of FUZZ_SECONDS from its stored seed corpus: the MCAP reader, inspect and recover
+# (tests/fuzz/harness_mcap.py), suite files (harness_suite.py), form uploads (harness_upload.py), ROS 2 bags
+# (harness_ros2bag.py) and the dataset importers: MRCLAM, Victoria Park, image folders (harness_datasets.py).
+# New inputs go to FUZZ_DIR/<harness> (the committed corpus is read only, never written), findings to
+# FUZZ_DIR/<harness>-crash-* (then store them as cases); the first finding fails the run.
 # FUZZ_RUNS=N instead runs N inputs per harness from seed FUZZ_SEED: the same inputs on every machine, which is
 # what CI runs (a time budget explores a different path on a faster machine, and a CI run must be repeatable).
 FUZZ_SECONDS ?= 1800
 FUZZ_DIR ?= /tmp/slamreplay-fuzz
 FUZZ_SEED ?= 0
-FUZZ_EACH = $(shell expr $(FUZZ_SECONDS) / 4)
+FUZZ_HARNESSES := mcap suite upload ros2bag datasets
+FUZZ_EACH = $(shell expr $(FUZZ_SECONDS) / 5)
 # With FUZZ_RUNS, harness h runs FUZZ_RUNS x its weight inputs (the weights even out their speeds: the ROS 2 bag
-# harness opens two bags per input, 15/s; the suite parser runs 13,000/s).
+# harness opens two bags per input, 15/s; the dataset importers write a folder and a recording, about 1,000/s; the
+# suite parser runs 13,000/s).
 FUZZ_LIMIT = $(if $(FUZZ_RUNS),-runs=$(shell expr $(FUZZ_RUNS) \* $(2)) -seed=$(or $(filter-out 0,$(FUZZ_SEED)),1),\
 	-max_total_time=$(FUZZ_EACH) $(if $(filter-out 0,$(FUZZ_SEED)),-seed=$(FUZZ_SEED)))
 FUZZ_RUN = nice -n 10 $(BIN)/python tests/fuzz/harness_$(1).py $(call FUZZ_LIMIT,$(1),$(2)) \
 	-artifact_prefix=$(FUZZ_DIR)/$(1)- $(3) $(FUZZ_DIR)/$(1) tests/fuzz/corpus/$(1)
 fuzz: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[dev,fuzz]"
-	$(if $(FUZZ_RUNS),rm -rf $(FUZZ_DIR)/mcap $(FUZZ_DIR)/suite $(FUZZ_DIR)/upload $(FUZZ_DIR)/ros2bag)
-	@mkdir -p $(FUZZ_DIR)/mcap $(FUZZ_DIR)/suite $(FUZZ_DIR)/upload $(FUZZ_DIR)/ros2bag
+	$(if $(FUZZ_RUNS),rm -rf $(addprefix $(FUZZ_DIR)/,$(FUZZ_HARNESSES)))
+	@mkdir -p $(addprefix $(FUZZ_DIR)/,$(FUZZ_HARNESSES))
 	$(call FUZZ_RUN,mcap,40,-timeout=20 -rss_limit_mb=4096 -max_len=65536)
 	$(call FUZZ_RUN,suite,100,-timeout=10 -rss_limit_mb=2048 -max_len=4096 -dict=tests/fuzz/suite.dict)
 	$(call FUZZ_RUN,upload,40,-timeout=10 -rss_limit_mb=2048 -max_len=8192)
 	$(call FUZZ_RUN,ros2bag,1,-timeout=20 -rss_limit_mb=3072 -max_len=65536)
+	$(call FUZZ_RUN,datasets,40,-timeout=20 -rss_limit_mb=3072 -max_len=16384 -dict=tests/fuzz/datasets.dict)
 
 lint: $(STAMP)
 	$(BIN)/ruff check recorder replay algorithms api tests benchmarks examples

@@ -37,6 +37,7 @@ from slamreplay.recorder.codec.mcap_io import (
     MAGIC,
     MAX_CHUNK_BYTES,
     McapFile,
+    check_chunk_size,
     chunk_records,
     cut_chunk_records,
     decompress,
@@ -182,8 +183,10 @@ class _Salvage:
         self.chunk_offsets: list[int] = []
         self.end = f.size
         self.summary_damage: str | None = None
-        # Work the search for the next clean chunk may do (bytes read plus bytes decompressed, over the file): a
-        # hostile file can put a plausible Chunk at every 0x06 byte; this keeps recover linear in the file's size.
+        # Work spent on what turns out to be damage (bytes read plus bytes decompressed, over the file): the search
+        # for the next clean chunk (a hostile file can put a plausible Chunk at every 0x06 byte) and the chunks
+        # dropped after decompressing them (a file of valid-CRC bombs, each refused only once decompressed). It
+        # keeps recover linear in the file's size; chunks that read cleanly are not charged.
         self.budget = RESYNC_BYTES_PER_BYTE * f.size + MAX_CHUNK_BYTES
         try:
             summary = f.summary()
@@ -244,9 +247,15 @@ class _Salvage:
 
     def _chunk(self, chunk: Chunk, pos: int, after: int) -> bool:
         """Copy a chunk's records; False when it was dropped whole."""
+        if self.budget < 0:
+            self.drop(pos, after, f"Chunk record at byte {pos} not decompressed: recover has spent its budget for "
+                                  f"damage ({RESYNC_BYTES_PER_BYTE} bytes per byte of the file) on the chunks before "
+                                  f"it", indexed=True)
+            return False
         try:
             data = decompress(chunk, pos)
         except DamageError as err:
+            self.budget -= _work(chunk)
             self.drop(pos, after, str(err), indexed=True)
             return False
         try:
@@ -298,6 +307,15 @@ class _Salvage:
             except DamageError:
                 continue
         return None
+
+
+def _work(chunk: Chunk) -> int:
+    """Bytes ``decompress`` may have produced before refusing ``chunk``: none when its declared sizes were refused."""
+    try:
+        check_chunk_size(chunk.compression, len(chunk.data), chunk.uncompressed_size, "")
+    except DamageError:
+        return 0
+    return int(chunk.uncompressed_size)
 
 
 def recover(src: str | Path, dst: str | Path) -> RecoveryReport:

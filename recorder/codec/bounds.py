@@ -26,6 +26,9 @@ MAX_SCHEMA_TYPES = 10_000
 # Pixels of one image: 32 Mpx is above any robot camera (a 4K frame is 8.3 Mpx) and keeps one decoded
 # rgb8 frame under 100 MB; a header claiming 40,000 x 40,000 (1.6 Gpx, 4.8 GB) is refused undecoded.
 MAX_IMAGE_PIXELS = 32 << 20
+# Pixels along one side: JPEG's own maximum (65,535), and far below OpenCV's (2**20), which raises an assertion
+# error of its own beyond it (a 4,128,776 x 6 BMP header is under MAX_IMAGE_PIXELS).
+MAX_IMAGE_SIDE = (1 << 16) - 1
 
 # Chunks of one PNG, each checked (CRC) in Python before OpenCV sees the bytes: libpng writes 8 KiB IDAT
 # chunks, so the largest image slamreplay decodes (MAX_IMAGE_PIXELS rgb8) needs ~12,300; a PNG of a million
@@ -195,15 +198,18 @@ def _ros_name(ftype: str, pkg: str) -> str:
     return f"{parts[0]}/{parts[-1]}"
 
 
-def image_size(data: bytes) -> tuple[int, int] | None:
-    """(width, height) from a PNG's IHDR or a JPEG's start-of-frame header; None when neither is found."""
-    if data.startswith(_PNG_SIGNATURE):
-        if len(data) >= 24 and data[12:16] == b"IHDR":
-            w, h = struct.unpack_from(">II", data, 16)
-            return int(w), int(h)
-        return None
-    if not data.startswith(b"\xff\xd8"):
-        return None
+# Formats OpenCV recognises by their first bytes (it ignores file names): those whose size slamreplay reads from the
+# header are decoded; the others are refused undecoded, since their headers could claim any size unchecked.
+_UNSIZED_FORMATS = ((b"GIF87a", "GIF"), (b"GIF89a", "GIF"), (b"#?RADIANCE", "Radiance HDR"),
+                    (b"#?RGBE", "Radiance HDR"), (b"\x59\xa6\x6a\x95", "Sun raster"), (b"Pf", "PFM"),
+                    (b"PF", "PFM"), (b"P7", "PAM"),
+                    (b"\x00\x00\x00\x0cjP  ", "JPEG 2000"), (b"\xff\x4f\xff\x51", "JPEG 2000"),
+                    (b"\x76\x2f\x31\x01", "OpenEXR"))
+SIZED_FORMATS = frozenset(("PNG", "JPEG", "TIFF", "BMP", "PNM"))  # PNM: PBM, PGM, PPM
+_TIFF_MAX_TAGS = 4096  # entries of a TIFF's first directory read to find its size (a real one has 10-30)
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int] | None:
     pos = 2
     while pos + 4 <= len(data):  # markers: 0xFF, kind, then a big-endian segment length (itself included)
         if data[pos] != 0xFF:
@@ -224,12 +230,113 @@ def image_size(data: bytes) -> tuple[int, int] | None:
     return None
 
 
+def _bmp_size(data: bytes) -> tuple[int, int] | None:
+    if len(data) < 26:
+        return None
+    (header,) = struct.unpack_from("<I", data, 14)
+    if header == 12:  # OS/2 BITMAPCOREHEADER: 16-bit sizes
+        w, h = struct.unpack_from("<HH", data, 18)
+        return int(w), int(h)
+    w, h = struct.unpack_from("<ii", data, 18)
+    return abs(int(w)), abs(int(h))  # a negative height: rows stored top-down
+
+
+def _pnm_size(data: bytes) -> tuple[int, int] | None:
+    numbers: list[int] = []
+    for line in data[2:4096].split(b"\n"):
+        for token in line.split(b"#", 1)[0].split():
+            if not token.isdigit():
+                return None
+            numbers.append(int(token))
+            if len(numbers) == 2:
+                return numbers[0], numbers[1]
+    return None
+
+
+def _tiff_size(data: bytes) -> tuple[int, int] | None:
+    if len(data) < 8:
+        return None
+    order = "<" if data[:2] == b"II" else ">"
+    (version,) = struct.unpack_from(order + "H", data, 2)
+    big = version == 43
+    if big:  # BigTIFF: 8-byte offsets and counts, 20-byte entries
+        if len(data) < 16:
+            return None
+        (ifd,) = struct.unpack_from(order + "Q", data, 8)
+        count_fmt, entry, value_at = "Q", 20, 12
+    else:
+        (ifd,) = struct.unpack_from(order + "I", data, 4)
+        count_fmt, entry, value_at = "H", 12, 8
+    count_size = struct.calcsize(count_fmt)
+    if ifd + count_size > len(data):
+        return None
+    (count,) = struct.unpack_from(order + count_fmt, data, ifd)
+    size: dict[int, int] = {}
+    for k in range(min(count, _TIFF_MAX_TAGS)):
+        at = ifd + count_size + k * entry
+        if at + entry > len(data):
+            return None
+        tag, kind = struct.unpack_from(order + "HH", data, at)
+        fmt = {3: "H", 4: "I", 16: "Q"}.get(kind, "")  # ImageWidth, ImageLength as SHORT, LONG or LONG8 (BigTIFF)
+        if tag in (256, 257) and fmt and struct.calcsize(fmt) <= entry - value_at:
+            (size[tag],) = struct.unpack_from(order + fmt, data, at + value_at)
+            if len(size) == 2:
+                return size[256], size[257]
+    return None
+
+
+def image_format(data: bytes) -> str | None:
+    """The format OpenCV would decode ``data`` as, from its first bytes ("PNG", "GIF"...); None when none."""
+    if data.startswith(_PNG_SIGNATURE):
+        return "PNG"
+    if data.startswith(b"\xff\xd8\xff"):
+        return "JPEG"
+    if data[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+        return "TIFF"
+    if data.startswith(b"BM"):
+        return "BMP"
+    if len(data) > 2 and data[:1] == b"P" and data[1:2] in b"123456" and data[2:3].isspace():
+        return "PNM"
+    if data[:4] == b"RIFF" and data[8:12] == b"WEBP":
+        return "WebP"
+    if data[4:8] == b"ftyp":
+        return "HEIF/AVIF"
+    return next((name for magic, name in _UNSIZED_FORMATS if data.startswith(magic)), None)
+
+
+def image_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from the header of a PNG, JPEG, TIFF, BMP or PNM image; None when there is none to read."""
+    fmt = image_format(data)
+    if fmt == "PNG":
+        if len(data) >= 24 and data[12:16] == b"IHDR":
+            w, h = struct.unpack_from(">II", data, 16)
+            return int(w), int(h)
+        return None
+    reader = {"JPEG": _jpeg_size, "TIFF": _tiff_size, "BMP": _bmp_size, "PNM": _pnm_size}.get(fmt or "")
+    return reader(data) if reader is not None else None
+
+
 def check_image_size(data: bytes, fmt: str) -> None:
-    """CodecError when a PNG/JPEG header claims more than MAX_IMAGE_PIXELS pixels (or none); no decoding."""
+    """CodecError when an image's header claims more than MAX_IMAGE_PIXELS pixels (or none, or a side longer than
+    MAX_IMAGE_SIDE), when it is a format whose size slamreplay does not read, or when its header is too damaged
+    to tell; no decoding.
+
+    ``data`` must hold the image's header (for a TIFF, its first directory: the whole file is safest).
+    """
+    kind = image_format(data)
+    if kind is None:
+        return  # not an image format OpenCV knows: it refuses the bytes without allocating pixels
+    if kind not in SIZED_FORMATS:
+        raise CodecError(f"the {fmt or 'image'} data is a {kind} image, which slamreplay does not decode (only "
+                         f"{', '.join(sorted(SIZED_FORMATS))})")
     size = image_size(data)
     if size is None:
-        return  # no header found: OpenCV refuses the bytes without allocating pixels
+        raise CodecError(f"the {fmt or 'image'} data is a {kind} image whose header does not say its size: the image "
+                         f"is damaged")
     w, h = size
     if w == 0 or h == 0 or w * h > MAX_IMAGE_PIXELS:
         raise CodecError(f"the {fmt or 'image'} header claims {w:,} x {h:,} pixels; slamreplay decodes at most "
                          f"{MAX_IMAGE_PIXELS:,} pixels per image: the image is damaged or hostile")
+    if max(w, h) > MAX_IMAGE_SIDE:
+        raise CodecError(f"the {fmt or 'image'} header claims {w:,} x {h:,} pixels; slamreplay decodes at most "
+                         f"{MAX_IMAGE_SIDE:,} pixels along a side: the image is damaged or hostile")

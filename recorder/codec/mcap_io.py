@@ -8,7 +8,8 @@ anything is read or allocated: record framing here, every field inside a record 
 bounds-checked parser of :mod:`slamreplay.recorder.codec.mcap_records`. A chunk's declared
 uncompressed size is checked against MAX_CHUNK_BYTES and what its compression can give
 (MAX_RATIO) before it is decompressed; it is decompressed as a stream, never into a buffer
-sized by the file, stopped at the declared size, and checked against its CRC.
+sized by the file, stopped at the declared size, and checked against its CRC; and it may hold at
+most MAX_RECORDS_PER_BYTE records per byte of it, which bounds a whole file's records by its size.
 """
 
 from __future__ import annotations
@@ -49,6 +50,17 @@ MAX_CHUNK_RECORDS = 1_000_000
 # than its compressed size times this is refused before it is decompressed.
 MAX_RATIO = {"zstd": 1 << 15, "lz4": 255, "": 1}
 _RATIO_SLACK = 1 << 10  # frame headers: a tiny compressed chunk may decompress to a little more than ratio x size
+# The most records a chunk may hold per byte of its record (compressed data plus CHUNK_HEAD), which bounds the
+# records of a whole file at twice its size, however many chunks it has. The cost of reading is per record (a
+# tuple, a decode, a pipeline step: about 13 us each in `run`), and a chunk of identical records compresses to
+# almost nothing (a 9 KB chunk of 1,000,000 messages took `run` 13 s and 780 MB), while records that differ
+# only in their times do not: the densest recordings measured hold 0.26 records per byte (zstd, empty messages
+# at 1 ms; slamreplay's stationary odometry 0.09) and 0.98 for a contrived burst of empty messages that share
+# one timestamp. Bytes need no such bound per file: they cost little per byte (zstd and the CRC run at GB/s),
+# and a recording of black frames really holds 15,000 times its size (4K frames, slamreplay's own chunks).
+MAX_RECORDS_PER_BYTE = 2
+CHUNK_HEAD = 1 + 8 + 8 + 8 + 8 + 4 + 4 + 4 + 8  # opcode, length, times, size, CRC, "zstd", data length
+_MIN_RECORD = 9  # opcode and length: a record of fewer bytes does not exist
 
 
 def check_chunk_size(compression: str, compressed: int, uncompressed: int, where: str) -> None:
@@ -213,7 +225,27 @@ def decompress(chunk: Chunk, offset: int, *, validate_crc: bool = True) -> bytes
         if crc != chunk.uncompressed_crc:
             raise DamageError(f"{where} fails its CRC check (expected {chunk.uncompressed_crc:#010x}, "
                               f"got {crc:#010x})")
+    limit = max_records(len(chunk.data))
+    if len(data) > _MIN_RECORD * limit and _count_records(data, limit) > limit:  # else too few bytes to hold more
+        raise DamageError(f"{where} holds more than {limit:,} records in {len(chunk.data):,} compressed bytes, "
+                          f"above slamreplay's limit of {MAX_RECORDS_PER_BYTE} per byte of chunk (real "
+                          f"recordings hold under 1): a decompression bomb, not a recording")
     return data
+
+
+def max_records(compressed: int) -> int:
+    """The most records a chunk of ``compressed`` data bytes may hold (MAX_RECORDS_PER_BYTE, MAX_CHUNK_RECORDS)."""
+    return min(MAX_CHUNK_RECORDS, MAX_RECORDS_PER_BYTE * (compressed + CHUNK_HEAD))
+
+
+def _count_records(data: bytes, limit: int) -> int:
+    """Records in a chunk's uncompressed ``data``, counted up to ``limit + 1`` (framing only: damage inside is
+    for the parsers to name)."""
+    pos, n, size, unpack_len = 0, 0, len(data), _LENGTH.unpack_from
+    while pos + _MIN_RECORD <= size and n <= limit:
+        pos += _MIN_RECORD + unpack_len(data, pos + 1)[0]
+        n += 1
+    return n
 
 
 def _zstd(data: bytes, limit: int, where: str) -> bytes:
@@ -312,7 +344,7 @@ def chunk_messages(data: bytes, offset: int) -> list[tuple[int, int, int, int, b
 def cut_chunk_records(tail: bytes) -> list[Any]:
     """Complete schema/channel/message records of a chunk record cut short by the end of the file
     (``tail`` starts at its opcode); the zstd stream is decompressed as far as it goes, never past the
-    size the chunk claims nor MAX_CHUNK_BYTES."""
+    size the chunk claims nor MAX_CHUNK_BYTES, and no more records are kept than :func:`max_records` allows."""
     if not tail or tail[0] != Opcode.CHUNK:
         return []
     head = Body(tail, "the cut Chunk record", 9)
@@ -343,8 +375,8 @@ def cut_chunk_records(tail: bytes) -> list[Any]:
     elif compression != "":
         return []  # lz4 chunks are kept whole or not at all
     records: list[Any] = []
-    pos = 0
-    while pos + 9 <= len(data):
+    pos, limit = 0, max_records(len(tail) - head.pos)
+    while pos + 9 <= len(data) and len(records) < limit:
         opcode = data[pos]
         (length,) = struct.unpack_from("<Q", data, pos + 1)
         if length > len(data) - pos - 9:

@@ -77,18 +77,41 @@ class ImportSummary:
     end_ns: int
 
 
+# Bounds on the values of a line, checked where it is read so that the arrays built from the file hold int64
+# and the integration, interpolation and noise fit stay finite. A time beyond MAX_TIME_S (the year 2255) does
+# not fit int64 nanoseconds; MRCLAM's arena is 15 x 8 m, its robots drive under 1 m/s and its ranges stay under
+# 10 m, so MAX_MAGNITUDE (m, m/s, rad, rad/s) is far above any real value and far below float overflow.
+MAX_TIME_S: Final = 9.0e9
+MAX_MAGNITUDE: Final = 1.0e6
+_INT64: Final = 1 << 63
+
+
 def _time_ns(token: str) -> int:
     """Unix seconds (ms resolution) -> int ns, exactly: round to the millisecond first."""
     seconds = float(token)
-    if not math.isfinite(seconds) or seconds < 0:
-        raise ValueError(f"time {token!r} is not a finite, nonnegative number of seconds")
+    if not 0 <= seconds <= MAX_TIME_S:  # also NaN
+        raise ValueError(f"time {token!r} is not a number of seconds in 0..{MAX_TIME_S:.0e} (Unix time)")
     return round(seconds * 1000.0) * NS_PER_MS
+
+
+def _int(token: str) -> int:
+    value = int(token)
+    if not -_INT64 <= value < _INT64:
+        raise ValueError(f"{token!r} does not fit a 64-bit integer")
+    return value
+
+
+def _subject(token: str) -> int:
+    value = _int(token)
+    if value < 0:  # a recording's landmark ids are >= 0 (-1 marks an unknown one)
+        raise ValueError(f"{token!r} is negative: subjects are numbered from 1")
+    return value
 
 
 def _float(token: str) -> float:
     value = float(token)
-    if not math.isfinite(value):
-        raise ValueError(f"{token!r} is not a finite number")
+    if not abs(value) <= MAX_MAGNITUDE:  # also NaN and infinities
+        raise ValueError(f"{token!r} is not a finite number within +-{MAX_MAGNITUDE:.0e}")
     return value
 
 
@@ -99,15 +122,17 @@ def _nonnegative(token: str) -> float:
     return value
 
 
-_PARSERS: Final[dict[str, Callable[[str], float | int]]] = {"t": _time_ns, "i": int, "f": _float, "n": _nonnegative}
+_PARSERS: Final[dict[str, Callable[[str], float | int]]] = {"t": _time_ns, "i": _int, "s": _subject, "f": _float,
+                                                             "n": _nonnegative}
 
 
 def _read_dat(path: Path, columns: tuple[str, ...], kinds: str, *,
               sorted_by_time: bool = False) -> list[list[float | int]]:
     """Columns of a whitespace-separated ``.dat`` file; ``kinds`` gives each column's type.
 
-    ``t`` is a time (to int ns), ``i`` an integer, ``f`` a finite float, ``n`` a nonnegative one. Raises RecorderError
-    naming the file and line of anything malformed, or of a time that goes backwards.
+    ``t`` is a time (to int ns), ``i`` a 64-bit integer, ``s`` a nonnegative one (a subject), ``f`` a float within
+    MAX_MAGNITUDE, ``n`` a nonnegative one. Raises RecorderError naming the file and line of anything malformed,
+    or of a time that goes backwards.
     """
     if not path.is_file():
         msg = (f"{path} is missing: an MRCLAM dataset folder holds Barcodes.dat, Landmark_Groundtruth.dat and "
@@ -362,9 +387,9 @@ def import_mrclam(data_dir: Path, robot: int | str, out: Path, progress: Progres
         raise RecorderError(msg)
     refuse_existing(Path(out))  # before minutes of reading
 
-    subject, barcode = _read_dat(data_dir / "Barcodes.dat", ("subject", "barcode"), "ii")
+    subject, barcode = _read_dat(data_dir / "Barcodes.dat", ("subject", "barcode"), "si")
     lm_id, lm_x, lm_y, _, _ = _read_dat(data_dir / "Landmark_Groundtruth.dat",
-                                        ("subject", "x [m]", "y [m]", "x std-dev [m]", "y std-dev [m]"), "iffff")
+                                        ("subject", "x [m]", "y [m]", "x std-dev [m]", "y std-dev [m]"), "sffff")
     if len(set(lm_id)) != len(lm_id):
         raise RecorderError(f"{data_dir / 'Landmark_Groundtruth.dat'} lists a subject twice; each landmark once")
     to_subject = {int(b): int(s) for s, b in zip(subject, barcode, strict=True)}

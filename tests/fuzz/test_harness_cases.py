@@ -1,4 +1,4 @@
-"""Regression cases of the suite, upload and ROS 2 bag harnesses: each crasher they found, replayed.
+"""Regression cases of the suite, upload, ROS 2 bag and dataset importer harnesses: each crasher they found, replayed.
 
 ``cases/harness_cases.json`` lists each stored input (under ``cases/<harness>/``, < 100 KB), what
 slamreplay did before the fix, and a pattern the error (or ``ok``) of the parser now matches. Each input
@@ -20,7 +20,7 @@ import pytest
 
 CASES_DIR = Path(__file__).parent / "cases"
 CASES: list[dict[str, Any]] = json.loads((CASES_DIR / "harness_cases.json").read_text())
-HARNESSES = ("suite", "upload", "ros2bag")
+HARNESSES = ("suite", "upload", "ros2bag", "datasets")
 
 
 def _harness(name: str) -> ModuleType:
@@ -50,6 +50,8 @@ def _outcome(harness: ModuleType, name: str, data: bytes) -> str:
                 harness.load_suite(harness._TOML)
         elif name == "upload":
             harness._LOOP.run_until_complete(harness._upload(*harness.split(data)))
+        elif name == "datasets":
+            harness.record(data)
         else:
             harness.build_bag(data)
             harness.plan_bag(harness._BAG, ground_truth_frame="map")
