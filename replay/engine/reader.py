@@ -95,6 +95,16 @@ def topic_type(logical: str) -> type | None:
     return TOPIC_TYPES.get(logical[ns.end():] if ns else logical)
 
 
+LISTED = 20  # topics an error names at most: a file may declare 65,535 channels, and an error is one line
+
+
+def listed(topics: Iterable[str], most: int = LISTED) -> str:
+    """Sorted topic names for an error line, each shortened, the first ``most`` and how many more."""
+    names = sorted(set(topics))
+    more = f" and {len(names) - most:,} more (`slamreplay inspect` lists them)" if len(names) > most else ""
+    return ", ".join(shown(t) for t in names[:most]) + more if names else "(none)"
+
+
 def resolve_topic_map(channels: Iterable[tuple[str, str]], explicit: Mapping[str, str] | None) -> dict[str, str]:
     """Map file topics onto logical topics.
 
@@ -109,7 +119,7 @@ def resolve_topic_map(channels: Iterable[tuple[str, str]], explicit: Mapping[str
             raise ReplayError(f"topic map target {logical} is not a slamreplay topic; use one of {known}")
         if file_topic not in chans:
             raise ReplayError(f"topic map names {file_topic}, which is not in the recording; "
-                              f"its topics are: {', '.join(sorted(shown(c) for c in chans)) or '(none)'}")
+                              f"its topics are: {listed(chans)}")
         result[file_topic] = logical
     taken = set(result.values())
     for file_topic in chans:
@@ -236,7 +246,7 @@ class RecordingReader:
         topics = self.info.logical_topics()
         info = topics.get(logical_topic)
         if info is None:
-            have = ", ".join(sorted(shown(t.file_topic) for t in self.info.topics)) or "(none)"
+            have = listed(t.file_topic for t in self.info.topics)
             raise ReplayError(f"{self.path.name} has no {logical_topic} topic; its topics are: {have}. "
                               f"If the data is there under another name, map it with "
                               f"--topic-map FILE_TOPIC={logical_topic}")

@@ -203,3 +203,23 @@ def test_order_across_overlapping_small_chunks(tmp_path: Path, seed: int) -> Non
     assert got == sorted(range(len(times)), key=lambda k: times[k])  # stable: ties keep write order
     window = [int(e.msg.x_m) for e in reader.messages(start_ns=100, end_ns=300)]  # type: ignore[union-attr]
     assert window == [k for k in got if 100 <= times[k] < 300]
+
+
+def test_a_missing_topic_error_stays_one_short_line(tmp_path: Path) -> None:
+    """A file of 65,535 channels (the format's most) without /odom: the error names the first 20 topics and how
+    many more, not all of them (it was a 600 KB line)."""
+    path = tmp_path / "many.mcap"
+    with path.open("wb") as f:
+        w = Writer(f)
+        w.start()
+        sid = w.register_schema(name="x", encoding="jsonschema", data=b"{}")
+        for i in range(65_535):
+            w.register_channel(topic=f"/t{i:05d}", message_encoding="json", schema_id=sid)
+        w.finish()
+    with pytest.raises(ReplayError) as err:
+        RecordingReader(path).decoder("/odom")
+    text = str(err.value)
+    assert "/t00000, /t00001" in text and "/t00019 and 65,515 more (`slamreplay inspect` lists them)" in text
+    assert "/t00020" not in text and len(text) < 600 and "\n" not in text
+    with pytest.raises(ReplayError, match=r"topic map names /nope, .* and 65,515 more"):
+        RecordingReader(path, {"/nope": "/odom"})
