@@ -48,6 +48,10 @@ def clone(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[str]:
     subprocess.run(["git", "clone", "-q", "--no-hardlinks", str(REPO), str(repo)], check=True)
     monkeypatch.chdir(repo)
     monkeypatch.setenv("SLAMREPLAY_REV_PYTHON", sys.executable)  # no venv built: still the worktree's code
+    # a commit that is not the service's own code version: in a clean checkout the service runs HEAD's code, and a
+    # suite "on HEAD" would rightly reuse its runs instead of running that revision
+    subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "--allow-empty", "-m",
+                    "a commit the service does not run"], cwd=repo, check=True)
     yield subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True,
                          check=True).stdout.strip()
 
@@ -72,8 +76,7 @@ def test_run_a_suite_on_a_commit(tmp_path: Path, clone: str) -> None:
         history = client.get("/history/suites/nightly").json()
         at_head = [v for v in history["versions"] if v["code_version"] == clone]
         assert at_head and r.json()["id"] in at_head[0]["suites"]
-        if history["versions"][0]["code_version"] != clone:  # the service's own code differs (a dirty tree)
-            assert history["versions"][0]["suites"] == [first]
+        assert history["versions"][0]["suites"] == [first]  # the service's own code, before
 
         before = (len(client.get("/suites").json()), len(client.get("/jobs").json()))
         bad = client.post("/ui/history/nightly/runs", data={"rev": "no-such-branch"})
