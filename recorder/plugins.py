@@ -72,6 +72,10 @@ class Plugin:
             first = str(err).splitlines()[0] if str(err) else ""
             self._error = f"failed to import: {type(err).__name__}: {first}".rstrip(": ")
             return
+        self._accept(obj)
+
+    def _accept(self, obj: Any) -> None:
+        """Keep the loaded ``obj``, or the error the group's check finds in it."""
         problem = self.check(self.name, obj)
         if problem is not None:
             self._error = problem

@@ -72,11 +72,7 @@ class DeclaredPlugin(Plugin):
         except Exception as err:  # noqa: BLE001 -- an adapter's failure is this declaration's, never fatal
             self._error = f"adapter {self.value} failed: {type(err).__name__}: {err}"
             return
-        problem = self.check(self.name, obj)
-        if problem is not None:
-            self._error = problem
-            return
-        self._obj = obj
+        self._accept(obj)
 
     def load(self) -> Any:
         self._load()
