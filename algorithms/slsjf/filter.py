@@ -52,7 +52,10 @@ from slamreplay.algorithms.slsjf.joining import GlobalMap, Linearization
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
-RobotEstimate = Literal["tracked", "composed"]
+RobotEstimate = Literal["joined", "tracked", "composed"]
+ROBOT_ESTIMATES: tuple[str, ...] = ("joined", "tracked", "composed")
+JOINED_ITERATIONS = 10  # Gauss-Newton iterations at most for the joined robot (it converges in 2-3)
+MIN_FIT = 3  # common features from which the gate is taken against a fitted start frame (Slsjf._common)
 FLOOR = 1e-12  # m^2, rad^2: added to a covariance that is exactly zero (the start) before a fusion
 
 
@@ -71,8 +74,8 @@ class SlsjfConfig:
         if self.local.association != "known":
             raise ValueError("SLSJF matches features across local maps by their ids: association must be 'known' "
                              "(unknown ids across local maps are not implemented)")
-        if self.robot_estimate not in ("tracked", "composed"):
-            raise ValueError(f"robot_estimate must be 'tracked' or 'composed', got {self.robot_estimate!r}")
+        if self.robot_estimate not in ROBOT_ESTIMATES:
+            raise ValueError(f"robot_estimate must be one of {', '.join(ROBOT_ESTIMATES)}, got {self.robot_estimate!r}")
         if self.local_map_scans < 1 or not self.local_map_distance_m > 0:
             raise ValueError(f"local_map_scans must be >= 1 and local_map_distance_m > 0, got "
                              f"{self.local_map_scans} and {self.local_map_distance_m}")
@@ -108,6 +111,73 @@ def point_cov(a: F64, cov_a: F64, p: F64, cov_p: F64) -> F64:
     return np.asarray(ja @ cov_a @ ja.T + r @ cov_p @ r.T, np.float64)
 
 
+def fuse_local_map(glob: F64, glob_cov: F64, local: F64, local_cov: F64,
+                   iterations: int = JOINED_ITERATIONS, tolerance: float = 1e-10) -> tuple[F64, F64]:
+    """The robot's global pose and covariance from a local map fused with the global map's marginal.
+
+    ``glob`` (3 + 2k,) is the local map's start frame ``s`` and k features ``g`` in the global frame, with their
+    joint covariance ``glob_cov`` (from the global information matrix); ``local`` (3 + 2k,) is the local map's
+    robot ``t`` and the same k features in its start frame, with their covariance ``local_cov`` (the local EKF's,
+    the other local features marginalized out). The two are independent (the local map's sightings are not in
+    the global map), so the maximum-likelihood ``(s, g, t)`` minimises
+
+        |(s, g) - glob|^2_{glob_cov^-1} + |(t, R(s)^T (g - s_xy)) - local|^2_{local_cov^-1}
+
+    (the local map's measurement model of [1]_ eqs. 5-7, for its features, and its robot); Gauss-Newton from
+    ``(glob, t)``. The robot is ``s (+) t``, its covariance from the joint covariance of ``(s, t)``. With k = 0
+    this is the composition of eq. 13.
+    """
+    y, a = fuse(glob, glob_cov, local, local_cov, iterations, tolerance)
+    n = len(glob)
+    cov = np.linalg.inv(a)
+    s, t = y[:3], y[n:]
+    st = np.r_[0, 1, 2, n, n + 1, n + 2]
+    c, sn = math.cos(s[2]), math.sin(s[2])
+    jac = np.zeros((3, 6))
+    jac[:, :3] = [[1.0, 0.0, -sn * t[0] - c * t[1]], [0.0, 1.0, c * t[0] - sn * t[1]], [0.0, 0.0, 1.0]]
+    jac[:2, 3:5] = [[c, -sn], [sn, c]]
+    jac[2, 5] = 1.0
+    pose_cov = jac @ cov[np.ix_(st, st)] @ jac.T
+    return se2.compose(s, t), np.asarray(0.5 * (pose_cov + pose_cov.T), np.float64)
+
+
+def fuse(glob: F64, glob_cov: F64, local: F64, local_cov: F64, iterations: int = JOINED_ITERATIONS,
+         tolerance: float = 1e-10) -> tuple[F64, F64]:
+    """The maximum-likelihood ``(s, g, t)`` of :func:`fuse_local_map` and its information matrix."""
+    k = (len(glob) - 3) // 2
+    n = 3 + 2 * k
+    w_g = np.linalg.inv(glob_cov + FLOOR * np.eye(len(glob)))  # the floor: a local map starts with its robot exact
+    w_l = np.linalg.inv(local_cov + FLOOR * np.eye(len(local)))
+    y = np.concatenate([glob, local[:3]])
+    a = np.zeros((n + 3, n + 3))
+    for _ in range(iterations):
+        s, g, t = y[:3], y[3:n].reshape(k, 2), y[n:]
+        rt = se2.rot(s[2]).T
+        drt = np.array([[-math.sin(s[2]), math.cos(s[2])], [-math.cos(s[2]), -math.sin(s[2])]])
+        d = g - s[:2]
+        h = np.concatenate([t, (d @ rt.T).reshape(-1)])
+        r_l = h - local
+        r_l[2] = se2.wrap_angle(r_l[2])
+        r_g = y[:n] - glob
+        r_g[2] = se2.wrap_angle(r_g[2])
+        j_l = np.zeros((n, n + 3))
+        j_l[:3, n:] = np.eye(3)
+        for i in range(k):
+            j_l[3 + 2 * i:5 + 2 * i, :2] = -rt
+            j_l[3 + 2 * i:5 + 2 * i, 2] = drt @ d[i]
+            j_l[3 + 2 * i:5 + 2 * i, 3 + 2 * i:5 + 2 * i] = rt
+        a = j_l.T @ w_l @ j_l
+        a[:n, :n] += w_g
+        grad = j_l.T @ w_l @ r_l
+        grad[:n] += w_g @ r_g
+        step = np.linalg.solve(a, -grad)
+        y = y + step
+        y[2], y[-1] = se2.wrap_angle(y[2]), se2.wrap_angle(y[-1])
+        if float(np.max(np.abs(step))) < tolerance:
+            break
+    return y, a
+
+
 class Slsjf:
     """Sparse Local Submap Joining Filter (module docstring), with EkfSlam's interface for the pipelines."""
 
@@ -128,6 +198,10 @@ class Slsjf:
         self.gated = 0  # local feature estimates left out at a join (outside the outlier gate)
         self._clock = clock
         self.profile: dict[str, list[float]] = {}
+        self._columns: dict[int, F64] = {}  # columns of the global covariance I^-1 asked for since the last join
+        self._joined: tuple[int, F64, F64] | None = None  # (version, pose, covariance) of the joined robot
+        self._version = 0  # counts predictions and scans: the joined robot is recomputed when it changes
+        self.joined_features = 0  # features both maps held, summed over the joined robot's estimates
         self._track = np.zeros(3)  # the tracked robot (robot_estimate="tracked") in the global frame
         self._track_cov = np.zeros((3, 3))
         self.tracked_sightings = 0  # sightings of global features used by the tracked robot
@@ -139,10 +213,14 @@ class Slsjf:
 
     @property
     def pose(self) -> F64:
+        if self.config.robot_estimate == "joined":
+            return self.joined()[0]
         return self._track.copy() if self.config.robot_estimate == "tracked" else self.composed_pose
 
     @property
     def pose_cov(self) -> F64:
+        if self.config.robot_estimate == "joined":
+            return self.joined()[1]
         return self._track_cov.copy() if self.config.robot_estimate == "tracked" else self.composed_cov
 
     @property
@@ -202,6 +280,7 @@ class Slsjf:
     def predict(self, increment: ArrayLike) -> None:
         u = np.asarray(increment, np.float64)
         self.local.predict(u)
+        self._version += 1
         if self.config.robot_estimate == "tracked":
             q = self.config.local.odometry_noise.covariance(u)
             self._track, self._track_cov, _ = motion.predict(self._track, self._track_cov, u, q)
@@ -217,6 +296,7 @@ class Slsjf:
         pred, pred_cov = self.pose, self.pose_cov
         res = self.local.observe(ranges, bearings, ids, range_sigma, bearing_sigma)
         self.local_scans += 1
+        self._version += 1
         ids_arr = np.asarray(ids, np.int64).reshape(-1)
         features = np.full(len(ids_arr), -1, np.int64)
         new: list[int] = []
@@ -277,41 +357,91 @@ class Slsjf:
         self._track, self._track_cov = fused.mean, fused.cov
 
     def _gate(self, features: I64, z: F64, P: F64) -> NDArray[np.bool_]:
-        """Which local features to join: a feature already in the global map whose local estimate is outside the
-        known-id outlier gate (``outlier_probability``, chi2 with 2 dof) of its global estimate is left out.
+        """Which local features to join: those :meth:`_common` leaves out are, and counted in ``gated``.
 
         Each local map initialises its features from their first sighting in it, where no gate can apply, so a
         wrong sighting would otherwise enter the global map as a confident local estimate (MRCLAM's outliers
         did). Leaving a feature out of a local map is marginalizing it: its rows and columns of P go."""
-        keep = np.ones(len(features), bool)
-        gate = self.config.local.association_params.outlier_gate
-        if not np.isfinite(gate) or not len(self.map.maps):
-            return keep
-        s = self._start_pose
-        rt = se2.rot(s[2]).T
-        drt = np.array([[-math.sin(s[2]), math.cos(s[2])], [-math.cos(s[2]), -math.sin(s[2])]])
-        for j, g in enumerate(features.tolist()):
-            if not self.map.has_feature(g):
-                continue
-            f = self.map.feature(g)
-            if self.start >= 0:
-                joint = self._pose_feature_covariance(g)
-                jac = np.hstack([-rt, (drt @ (f - s[:2]))[:, None], rt])
-            else:
-                joint = self.map.covariance_block([self.map.feat_at[g]], 2)
-                jac = rt
-            nu = z[3 + 2 * j:5 + 2 * j] - rt @ (f - s[:2])
-            innov = P[3 + 2 * j:5 + 2 * j, 3 + 2 * j:5 + 2 * j] + jac @ joint @ jac.T
-            if float(nu @ np.linalg.solve(innov, nu)) > gate:
-                keep[j] = False
-                self.gated += 1
+        kept = {j for j, _ in self._common(z, P)}
+        keep = np.array([j in kept or not self.map.has_feature(int(g)) for j, g in enumerate(features.tolist())], bool)
+        self.gated += int(np.count_nonzero(~keep))
         return keep
 
-    def _pose_feature_covariance(self, g: int) -> F64:
-        """The joint covariance (5, 5) of the current start pose and global feature ``g``."""
-        a, b = self.map.pose_at[self.start], self.map.feat_at[g]
-        idx = [a, a + 1, a + 2, b, b + 1]
-        return self.map.covariance_block(idx, 1)
+    def _common(self, x: F64, P: F64) -> list[tuple[int, int]]:
+        """The current local map's features (``x``, ``P``: its state) already in the global map and consistent
+        with it: (local index, global index) pairs.
+
+        A feature is consistent when its local estimate is inside the known-id outlier gate
+        (``outlier_probability``, chi2 with 2 dof) of its global estimate seen from the start frame. With
+        ``MIN_FIT`` or more common features the test is made against the start frame and features fitted to
+        all of them (:func:`fuse`), dropping the worst one and refitting while one is outside: a start frame
+        that is itself off (a local map whose robot slipped, and every one after it) then moves to where
+        its features place it instead of disconnecting them all from the map. With fewer, against the
+        global estimates as they are."""
+        loc = self.local
+        pairs = [(j, self.by_id[fid]) for j, fid in enumerate(loc.feature_ids) if self.map.has_feature(self.by_id[fid])]
+        gate = self.config.local.association_params.outlier_gate
+        if self.start < 0 or not np.isfinite(gate):
+            return pairs
+        while len(pairs) >= MIN_FIT:
+            y, _ = fuse(*self._fusion_inputs(pairs, x, P))
+            d = [self._distance(g, x[3 + 2 * j:5 + 2 * j], P[3 + 2 * j:5 + 2 * j, 3 + 2 * j:5 + 2 * j], y[:3],
+                                y[3 + 2 * i:5 + 2 * i]) for i, (j, g) in enumerate(pairs)]
+            worst = int(np.argmax(d))
+            if d[worst] <= gate:
+                return pairs
+            pairs = pairs[:worst] + pairs[worst + 1:]
+        return [(j, g) for j, g in pairs if self._distance(g, x[3 + 2 * j:5 + 2 * j],
+                                                            P[3 + 2 * j:5 + 2 * j, 3 + 2 * j:5 + 2 * j]) <= gate]
+
+    def _fusion_inputs(self, pairs: list[tuple[int, int]], x: F64, P: F64) -> tuple[F64, F64, F64, F64]:
+        """:func:`fuse`'s arguments for the common features ``pairs``: the global start frame and features with
+        their joint covariance, the local robot and features with theirs."""
+        a = self.map.pose_at[self.start]
+        glob = [a, a + 1, a + 2] + [i for _, g in pairs for i in (self.map.feat_at[g], self.map.feat_at[g] + 1)]
+        rows = [0, 1, 2] + [i for j, _ in pairs for i in (3 + 2 * j, 4 + 2 * j)]
+        return self.map.x[glob], self._covariance(glob), x[rows], P[np.ix_(rows, rows)]
+
+    def _distance(self, g: int, local_xy: F64, local_cov: F64, s: F64 | None = None, f: F64 | None = None) -> float:
+        """The squared Mahalanobis distance of a local estimate (start frame) of global feature ``g`` from the
+        global estimate seen from the start frame (``s`` and ``f``: the start frame's and the feature's global
+        estimates, or others fitted to them), with the global map's covariance of the two."""
+        s = self._start_pose if s is None else s
+        f = self.map.feature(g) if f is None else f
+        rt = se2.rot(s[2]).T
+        fa = self.map.feat_at[g]
+        a = self.map.pose_at[self.start]
+        joint = self._covariance([a, a + 1, a + 2, fa, fa + 1])
+        drt = np.array([[-math.sin(s[2]), math.cos(s[2])], [-math.cos(s[2]), -math.sin(s[2])]])
+        jac = np.hstack([-rt, (drt @ (f - s[:2]))[:, None], rt])
+        nu = local_xy - rt @ (f - s[:2])
+        return float(nu @ np.linalg.solve(local_cov + jac @ joint @ jac.T, nu))
+
+    def _covariance(self, idx: list[int]) -> F64:
+        """The block of the global covariance I^-1 at state indices ``idx``; its columns are kept until the next
+        join (the global map does not change between joins), so each is solved for once per local map."""
+        missing = [i for i in dict.fromkeys(idx) if i not in self._columns]
+        if missing:
+            cols = self.map.covariance_columns(missing)
+            for k, i in enumerate(missing):
+                self._columns[i] = cols[:, k]
+        out = np.array([self._columns[j][idx] for j in idx])
+        return np.asarray(0.5 * (out + out.T), np.float64)
+
+    def joined(self) -> tuple[F64, F64]:
+        """``robot_estimate="joined"``: the robot as joining the current local map now would place it (module
+        docstring), its pose and covariance (3, 3) in the global frame."""
+        if self._joined is not None and self._joined[0] == self._version:
+            return self._joined[1].copy(), self._joined[2].copy()
+        x, P = np.asarray(self.local.x), np.asarray(self.local.P)
+        common = self._common(x, P)
+        if self.start < 0 or not common:
+            pose, cov = self.composed_pose, self.composed_cov  # nothing in common: the composition is exact
+        else:
+            pose, cov = fuse_local_map(*self._fusion_inputs(common, x, P))
+            self.joined_features += len(common)
+        self._joined = (self._version, pose, cov)
+        return pose.copy(), cov.copy()
 
     def join(self) -> None:
         """Fuse the current local map into the global map and start the next one at its end pose."""
@@ -330,6 +460,8 @@ class Slsjf:
         self.rejected_joined += loc.rejected
         self.local = EkfSlam(self.config.local)
         self.local_scans, self.local_distance_m = 0, 0.0
+        self._columns = {}
+        self._version += 1
         self.observer.log("slsjf/local_maps", Scalar(float(len(self.map.maps))))
         self.observer.log("slsjf/iterations", Scalar(float(self.map.iterations[-1])))
         if self._clock is not None:

@@ -229,14 +229,18 @@ class GlobalMap:
         """The joint covariance of the blocks of ``size`` starting at each of ``offsets`` (columns of I^-1)."""
         if not offsets:
             return np.zeros((0, 0))
+        idx = (np.asarray(offsets)[:, None] + np.arange(size)).reshape(-1)
+        out = self.covariance_columns(idx.tolist())[idx]
+        return np.asarray(0.5 * (out + out.T), np.float64)
+
+    def covariance_columns(self, idx: list[int]) -> F64:
+        """The columns (dim, len(idx)) of the covariance I^-1 at state indices ``idx``: one solve with the
+        factor of the last join, O(fill of the factor) per column."""
         if self._factor is None:
             raise ValueError("no local map has been joined yet")
-        idx = (np.asarray(offsets)[:, None] + np.arange(size)).reshape(-1)
         e = np.zeros((self.dim, len(idx)))
         e[idx, np.arange(len(idx))] = 1.0
-        cols = np.asarray(self._factor.solve(e), np.float64)
-        out = cols[idx]
-        return np.asarray(0.5 * (out + out.T), np.float64)
+        return np.asarray(self._factor.solve(e), np.float64)
 
     def pose_covariance(self, k: int) -> F64:
         """The marginal covariance (3, 3) of global pose ``k`` (zeros for -1, the fixed origin)."""

@@ -47,9 +47,11 @@ class SlsjfPipelineConfig(LandmarkSlamConfig):
         "re-linearized at each join until Gauss-Newton converges (I-SLSJF, beyond the paper)")})
     max_iterations: int = field(default=10, metadata={"help": (
         "Gauss-Newton iterations at most per join (linearization=iterated)")})
-    robot_estimate: Literal["tracked", "composed"] = field(default="tracked", metadata={"help": (
+    robot_estimate: Literal["joined", "tracked", "composed"] = field(default="tracked", metadata={"help": (
         "composed: the robot is its local map's start frame composed with the local estimate (the 2008 paper, "
-        "eq. 13), so it sees the global map only at joins; tracked: a pose filter in the global frame, updated at "
+        "eq. 13), so it sees the global map only at joins; joined: the robot as joining the current local map now "
+        "would place it, the local map fused with the global map's marginal over its start frame and the features "
+        "both hold; tracked: a pose filter in the global frame, updated at "
         "every scan by the sightings of features already in the global map and fused with the composed estimate, "
         "both by Covariance Intersection (beyond the paper; the maps are the same either way)")})
 
