@@ -45,6 +45,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from slamreplay.algorithms.common import motion, rangebearing, se2
+from slamreplay.algorithms.common.association import match
 from slamreplay.algorithms.common.ci import covariance_intersection, covariance_intersection_update
 from slamreplay.algorithms.ekfslam import EkfSlam, EkfSlamConfig
 from slamreplay.algorithms.observe import NULL_OBSERVER, Observer, Scalar
@@ -71,9 +72,6 @@ class SlsjfConfig:
     robot_estimate: RobotEstimate = "tracked"  # "composed": the paper's (eq. 13); module docstring
 
     def __post_init__(self) -> None:
-        if self.local.association != "known":
-            raise ValueError("SLSJF matches features across local maps by their ids: association must be 'known' "
-                             "(unknown ids across local maps are not implemented)")
         if self.robot_estimate not in ROBOT_ESTIMATES:
             raise ValueError(f"robot_estimate must be one of {', '.join(ROBOT_ESTIMATES)}, got {self.robot_estimate!r}")
         if self.local_map_scans < 1 or not self.local_map_distance_m > 0:
@@ -192,8 +190,12 @@ class Slsjf:
         self.local = EkfSlam(config.local)
         self.local_scans = 0
         self.local_distance_m = 0.0
-        self.feature_ids: list[int] = []  # known id of each global feature
-        self.by_id: dict[int, int] = {}
+        self.feature_ids: list[int] = []  # known id of each global feature (-1: unknown ids)
+        self.by_id: dict[int, int] = {}  # known id -> global feature
+        self.local_global: list[int] = []  # global feature of each feature of the current local map (-1: none)
+        self.local_of: dict[int, int] = {}  # global feature -> its feature in the current local map
+        self.associated = 0  # unknown ids: local features found to be global features already mapped
+        self.ambiguous = 0  # unknown ids: local features near a global one but not in its gate (not joined)
         self.rejected_joined = 0
         self.gated = 0  # local feature estimates left out at a join (outside the outlier gate)
         self._clock = clock
@@ -246,11 +248,11 @@ class Slsjf:
         current local map."""
         out = np.zeros((self.n, 2))
         local = self.local.estimates()
-        for g, fid in enumerate(self.feature_ids):
+        for g in range(self.n):
             if self.map.has_feature(g):
                 out[g] = self.map.feature(g)
             else:
-                out[g] = se2.transform_points(self._start_pose, local[self.local.by_id[fid]][None])[0]
+                out[g] = se2.transform_points(self._start_pose, local[self.local_of[g]][None])[0]
         return out
 
     def marginal_covariances(self, features: list[int] | None = None) -> F64:
@@ -266,7 +268,7 @@ class Slsjf:
             if g in glob:
                 out[k] = glob[g]
             else:
-                f = self.local.by_id[self.feature_ids[g]]
+                f = self.local_of[g]
                 out[k] = point_cov(self._start_pose, self._start_cov, local_xy[f], local_covs[f])
         return out
 
@@ -290,35 +292,85 @@ class Slsjf:
 
     def observe(self, ranges: ArrayLike, bearings: ArrayLike, ids: ArrayLike | None = None,
                 range_sigma: float = 0.0, bearing_sigma: float = 0.0) -> SlsjfScanResult:
-        """Update the local map with one scan (EkfSlam.observe's arguments); join it when it is full."""
-        if ids is None:
-            raise ValueError("SLSJF needs landmark ids (association='known')")
+        """Update the local map with one scan (EkfSlam.observe's arguments); join it when it is full.
+
+        ``ids`` with ``association="known"``; with ``"unknown"`` the local EKF associates within its local map
+        and each feature it creates is matched to the global map (:meth:`_associate_new`)."""
+        known = self.config.local.association == "known"
+        if known and ids is None:
+            raise ValueError("association='known' needs landmark ids")
         pred, pred_cov = self.pose, self.pose_cov
-        res = self.local.observe(ranges, bearings, ids, range_sigma, bearing_sigma)
+        res = self.local.observe(ranges, bearings, ids if known else None, range_sigma, bearing_sigma)
         self.local_scans += 1
         self._version += 1
-        ids_arr = np.asarray(ids, np.int64).reshape(-1)
-        features = np.full(len(ids_arr), -1, np.int64)
         new: list[int] = []
-        for j, f in enumerate(res.features.tolist()):
-            if f < 0:
-                continue
-            fid = int(ids_arr[j])
-            if fid not in self.by_id:
-                self.by_id[fid] = len(self.feature_ids)
-                self.feature_ids.append(fid)
-                new.append(self.by_id[fid])
-            features[j] = self.by_id[fid]
+        for f in res.new_features:
+            g = self._new_global(f) if known else self._associate_new(f)
+            if g == len(self.feature_ids):
+                self.feature_ids.append(self.local.feature_ids[f])
+                if known:
+                    self.by_id[self.local.feature_ids[f]] = g
+                new.append(g)
+            self.local_global.append(g)
+            if g >= 0:
+                self.local_of[g] = f
+        features = np.array([self.local_global[f] if f >= 0 else -1 for f in res.features.tolist()], np.int64)
         joined = self.local_scans >= self.config.local_map_scans
         if self.config.robot_estimate == "tracked":
-            self._track_update(ranges, bearings, ids_arr, range_sigma, bearing_sigma)
+            sightings = ([(j, self.by_id[int(i)]) for j, i in enumerate(np.asarray(ids, np.int64).reshape(-1).tolist())
+                          if int(i) in self.by_id] if known else
+                         [(j, int(g)) for j, g in enumerate(features.tolist()) if g >= 0])
+            self._track_update(ranges, bearings, sightings, range_sigma, bearing_sigma)
         pose, pose_cov = self.pose, self.pose_cov
         if joined:
             self.join()
         return SlsjfScanResult(pred, pred_cov, pose, pose_cov, features, tuple(new), joined)
 
-    def _track_update(self, ranges: ArrayLike, bearings: ArrayLike, ids: I64, range_sigma: float,
-                      bearing_sigma: float) -> None:
+    def _new_global(self, f: int) -> int:
+        """Known ids: the global feature of the local map's new feature ``f`` (a new index for a new id)."""
+        return self.by_id.get(self.local.feature_ids[f], len(self.feature_ids))
+
+    def _associate_new(self, f: int) -> int:
+        """Unknown ids: the global feature the local map's new feature ``f`` is, a new index, or -1.
+
+        The candidates are the global map's features not yet in this local map, near the feature's global
+        position; each is compared with the local estimate seen from the start frame (:meth:`_distance`: the
+        local covariance plus the global map's of the start frame and the candidate), and the assignment is
+        :func:`~slamreplay.algorithms.common.association.match`'s maximum likelihood with the local EKF's gates:
+        inside ``gate_probability`` it is that feature; outside ``new_feature_probability`` of every candidate
+        it is new; between the two it is ambiguous and kept out of the global map (-1: marginalized at the
+        join), as the local EKF drops an ambiguous sighting. The local EKF confirmed it over
+        ``confirm_hits`` sightings before creating it, so its estimate is already several sightings deep."""
+        new = len(self.feature_ids)
+        if self.start < 0 or not self.map.feat_at:
+            return new
+        xy, cov = np.asarray(self.local.x)[3 + 2 * f:5 + 2 * f], np.asarray(self.local.P)[3 + 2 * f:5 + 2 * f,
+                                                                                        3 + 2 * f:5 + 2 * f]
+        where = se2.transform_points(self._start_pose, xy[None])[0]
+        # 3 sigma of the local estimate and of the start frame (its heading error swings the feature about it)
+        spread = 3.0 * math.sqrt(max(float(np.linalg.eigvalsh(cov).max()), 0.0)
+                                 + max(float(np.linalg.eigvalsh(self._start_cov[:2, :2]).max()), 0.0)
+                                 + float(xy @ xy) * max(self._start_cov[2, 2], 0.0))
+        radius = spread + self.config.local.vicinity_margin_m
+        cand = [g for g in self.map.feat_at if g not in self.local_of
+                and math.dist(self.map.feature(g), where) <= radius]
+        if not cand:
+            return new
+        innov = [self._innovation(g, xy, cov) for g in cand]
+        d2 = np.array([[float(nu @ np.linalg.solve(sc, nu)) for nu, sc in innov]])
+        log_det = np.array([np.linalg.slogdet(sc)[1] for _, sc in innov])
+        params = self.config.local.association_params
+        assigned, far = match(d2, log_det, params.gate, params.new_gate)
+        if assigned[0] >= 0:
+            self.associated += 1
+            return cand[int(assigned[0])]
+        if far[0]:
+            return new
+        self.ambiguous += 1
+        return -1
+
+    def _track_update(self, ranges: ArrayLike, bearings: ArrayLike, sightings: list[tuple[int, int]],
+                      range_sigma: float, bearing_sigma: float) -> None:
         """The tracked robot: CI-updated by this scan's sightings of global features, then CI-fused with the
         composed estimate (module docstring)."""
         r, b = rangebearing.check_scan(ranges, bearings)
@@ -327,8 +379,7 @@ class Slsjf:
         r_cov = np.diag([sr**2, sb**2])
         gate = self.config.local.association_params.outlier_gate
         x, p = self._track, self._track_cov + FLOOR * np.eye(3)
-        seen = [(j, self.by_id[int(i)]) for j, i in enumerate(ids.tolist())
-                if int(i) in self.by_id and self.map.has_feature(self.by_id[int(i)])]
+        seen = [(j, g) for j, g in sightings if self.map.has_feature(g)]
         if seen:
             gs = [g for _, g in seen]
             xy = np.array([self.map.feature(g) for g in gs])
@@ -378,8 +429,7 @@ class Slsjf:
         that is itself off (a local map whose robot slipped, and every one after it) then moves to where
         its features place it instead of disconnecting them all from the map. With fewer, against the
         global estimates as they are."""
-        loc = self.local
-        pairs = [(j, self.by_id[fid]) for j, fid in enumerate(loc.feature_ids) if self.map.has_feature(self.by_id[fid])]
+        pairs = [(j, g) for j, g in enumerate(self.local_global) if g >= 0 and self.map.has_feature(g)]
         gate = self.config.local.association_params.outlier_gate
         if self.start < 0 or not np.isfinite(gate):
             return pairs
@@ -406,6 +456,12 @@ class Slsjf:
         """The squared Mahalanobis distance of a local estimate (start frame) of global feature ``g`` from the
         global estimate seen from the start frame (``s`` and ``f``: the start frame's and the feature's global
         estimates, or others fitted to them), with the global map's covariance of the two."""
+        nu, innov = self._innovation(g, local_xy, local_cov, s, f)
+        return float(nu @ np.linalg.solve(innov, nu))
+
+    def _innovation(self, g: int, local_xy: F64, local_cov: F64, s: F64 | None = None, f: F64 | None = None
+                    ) -> tuple[F64, F64]:
+        """:meth:`_distance`'s innovation (2,) and its covariance (2, 2)."""
         s = self._start_pose if s is None else s
         f = self.map.feature(g) if f is None else f
         rt = se2.rot(s[2]).T
@@ -415,7 +471,7 @@ class Slsjf:
         drt = np.array([[-math.sin(s[2]), math.cos(s[2])], [-math.cos(s[2]), -math.sin(s[2])]])
         jac = np.hstack([-rt, (drt @ (f - s[:2]))[:, None], rt])
         nu = local_xy - rt @ (f - s[:2])
-        return float(nu @ np.linalg.solve(local_cov + jac @ joint @ jac.T, nu))
+        return nu, local_cov + jac @ joint @ jac.T
 
     def _covariance(self, idx: list[int]) -> F64:
         """The block of the global covariance I^-1 at state indices ``idx``; its columns are kept until the next
@@ -449,8 +505,8 @@ class Slsjf:
         loc = self.local
         if loc.n == 0 and self.local_distance_m == 0.0 and self.local_scans == 0:
             return  # nothing happened since the last join
-        features = np.array([self.by_id[fid] for fid in loc.feature_ids], np.int64)
-        keep = self._gate(features, np.array(loc.x), np.array(loc.P))
+        features = np.array(self.local_global, np.int64)
+        keep = self._gate(features, np.array(loc.x), np.array(loc.P)) & (features >= 0)
         rows = np.concatenate([np.arange(3), (3 + 2 * np.flatnonzero(keep)[:, None] + np.arange(2)).reshape(-1)])
         end = self.map.join(self.start, loc.pose, features[keep], np.array(loc.x)[rows],
                             np.array(loc.P)[np.ix_(rows, rows)])
@@ -461,6 +517,7 @@ class Slsjf:
         self.local = EkfSlam(self.config.local)
         self.local_scans, self.local_distance_m = 0, 0.0
         self._columns = {}
+        self.local_global, self.local_of = [], {}
         self._version += 1
         self.observer.log("slsjf/local_maps", Scalar(float(len(self.map.maps))))
         self.observer.log("slsjf/iterations", Scalar(float(self.map.iterations[-1])))

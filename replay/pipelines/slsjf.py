@@ -28,7 +28,6 @@ from slamreplay.algorithms.observe import Image, LineStrips, Points, Scalar
 from slamreplay.algorithms.slsjf import Slsjf, SlsjfConfig
 from slamreplay.algorithms.slsjf.joining import sparsity_image
 from slamreplay.replay.engine import views
-from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import specs
 from slamreplay.replay.pipelines.landmark_slam import METRICS, LandmarkSlamConfig, LandmarkSlamPipeline
 
@@ -57,9 +56,6 @@ class SlsjfPipelineConfig(LandmarkSlamConfig):
 
     def __post_init__(self) -> None:
         LandmarkSlamConfig.__post_init__(self)
-        if self.association == "unknown":
-            raise ValueError("association: slsjf matches features across local maps by their ids; unknown ids "
-                             "are not implemented (use association=known or auto on a recording with ids)")
         self.algorithm("known")
 
     def algorithm(self, mode: str) -> SlsjfConfig:
@@ -92,10 +88,13 @@ class SlsjfPipeline(LandmarkSlamPipeline):
         self.drawn_joins = 0
 
     def make_filter(self, mode: str) -> Slsjf:
-        if mode != "known":
-            raise ReplayError("slsjf needs landmark ids: this recording's scans carry none (-1); matching features "
-                              "across local maps without ids is not implemented: run ekfslam or dslam on it")
         return Slsjf(self.config.algorithm(mode), observer=self.ctx.observer, clock=time.perf_counter)
+
+    def tentative_means(self) -> np.ndarray | None:
+        """Unknown ids: the local EKF's tentative features, in the global frame."""
+        if self.mode != "unknown" or not len(self.filter.local.tentative.means):
+            return None
+        return np.asarray(se2.transform_points(self.filter.start_pose, self.filter.local.tentative.means))
 
     def observed_covariances(self, features: list[int]) -> np.ndarray | None:
         return self.filter.marginal_covariances(features) if features else None
@@ -131,6 +130,9 @@ class SlsjfPipeline(LandmarkSlamPipeline):
         self.filter.join()
         if len(self.filter.map.maps) != self.drawn_joins:
             self.draw_joins()
+        if self.mode == "unknown":
+            self.ctx.log(f"unknown ids: {self.filter.associated} local-map features matched to the global map's, "
+                         f"{self.filter.ambiguous} ambiguous (left out of the global map)")
 
     def extra_metrics(self) -> dict[str, float]:
         return {"local_maps": float(len(self.filter.map.maps))}

@@ -53,12 +53,17 @@ def test_seeded_simulation_bounds(sim: Path, tmp_path: Path, pipeline: str) -> N
 
 
 def test_unknown_ids_and_ekf_comparison(sim: Path, tmp_path: Path) -> None:
-    """Unknown ids: no association error, no false landmark; D-SLAM's map within 1.5x of EKF-SLAM's."""
+    """Unknown ids: no association error, no false landmark; D-SLAM's and SLSJF's maps (SLSJF matching each local
+    map's features to the global map's) within 1.5x of EKF-SLAM's."""
     d = run_recording(sim, "dslam", tmp_path / "d", config={"association": "unknown"}).metrics
     e = run_recording(sim, "ekfslam", tmp_path / "e", config={"association": "unknown"}).metrics
-    for m in (d, e):
+    s = run_recording(sim, "slsjf", tmp_path / "s", config={"association": "unknown"})
+    for m in (d, e, s.metrics):
         assert m["data_association_errors"] == 0 and m["false_landmarks"] == 0 and m["landmarks_mapped"] >= 20
     assert d["landmark_rmse_m"] <= 1.5 * e["landmark_rmse_m"]
+    assert s.metrics["landmark_rmse_m"] <= 1.5 * e["landmark_rmse_m"]
+    assert s.metrics["landmarks_mapped"] == e["landmarks_mapped"]
+    assert "unknown ids: " in (s.run_dir / "log.txt").read_text()
 
 
 def test_everything_is_drawn(sim: Path) -> None:
