@@ -5,26 +5,40 @@ A local map is EKF-SLAM started at the robot's current pose with zero uncertaint
 It ends after ``local_map_scans`` scans or ``local_map_distance_m`` of driving, whichever comes first;
 then its end pose and features, with their covariance, are joined into the global map
 (:class:`~slamreplay.algorithms.slsjf.joining.GlobalMap`) and the next local map starts at that end
-pose. Features are matched across local maps by their known ids (data association with the gates,
-for unknown ids, is not implemented: the filter refuses ``association="unknown"``).
+pose.
+
+Features are matched across local maps by their ids when the recording has them. Without ids
+(``association="unknown"``) the local EKF associates within its local map with its gates, and each
+feature it confirms is matched to the global map's features near it (:meth:`Slsjf._associate_new`:
+the same maximum-likelihood assignment and gates, the innovation's covariance adding the global
+map's covariance of the start frame and of the candidate). Either way a matched feature whose local
+estimate is outside the outlier gate of its global estimate is left out of the join
+(:meth:`Slsjf._common`); with three or more matched features the gate is taken against the start
+frame fitted to all of them, so a start frame that is itself off does not disconnect its local map.
 
 Between joins the robot's estimate in the paper is the global pose of the current local map's start
 frame composed with the local map's robot estimate; its covariance adds the start frame's marginal
 covariance (from the global information matrix) and the local one, independent of it because the
 local map starts with zero uncertainty ([1]_ eq. 13): ``robot_estimate="composed"``. A feature not
 yet joined is drawn the same way; one already in the global map keeps its global estimate until the
-local map that saw it again is joined.
+local map that saw it again is joined. That robot sees the global map only at joins: between them it
+drifts on its local map alone, and where sightings are sparse (MRCLAM: one landmark every few
+seconds) a local map holds little to hold it.
 
-Departure, ``robot_estimate="tracked"`` (the default): the composed robot sees the global map only at
-joins, so between them it drifts on its local map alone, and where sightings are sparse (MRCLAM: one
-landmark every few seconds) a local map holds little to hold it. The tracked robot is a pose filter in
-the global frame, predicted by odometry, updated at every scan by the sightings of features already in
-the global map (their joint covariance from the global information matrix added to the sensor noise),
-and fused with the composed estimate; both fusions are Covariance Intersection
+Departure, ``robot_estimate="joined"`` (the default): the robot as joining the current local map now
+would place it. The local map (its robot and the features the global map also holds, the rest
+marginalized out) and the global map's marginal over its start frame and those features are
+independent, so their maximum-likelihood fusion (:func:`fuse_local_map`, the join's measurement model
+of [1]_ eqs. 5-7 on that marginal) is exact to first order; with no common feature it is the
+composition. The global map's covariance columns it needs are solved once per local map.
+
+Alternative, ``robot_estimate="tracked"``: a pose filter in the global frame, predicted by odometry,
+updated at every scan by the sightings of features already in the global map (their joint covariance
+from the global information matrix added to the sensor noise) and fused with the composed estimate;
+both fusions are Covariance Intersection
 (:func:`~slamreplay.algorithms.common.ci.covariance_intersection_update`), as D-SLAM fuses its robot
-with the map ([2]_ section 2.3), because the map's and the robot's errors are correlated in an unknown
-way. Nothing flows back: the local maps and the global map are the paper's, whichever estimate the
-robot reports.
+with the map ([2]_ section 2.3). Nothing flows back from either: the local maps and the global map are
+the paper's, whichever estimate the robot reports.
 
 References
 ----------
@@ -69,7 +83,7 @@ class SlsjfConfig:
     local_map_distance_m: float = 30.0
     linearization: Linearization = "iterated"
     max_iterations: int = 10
-    robot_estimate: RobotEstimate = "tracked"  # "composed": the paper's (eq. 13); module docstring
+    robot_estimate: RobotEstimate = "joined"  # "composed": the paper's (eq. 13); module docstring
 
     def __post_init__(self) -> None:
         if self.robot_estimate not in ROBOT_ESTIMATES:

@@ -46,13 +46,13 @@ class SlsjfPipelineConfig(LandmarkSlamConfig):
         "re-linearized at each join until Gauss-Newton converges (I-SLSJF, beyond the paper)")})
     max_iterations: int = field(default=10, metadata={"help": (
         "Gauss-Newton iterations at most per join (linearization=iterated)")})
-    robot_estimate: Literal["joined", "tracked", "composed"] = field(default="tracked", metadata={"help": (
+    robot_estimate: Literal["joined", "tracked", "composed"] = field(default="joined", metadata={"help": (
         "composed: the robot is its local map's start frame composed with the local estimate (the 2008 paper, "
         "eq. 13), so it sees the global map only at joins; joined: the robot as joining the current local map now "
         "would place it, the local map fused with the global map's marginal over its start frame and the features "
-        "both hold; tracked: a pose filter in the global frame, updated at "
+        "both hold (beyond the paper, exact to first order); tracked: a pose filter in the global frame, updated at "
         "every scan by the sightings of features already in the global map and fused with the composed estimate, "
-        "both by Covariance Intersection (beyond the paper; the maps are the same either way)")})
+        "both by Covariance Intersection (beyond the paper, conservative). The maps are the same either way")})
 
     def __post_init__(self) -> None:
         LandmarkSlamConfig.__post_init__(self)
@@ -79,8 +79,9 @@ class SlsjfPipeline(LandmarkSlamPipeline):
         "linearization": "the 2008 paper linearizes each local map once, when it is joined; the default re-linearizes "
                          "all of them at each join (I-SLSJF, the authors' later paper), for consistency",
         "robot_estimate": "the paper's robot is its local map composed onto the start frame (eq. 13), which sees the "
-                          "global map only at joins; the default also tracks it against the global map at every scan "
-                          "(Covariance Intersection, as D-SLAM localizes), which on sparse sightings keeps it closer",
+                          "global map only at joins; the default fuses the local map with the global map's marginal "
+                          "over its start frame and common features at every scan (the robot a join now would give), "
+                          "which on sparse sightings keeps it closer",
     }
 
     def __init__(self, config: SlsjfPipelineConfig, ctx: Any) -> None:
