@@ -13,12 +13,18 @@ built it. Each local map touches only its two poses and its features, so the inf
 ``sum_k J_k^T P_k^-1 J_k`` is exactly sparse (there is no marginalization of past robot poses).
 
 Fusing (``join``) either linearizes the new local map once, at the estimate when it arrives, and adds
-its information to the running sums (SLSJF [1]_: an extended information filter, the old local maps'
-linearization points are kept), or re-linearizes every local map at the current estimate and
-iterates Gauss-Newton to convergence (I-SLSJF [2]_: the estimate is the maximum-likelihood joining of
-all local maps, at the cost of rebuilding the information matrix, which is O(size of the map)).
-The state is recovered by sparse Cholesky (``SparseCholesky``; the D-SLAM pipeline's preconditioned
-CG would do too, but the direct factor also gives the covariance blocks the robot and the gates need).
+its information to the running sums (SLSJF [1]_ section III: an extended information filter, the old
+local maps' linearization points are kept; only the sums are held, so a join adds O(size of the new
+local map) to them), or re-linearizes every local map at the current estimate and iterates
+Gauss-Newton to convergence (I-SLSJF [2]_: the estimate is the maximum-likelihood joining of all local
+maps, at the cost of rebuilding the information matrix, which is O(size of the map); its sparsity
+pattern changes only at a join, so it is worked out once per join and each iteration only sums values
+into it). The state is recovered by a sparse LU (SuperLU) of the information matrix, which is
+symmetric positive definite: the fill-reducing ordering is symmetric (minimum degree on ``A + A^T``)
+and the pivots stay on the diagonal, so the factor has the fill of the Cholesky factor [1]_ recovers the
+state with (the D-SLAM pipeline's preconditioned CG would do too, but the direct factor also gives the
+covariance blocks the robot and the gates need). The factorization is redone at every join: its cost
+grows faster than the map (``benchmarks/slsjf_scaling.py``).
 
 References
 ----------
@@ -64,11 +70,33 @@ class LocalMap:
 
 @dataclass
 class _Linear:
-    """A local map's frozen linearization (SLSJF): its state indices, ``A = J^T W J`` and ``g = J^T W (r + J x0)``."""
+    """A local map's linearization: its state indices, ``A = J^T W J`` and ``g = J^T W (r + J x0)``."""
 
     idx: I64
     A: F64
     g: F64
+
+
+@dataclass
+class _Pattern:
+    """The sparsity pattern of ``sum_k A_k`` (CSC) and where each entry of each ``A_k``, in order, is summed."""
+
+    indices: I64
+    indptr: I64
+    slot: I64  # (sum_k |A_k|,) position in the CSC data of each entry of A_1, A_2, ... (row-major)
+
+    @classmethod
+    def of(cls, parts: list[_Linear], dim: int) -> _Pattern:
+        rows = np.concatenate([np.repeat(p.idx, len(p.idx)) for p in parts])
+        cols = np.concatenate([np.tile(p.idx, len(p.idx)) for p in parts])
+        keys, slot = np.unique(cols * dim + rows, return_inverse=True)  # sorted by column, then row: CSC order
+        indptr = np.searchsorted(keys // dim, np.arange(dim + 1)).astype(np.int64)
+        return cls(np.asarray(keys % dim, np.int64), indptr, np.asarray(slot, np.int64))
+
+    def matrix(self, parts: list[_Linear], dim: int) -> sp.csc_matrix:
+        vals = np.concatenate([p.A.reshape(-1) for p in parts])
+        data = np.bincount(self.slot, weights=vals, minlength=len(self.indices))
+        return sp.csc_matrix((data, self.indices, self.indptr), shape=(dim, dim))
 
 
 def _h_and_jacobian(x: F64, pose_at: dict[int, int], feat_at: dict[int, int], m: LocalMap) -> tuple[F64, F64, I64]:
@@ -118,7 +146,9 @@ class GlobalMap:
     feat_at: dict[int, int] = field(default_factory=dict)  # global feature index -> offset in x
     maps: list[LocalMap] = field(default_factory=list)
     iterations: list[int] = field(default_factory=list)  # Gauss-Newton iterations of each join
-    _frozen: list[_Linear] = field(default_factory=list)
+    _info: sp.csc_matrix | None = None  # SLSJF: the running sum of every local map's A
+    _vector: F64 = field(default_factory=lambda: np.zeros(0))  # SLSJF: the running sum of their g
+    _pattern: _Pattern | None = None  # I-SLSJF: the pattern of the current local maps' A
     _factor: sla.SuperLU | None = None
 
     def __post_init__(self) -> None:
@@ -175,10 +205,11 @@ class GlobalMap:
         m = LocalMap(start, end, features, z, np.linalg.inv(p))
         self.maps.append(m)
         if self.linearization == "once":
-            self._frozen.append(self._linearize(m))
-            self.x = self._solve_frozen()
+            self._add(self._linearize(m))
+            self.x = np.asarray(self._factorize(self._info).solve(self._vector), np.float64)
             self.iterations.append(1)
         else:
+            self._pattern = None  # a new local map: new pattern
             self.iterations.append(self._gauss_newton())
         return end
 
@@ -189,24 +220,33 @@ class GlobalMap:
         JW = J.T @ m.W
         return _Linear(idx, JW @ J, JW @ (r + J @ self.x[idx]))
 
+    def _add(self, part: _Linear) -> None:
+        """SLSJF: add one local map's information to the running sums, grown to the current state."""
+        n = len(part.idx)
+        new = sp.csc_matrix((part.A.reshape(-1), (np.repeat(part.idx, n), np.tile(part.idx, n))),
+                            shape=(self.dim, self.dim))
+        if self._info is None:
+            self._info = new
+        else:
+            self._info.resize((self.dim, self.dim))
+            self._info = (self._info + new).tocsc()
+        self._vector = np.concatenate([self._vector, np.zeros(self.dim - len(self._vector))])
+        np.add.at(self._vector, part.idx, part.g)
+
     def _assemble(self, parts: list[_Linear]) -> tuple[sp.csc_matrix, F64]:
-        rows = np.concatenate([np.repeat(p.idx, len(p.idx)) for p in parts])
-        cols = np.concatenate([np.tile(p.idx, len(p.idx)) for p in parts])
-        vals = np.concatenate([p.A.reshape(-1) for p in parts])
-        a = sp.csc_matrix((vals, (rows, cols)), shape=(self.dim, self.dim))
+        """I-SLSJF: the information matrix and vector of the local maps linearized as ``parts`` (one per map)."""
+        if self._pattern is None:
+            self._pattern = _Pattern.of(parts, self.dim)
         g = np.zeros(self.dim)
         for p in parts:
             np.add.at(g, p.idx, p.g)
-        return a, g
+        return self._pattern.matrix(parts, self.dim), g
 
     def _factorize(self, a: sp.csc_matrix) -> sla.SuperLU:
-        self._factor = sla.splu(a.tocsc(), permc_spec="MMD_AT_PLUS_A")
+        # Symmetric positive definite: a symmetric ordering and diagonal pivots, the Cholesky factor's fill.
+        self._factor = sla.splu(a.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                options={"SymmetricMode": True})
         return self._factor
-
-    def _solve_frozen(self) -> F64:
-        """SLSJF: X = I^-1 i, the information form of every local map at its own linearization point."""
-        a, g = self._assemble(self._frozen)
-        return np.asarray(self._factorize(a).solve(g), np.float64)
 
     def _gauss_newton(self) -> int:
         """I-SLSJF: every local map re-linearized at the current estimate until the update is below tolerance."""
@@ -222,8 +262,11 @@ class GlobalMap:
 
     def information(self) -> sp.csc_matrix:
         """The information matrix at the current estimate (I-SLSJF) or as accumulated (SLSJF)."""
-        parts = self._frozen if self.linearization == "once" else [self._linearize(m) for m in self.maps]
-        return self._assemble(parts)[0] if parts else sp.csc_matrix((0, 0))
+        if not self.maps:
+            return sp.csc_matrix((0, 0))
+        if self.linearization == "once" and self._info is not None:
+            return self._info.copy()
+        return self._assemble([self._linearize(m) for m in self.maps])[0]
 
     def covariance_block(self, offsets: list[int], size: int) -> F64:
         """The joint covariance of the blocks of ``size`` starting at each of ``offsets`` (columns of I^-1)."""
