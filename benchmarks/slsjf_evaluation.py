@@ -5,7 +5,7 @@ linearized once (``--preset paper``) where ``--paper`` is given. Prints a table 
 ratios SLSJF / EKF-SLAM (landmark RMSE, robot ATE) and writes ``--json``.
 
 Run: ``.venv/bin/python benchmarks/slsjf_evaluation.py --out /tmp/slsjf-eval --data ../shared/data
-[--seeds 1 2 3] [--duration-s 1800] [--robots 1 2 3 4 5] [--skip-vp] [--paper] [--json out.json]``.
+[--seeds 1 2 3] [--duration-s 1800] [--robots 1 2 3 4 5] [--skip-vp] [--paper] [--vp-band] [--json out.json]``.
 Run directories under ``--out`` are reused when their metrics exist (a fresh ``--out`` after a code change).
 """
 
@@ -18,7 +18,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.stats import t as t_dist
 
+from slamreplay.algorithms.common import se2
 from slamreplay.recorder.importers.mrclam import import_mrclam
 from slamreplay.recorder.sim import LandmarkSimConfig, simulate_landmarks
 from slamreplay.replay.runs.run import run_recording
@@ -40,6 +42,69 @@ def row(name: str, ekf: dict[str, float], sl: dict[str, float]) -> dict[str, Any
     return {"name": name, "ekfslam": ekf, "slsjf": sl, "ratio": ratio}
 
 
+def vp_band(vp: Path, data_dir: Path, out: Path) -> dict[str, Any]:
+    """The tree NEES band on Victoria Park, where the reference is the batch optimum of the same measurements.
+
+    The reference's own joint covariance ``P_ref`` (first order, under the measured noise:
+    ``landmark_reference.reference_covariance``) and each filter's final joint covariance ``P`` of the 151 trees give
+    the band of a consistent filter's mean NEES, its errors from the reference having covariance ``P - P_ref``
+    (``metrics.mean_nees_band``); when ``P - P_ref`` is not positive semi-definite there is none, and why is printed.
+    """
+    from slamreplay.recorder.importers.victoria_park import read_victoria_park
+    from slamreplay.replay.evaluation.landmark_reference import (
+        measured_scales,
+        reference_covariance,
+        victoria_park_reference,
+    )
+    from slamreplay.replay.evaluation.metrics import mean_nees_band
+    from slamreplay.replay.pipelines.ekfslam import EkfSlamPipeline
+    from slamreplay.replay.pipelines.slsjf import SlsjfPipeline
+
+    data = read_victoria_park(data_dir)
+    print("Victoria Park: the reference's covariance (the batch optimum again, 2-3 minutes)")
+    poses, landmarks, _ = victoria_park_reference(data)
+    p_ref = reference_covariance(data, poses, landmarks, measured_scales(data, poses, landmarks))
+    result: dict[str, Any] = {}
+    kept: dict[str, Any] = {}
+    for base in (EkfSlamPipeline, SlsjfPipeline):
+
+        class Keep(base):  # type: ignore[misc, valid-type]
+            def finalize(self) -> None:
+                super().finalize()
+                kept[self.name] = self
+
+        run_recording(vp, Keep, out / f"vp-{base.name}-band", seed=0)
+        pipe = kept[base.name]
+        order = [pipe.filter.by_id[int(i)] for i in data.landmark_ids]
+        k = len(order)
+        if base is SlsjfPipeline:
+            joint = pipe.filter.joint_covariance(order)
+        else:
+            idx = (3 + 2 * np.asarray(order)[:, None] + np.arange(2)).reshape(-1)
+            joint = np.asarray(pipe.filter.P)[np.ix_(idx, idx)]
+        rot = np.kron(np.eye(k), se2.rot(pipe.T[2]))
+        joint = rot @ joint @ rot.T
+        err = (pipe.to_world_xy(pipe.filter.estimates())[order] - landmarks).reshape(k, 2)
+        blocks = joint.reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :]
+        nees = float(np.mean(np.einsum("ni,nij,nj->n", err, np.linalg.inv(blocks), err)))
+        row: dict[str, Any] = {"landmark_nees_mean": nees, "band_if_reference_were_truth": mean_nees_band(joint)}
+        w = np.linalg.eigvalsh(joint - p_ref)
+        row["directions_below_reference"] = int(np.sum(w < 0))
+        row["trace_ratio_filter_to_reference_median"] = float(np.median(
+            np.trace(blocks, axis1=1, axis2=2) / np.trace(p_ref.reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :],
+                                                          axis1=1, axis2=2)))
+        try:
+            row["band"] = mean_nees_band(joint, reference_cov=p_ref)
+        except ValueError as err_:
+            row["band"], row["why_no_band"] = None, str(err_)
+        ratio = row["trace_ratio_filter_to_reference_median"]
+        print(f"  {base.name}: tree NEES {nees:.3g}; band against the reference: "
+              + (f"[{row['band'][0]:.3g}, {row['band'][1]:.3g}]" if row["band"] else f"none ({row['why_no_band']})")
+              + f"; tree covariance / the reference's (trace, median) {ratio:.2f}")
+        result[base.name] = row
+    return result
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, required=True)
@@ -49,6 +114,8 @@ def main() -> None:
     ap.add_argument("--robots", type=int, nargs="*", default=[1, 2, 3, 4, 5])
     ap.add_argument("--skip-vp", action="store_true")
     ap.add_argument("--paper", action="store_true", help="also SLSJF linearized once (--preset paper)")
+    ap.add_argument("--vp-band", action="store_true",
+                    help="Victoria Park: the tree NEES band against the reference, itself an estimate (a few minutes)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -80,9 +147,26 @@ def main() -> None:
             out["sim"].append(row(f"seed {s}", metrics(rec, "ekfslam", args.out / f"sim{s}-ekfslam"),
                                   metrics(rec, "slsjf", args.out / f"sim{s}-slsjf")))
         nees = [r["slsjf"]["landmark_nees_mean"] for r in out["sim"] if "landmark_nees_mean" in r["slsjf"]]
-        if nees:
-            out["sim_landmark_nees_mean_over_seeds"] = float(np.mean(nees))
-            print(f"  SLSJF landmark NEES, mean over {len(nees)} seeds: {np.mean(nees):.3f}")
+        if len(nees) >= 2:
+            # The seeds are independent draws of the same scenario: the 95 % interval of their mean NEES from their own
+            # spread (Student's t). A consistent filter's per-seed mean NEES has expectation 2, so the band the mean
+            # over seeds must fall in is 2 -/+ that half-width.
+            half = float(t_dist.ppf(0.975, len(nees) - 1) * np.std(nees, ddof=1) / np.sqrt(len(nees)))
+            mean = float(np.mean(nees))
+            out["sim_landmark_nees"] = {"mean_over_seeds": mean, "band_95": [2.0 - half, 2.0 + half],
+                                        "inside": bool(abs(mean - 2.0) <= half), "seeds": len(nees)}
+            print(f"  SLSJF landmark NEES, mean over {len(nees)} seeds: {mean:.3f}; band of a consistent filter "
+                  f"(2 -/+ t * sd / sqrt(n)): [{2.0 - half:.3f}, {2.0 + half:.3f}]"
+                  f" -> {'inside' if abs(mean - 2.0) <= half else 'OUTSIDE'}")
+        for name in ("landmark_rmse_m", "ape_rmse_m"):
+            bound = 1.5 if name == "landmark_rmse_m" else 1.2
+            ratios = [r["ratio"][name] for r in out["sim"] if name in r["ratio"]]
+            over = [r["name"] for r in out["sim"] if r["ratio"].get(name, 0.0) > bound]
+            if ratios:
+                print(f"  {name} SLSJF / EKF-SLAM over {len(ratios)} seeds: median {np.median(ratios):.2f}, geometric "
+                      f"mean {float(np.exp(np.mean(np.log(ratios)))):.2f}; above {bound}x: {', '.join(over) or 'none'}")
+    if args.vp_band and vp.exists():
+        out["victoria_park_band"] = vp_band(vp, args.data / "victoria-park-isam", args.out)
     if args.json:
         args.json.write_text(json.dumps(out, indent=2))
 

@@ -345,3 +345,29 @@ def noise_scales(graph: LandmarkGraph, poses: F64, landmarks: F64, rng: np.rando
         # a kind whose residuals the optimum absorbs almost whole says nothing about its noise
         out[k] = math.sqrt(float(r[idx] @ r[idx]) / dof) if dof > 0.05 * len(idx) else math.nan
     return out
+
+
+def landmark_covariance(graph: LandmarkGraph, poses: F64, landmarks: F64, scales: F64 | None = None) -> F64:
+    """The joint covariance (2 L, 2 L) of the landmarks at an optimum, the first pose fixed: the landmark block of
+    ``(J^T J)^-1`` for the whitened Jacobian ``J`` (Gauss-Newton's, first order).
+
+    ``scales`` (5,): each residual kind's noise relative to its model (odometry x, y, θ, range, bearing; as
+    :func:`noise_scales` measures them): a kind's whitened rows are divided by its factor. Landmarks in
+    ``graph`` order, x then y of each.
+    """
+    J, _ = _system(graph, poses, landmarks, _whiten(graph.odo_info), _whiten(graph.obs_info))
+    if scales is not None:
+        scales = np.asarray(scales, np.float64)
+        if scales.shape != (5,) or not np.all(np.isfinite(scales)) or not np.all(scales > 0):
+            raise ValueError(f"scales must be 5 finite factors > 0, got {scales}")
+        m3 = 3 * len(graph.odo_i)
+        kinds = np.concatenate([np.arange(m3) % 3, 3 + np.arange(J.shape[0] - m3) % 2])
+        J = sp.diags(1.0 / scales[kinds]) @ J
+    free = np.arange(3, J.shape[1])
+    J = J[:, free].tocsc()
+    lu = sla.splu((J.T @ J).tocsc(), permc_spec="COLAMD")
+    cols = 3 * graph.n_poses - 3 + np.arange(2 * graph.n_landmarks)
+    e = np.zeros((len(free), len(cols)))
+    e[cols, np.arange(len(cols))] = 1.0
+    cov = np.asarray(lu.solve(e), np.float64)[cols]
+    return np.asarray(0.5 * (cov + cov.T), np.float64)

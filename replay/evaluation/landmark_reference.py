@@ -18,6 +18,7 @@ from slamreplay.algorithms.common.landmark_graph import (
     LandmarkGraph,
     LsqConfig,
     LsqResult,
+    landmark_covariance,
     noise_scales,
     solve_incremental,
 )
@@ -42,6 +43,22 @@ def victoria_park_reference(data: VictoriaPark, cfg: LsqConfig | None = None
     return res.poses, res.landmarks, res
 
 
+def measured_scales(data: VictoriaPark, poses: NDArray[np.float64], landmarks: NDArray[np.float64], *,
+                    seed: int = 0) -> NDArray[np.float64]:
+    """Each residual kind's noise relative to its model at the reference (odometry x, y, θ, range, bearing:
+    :func:`slamreplay.algorithms.common.landmark_graph.noise_scales`, seeded); 1 where it cannot be measured."""
+    c = noise_scales(victoria_park_graph(data), poses, landmarks, np.random.default_rng(seed))
+    return np.where(np.isfinite(c), c, 1.0)  # not measurable: the model's own sigma stands
+
+
+def reference_covariance(data: VictoriaPark, poses: NDArray[np.float64], landmarks: NDArray[np.float64],
+                         scales: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The joint covariance (2 L, 2 L) of the reference's landmarks under the measured noise (``scales``): how far
+    the batch optimum itself is from the truth, to first order. A filter scored against the reference is
+    judged on its error's covariance ``P - P_ref`` (:func:`slamreplay.replay.evaluation.metrics.mean_nees_band`)."""
+    return landmark_covariance(victoria_park_graph(data), poses, landmarks, scales)
+
+
 def measured_noise(data: VictoriaPark, poses: NDArray[np.float64], landmarks: NDArray[np.float64], *,
                    seed: int = 0) -> dict[str, float]:
     """The noise the measurements show about the reference, as pipeline config keys.
@@ -53,9 +70,7 @@ def measured_noise(data: VictoriaPark, poses: NDArray[np.float64], landmarks: ND
     Odometry becomes per square root of a metre driven, as the pipelines' noise model
     (algorithms/common/motion.py) is: the forward sigma of a step of mean length.
     """
-    graph = victoria_park_graph(data)
-    c = noise_scales(graph, poses, landmarks, np.random.default_rng(seed))
-    c = np.where(np.isfinite(c), c, 1.0)  # not measurable: the model's own sigma stands
+    c = measured_scales(data, poses, landmarks, seed=seed)
     step_m = float(np.mean(np.hypot(data.odo_z[:, 0], data.odo_z[:, 1])))
     sig_step = np.sqrt(np.mean(np.diagonal(data.odo_cov, axis1=1, axis2=2), axis=0))  # (3,) x, y, θ per step
     model = gtsam_noise()

@@ -117,30 +117,49 @@ def metrics_markdown(title: str, values: Mapping[str, float], specs: Mapping[str
     return "\n".join(lines) + "\n"
 
 
-def mean_nees_band(joint_cov: F64, level: float = 0.95) -> tuple[float, float]:
+def mean_nees_band(joint_cov: F64, level: float = 0.95, reference_cov: F64 | None = None) -> tuple[float, float]:
     """The central ``level`` band of the mean of k landmark NEES values when the estimate is consistent.
 
-    ``joint_cov`` (2k, 2k) is the joint covariance of the k landmarks' errors. The mean of their
-    marginal NEES values is ``e^T B e / k`` with ``B = blockdiag(P_ii^-1)``: a sum of chi2(1) terms
-    weighted by the eigenvalues of ``L^T B L / k`` (``P = L L^T``), of mean 2 and variance
-    ``2 sum(lambda^2)``. Landmarks that share an error (a map's common translation or rotation)
-    widen it far beyond the chi2(2k)/k of independent ones, which it equals when P is block
-    diagonal. The band is that of Pearson's shifted, scaled chi-square with the same first three
-    cumulants (``kappa_r = 2^(r-1) (r-1)! sum(lambda^r)``): on map-like covariances (a shared
-    translation plus independent parts) its upper end is within 1 % of the sampled quantile and
+    ``joint_cov`` (2k, 2k) is the estimate's joint covariance of its k landmarks. The mean of their
+    marginal NEES values is ``e^T B e / k`` with ``B = blockdiag(P_ii^-1)``: for errors of covariance
+    ``E = L L^T`` a sum of chi2(1) terms weighted by the eigenvalues of ``L^T B L / k``. Against ground
+    truth ``E = P``: of mean 2 and variance ``2 sum(lambda^2)``; landmarks that share an error (a map's
+    common translation or rotation) widen it far beyond the chi2(2k)/k of independent ones, which it
+    equals when P is block diagonal. The band is that of Pearson's shifted, scaled chi-square with the
+    same first three cumulants (``kappa_r = 2^(r-1) (r-1)! sum(lambda^r)``): on map-like covariances (a
+    shared translation plus independent parts) its upper end is within 1 % of the sampled quantile and
     its lower end up to 0.15 above it.
+
+    ``reference_cov``: the landmarks are scored against a reference that is itself an estimate from the same
+    measurements, the batch optimum, with this joint covariance. The optimum is efficient (it reaches the
+    Cramer-Rao bound, to first order), so its error is uncorrelated with the difference of any other
+    unbiased estimate from it, and a consistent estimate's error from it has covariance ``E = P - P_ref``:
+    the NEES is then lower than against the truth (mean ``2 - tr(P_ii^-1 P_ref,ii)`` per landmark). ValueError
+    when ``P - P_ref`` has a negative eigenvalue (beyond rounding): the estimate then claims less uncertainty
+    than the best estimate from the same data has, which no consistent estimate can, and no band applies.
     """
     k = len(joint_cov) // 2
     if joint_cov.shape != (2 * k, 2 * k) or k == 0:
         raise ValueError(f"joint_cov must be (2k, 2k) with k >= 1, got {joint_cov.shape}")
     p = 0.5 * (joint_cov + joint_cov.T)
-    chol = np.linalg.cholesky(p)
+    if reference_cov is None:
+        factor = np.linalg.cholesky(p)
+    else:
+        if reference_cov.shape != p.shape:
+            raise ValueError(f"reference_cov must be {p.shape} as joint_cov, got {reference_cov.shape}")
+        w, v = np.linalg.eigh(p - 0.5 * (reference_cov + reference_cov.T))
+        if w.min() < -1e-9 * max(float(np.abs(w).max()), 1e-300):
+            below = int(np.sum(w < 0))
+            raise ValueError(f"the estimate's covariance is below the reference's in {below} of {2 * k} directions "
+                             f"(most: {-w.min():.3g} m^2): it claims less uncertainty than the batch optimum of the "
+                             "same measurements has, so it cannot be consistent and no NEES band applies")
+        factor = v * np.sqrt(np.maximum(w, 0.0))
     blocks = p.reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :]
     b = np.zeros_like(p)
     inv = np.linalg.inv(blocks)
     for i in range(k):
         b[2 * i:2 * i + 2, 2 * i:2 * i + 2] = inv[i]
-    lam = np.linalg.eigvalsh(chol.T @ b @ chol) / k
+    lam = np.linalg.eigvalsh(factor.T @ b @ factor) / k
     return pearson_band(float(np.sum(lam)), float(2 * np.sum(lam**2)), float(8 * np.sum(lam**3)), level)
 
 

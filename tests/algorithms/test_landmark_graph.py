@@ -13,6 +13,7 @@ from slamreplay.algorithms.common.landmark_graph import (
     _system,
     _whiten,
     chi2,
+    landmark_covariance,
     optimize,
     residuals,
     solve_incremental,
@@ -105,3 +106,30 @@ def test_bad_graphs_are_rejected() -> None:
     with pytest.raises(ValueError, match="every landmark must be observed"):
         optimize(LandmarkGraph(g.n_poses, g.n_landmarks + 1, g.odo_i, g.odo_j, g.odo_z, g.odo_info, g.obs_pose,
                                g.obs_landmark, g.obs_z, g.obs_info), poses, np.vstack([lms, [0.0, 0.0]]))
+
+
+def test_landmark_covariance_is_the_optimum_s_error_covariance() -> None:
+    """Over 40 seeded worlds the batch optimum's landmark error, measured with the joint covariance
+    ``landmark_covariance`` gives, is chi2 with 24 dof (12 landmarks): its mean within 3 sigma of 24, both ways."""
+    nees: list[float] = []
+    for seed in range(100, 200):
+        g, _, lms = _world(seed, noise=True)
+        if len(nees) == 40:
+            break
+        if len(np.unique(g.obs_landmark)) < g.n_landmarks:
+            continue  # a landmark no pose sees: not this test's world
+        res = solve_incremental(g, LsqConfig(chunk_poses=30))
+        cov = landmark_covariance(g, res.poses, res.landmarks)
+        e = (res.landmarks - lms).reshape(-1)
+        nees.append(float(e @ np.linalg.solve(cov, e)))
+    assert abs(float(np.mean(nees)) - 24.0) < 3 * math.sqrt(48 / 40)
+
+
+def test_landmark_covariance_scales_with_the_noise() -> None:
+    """Every kind's noise twice its model: the covariance four times; a bad scale is a ValueError naming it."""
+    g, poses, lms = _world(0, noise=False, n=30)
+    base = landmark_covariance(g, poses, lms)
+    np.testing.assert_allclose(landmark_covariance(g, poses, lms, np.full(5, 2.0)), 4 * base, rtol=1e-8)
+    assert np.all(np.linalg.eigvalsh(base) > 0) and base.shape == (24, 24)
+    with pytest.raises(ValueError, match="scales must be 5 finite factors > 0"):
+        landmark_covariance(g, poses, lms, np.array([1.0, 1.0, 0.0, 1.0, 1.0]))
