@@ -5,7 +5,8 @@ linearized once (``--preset paper``) where ``--paper`` is given. Prints a table 
 ratios SLSJF / EKF-SLAM (landmark RMSE, robot ATE) and writes ``--json``.
 
 Run: ``.venv/bin/python benchmarks/slsjf_evaluation.py --out /tmp/slsjf-eval --data ../shared/data
-[--seeds 1 2 3] [--duration-s 1800] [--robots 1 2 3 4 5] [--skip-vp] [--paper] [--vp-band] [--json out.json]``.
+[--seeds 1 2 3] [--duration-s 1800] [--robots 1 2 3 4 5] [--skip-vp] [--paper] [--vp-band] [--batch 5]
+[--json out.json]``.
 Run directories under ``--out`` are reused when their metrics exist (a fresh ``--out`` after a code change).
 """
 
@@ -105,6 +106,76 @@ def vp_band(vp: Path, data_dir: Path, out: Path) -> dict[str, Any]:
     return result
 
 
+def batch_optimum(recording: Path, out: Path) -> dict[str, Any]:
+    """The full least-squares optimum of a landmark recording (every scan a pose), scored as the filters are.
+
+    EKF-SLAM replays the recording once to collect what a filter is given: the odometry between scans, composed
+    with its noise model's covariance, and each scan's sightings with their sigmas; those make a pose-landmark
+    graph (``landmark_graph.LandmarkGraph``, known ids) solved by ``solve_incremental``. Its landmark RMSE tells
+    what the best estimate from these measurements achieves: a filter nearer the truth than that on one seed is
+    lucky, not better. Slow: about 25 minutes for an 1800 s paper-scenario recording (9,000 poses).
+    """
+    from slamreplay.algorithms.common.landmark_graph import LandmarkGraph, LsqConfig, solve_incremental
+    from slamreplay.replay.pipelines.ekfslam import EkfSlamPipeline
+
+    steps: list[tuple[np.ndarray, np.ndarray]] = []  # (increment since the last scan, its covariance) per scan
+    scans: list[tuple[np.ndarray, np.ndarray, np.ndarray, float, float]] = []
+    kept: dict[str, Any] = {}
+
+    class Recorder:
+        """The EKF-SLAM filter, and what it was given."""
+
+        def __init__(self, inner: Any) -> None:
+            self.inner, self.acc, self.cov = inner, np.zeros(3), np.zeros((3, 3))
+
+        def __getattr__(self, name: str) -> Any:
+            return getattr(self.inner, name)
+
+        def predict(self, u: Any) -> None:
+            u = np.asarray(u, np.float64)
+            c, s = math.cos(self.acc[2]), math.sin(self.acc[2])
+            ja = np.array([[1.0, 0.0, -s * u[0] - c * u[1]], [0.0, 1.0, c * u[0] - s * u[1]], [0.0, 0.0, 1.0]])
+            jb = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            self.cov = ja @ self.cov @ ja.T + jb @ self.inner.config.odometry_noise.covariance(u) @ jb.T
+            self.acc = se2.compose(self.acc, u)
+            self.inner.predict(u)
+
+        def observe(self, r: Any, b: Any, ids: Any = None, sr: float = 0.0, sb: float = 0.0) -> Any:
+            steps.append((self.acc, self.cov))
+            self.acc, self.cov = np.zeros(3), np.zeros((3, 3))
+            cfg = self.inner.config
+            scans.append((np.asarray(r, np.float64), np.asarray(b, np.float64), np.asarray(ids, np.int64),
+                          sr if sr > 0 else cfg.default_range_sigma_m, sb if sb > 0 else cfg.default_bearing_sigma_rad))
+            return self.inner.observe(r, b, ids, sr, sb)
+
+    class Collect(EkfSlamPipeline):
+        def make_filter(self, mode: str) -> Any:
+            return Recorder(super().make_filter(mode))
+
+        def finalize(self) -> None:
+            super().finalize()
+            kept["pipe"] = self
+
+    run_recording(recording, Collect, out, seed=0)
+    pipe = kept["pipe"]
+    ids = sorted({int(i) for _, _, scan_ids, _, _ in scans for i in scan_ids.tolist()})
+    index = {i: k for k, i in enumerate(ids)}
+    n = len(scans)
+    obs = [(k, index[int(i)], (r[j], b[j]), np.diag([1 / sr**2, 1 / sb**2]))
+           for k, (r, b, scan_ids, sr, sb) in enumerate(scans) for j, i in enumerate(scan_ids.tolist())]
+    graph = LandmarkGraph(n, len(ids), np.arange(n - 1), np.arange(1, n), np.array([u for u, _ in steps[1:]]),
+                          np.array([np.linalg.inv(c + 1e-12 * np.eye(3)) for _, c in steps[1:]]),
+                          np.array([o[0] for o in obs]), np.array([o[1] for o in obs]), np.array([o[2] for o in obs]),
+                          np.array([o[3] for o in obs]))
+    res = solve_incremental(graph, LsqConfig())
+    # the graph's first pose is the first scan's, at the origin; the filter's frame holds it at steps[0]
+    world = pipe.to_world_xy(se2.transform_points(steps[0][0], res.landmarks))
+    lookup = {int(i): k for k, i in enumerate(pipe.truth_ids.tolist())}
+    err = np.array([world[index[i]] - pipe.truth_xy[lookup[i]] for i in ids if i in lookup])
+    return {"landmark_rmse_m": float(np.sqrt(np.mean(np.sum(err**2, axis=1)))), "mean_error_m": err.mean(0).tolist(),
+            "chi2": float(res.chi2), "poses": n}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, required=True)
@@ -114,6 +185,8 @@ def main() -> None:
     ap.add_argument("--robots", type=int, nargs="*", default=[1, 2, 3, 4, 5])
     ap.add_argument("--skip-vp", action="store_true")
     ap.add_argument("--paper", action="store_true", help="also SLSJF linearized once (--preset paper)")
+    ap.add_argument("--batch", type=int, nargs="*", default=[], metavar="SEED",
+                    help="paper-scenario seeds whose full batch optimum to compute (about 25 minutes each)")
     ap.add_argument("--vp-band", action="store_true",
                     help="Victoria Park: the tree NEES band against the reference, itself an estimate (a few minutes)")
     ap.add_argument("--json", type=Path)
@@ -165,6 +238,14 @@ def main() -> None:
             if ratios:
                 print(f"  {name} SLSJF / EKF-SLAM over {len(ratios)} seeds: median {np.median(ratios):.2f}, geometric "
                       f"mean {float(np.exp(np.mean(np.log(ratios)))):.2f}; above {bound}x: {', '.join(over) or 'none'}")
+    for s in args.batch:
+        rec = args.out / f"sim{s}.mcap"
+        if rec.exists():
+            print(f"  seed {s}: the batch optimum of the same measurements (slow) ...")
+            opt = batch_optimum(rec, args.out / f"sim{s}-batch")
+            out.setdefault("sim_batch_optimum", {})[s] = opt
+            print(f"  seed {s}: batch optimum landmark RMSE {opt['landmark_rmse_m']:.4g} m, mean error "
+                  f"({opt['mean_error_m'][0]:.3f}, {opt['mean_error_m'][1]:.3f}) m")
     if args.vp_band and vp.exists():
         out["victoria_park_band"] = vp_band(vp, args.data / "victoria-park-isam", args.out)
     if args.json:
