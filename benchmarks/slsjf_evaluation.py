@@ -116,6 +116,7 @@ def batch_optimum(recording: Path, out: Path) -> dict[str, Any]:
     lucky, not better. Slow: about 25 minutes for an 1800 s paper-scenario recording (9,000 poses).
     """
     from slamreplay.algorithms.common.landmark_graph import LandmarkGraph, LsqConfig, solve_incremental
+    from slamreplay.algorithms.slsjf.filter import compose_cov
     from slamreplay.replay.pipelines.ekfslam import EkfSlamPipeline
 
     steps: list[tuple[np.ndarray, np.ndarray]] = []  # (increment since the last scan, its covariance) per scan
@@ -133,10 +134,7 @@ def batch_optimum(recording: Path, out: Path) -> dict[str, Any]:
 
         def predict(self, u: Any) -> None:
             u = np.asarray(u, np.float64)
-            c, s = math.cos(self.acc[2]), math.sin(self.acc[2])
-            ja = np.array([[1.0, 0.0, -s * u[0] - c * u[1]], [0.0, 1.0, c * u[0] - s * u[1]], [0.0, 0.0, 1.0]])
-            jb = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-            self.cov = ja @ self.cov @ ja.T + jb @ self.inner.config.odometry_noise.covariance(u) @ jb.T
+            self.cov = compose_cov(self.acc, self.cov, u, self.inner.config.odometry_noise.covariance(u))
             self.acc = se2.compose(self.acc, u)
             self.inner.predict(u)
 
