@@ -366,8 +366,10 @@ class Slsjf:
                                  + max(float(np.linalg.eigvalsh(self._start_cov[:2, :2]).max()), 0.0)
                                  + float(xy @ xy) * max(self._start_cov[2, 2], 0.0))
         radius = spread + self.config.local.vicinity_margin_m
-        cand = [g for g in self.map.feat_at if g not in self.local_of
-                and math.dist(self.map.feature(g), where) <= radius]
+        gs = np.fromiter(self.map.feat_at.keys(), np.int64, len(self.map.feat_at))
+        at = np.fromiter(self.map.feat_at.values(), np.int64, len(gs))
+        near = np.hypot(self.map.x[at] - where[0], self.map.x[at + 1] - where[1]) <= radius
+        cand = [g for g in gs[near].tolist() if g not in self.local_of]
         if not cand:
             return new
         innov = [self._innovation(g, xy, cov) for g in cand]
