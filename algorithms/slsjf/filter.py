@@ -106,13 +106,25 @@ class SlsjfScanResult:
     joined: bool  # whether this scan ended its local map
 
 
-def compose_cov(a: F64, cov_a: F64, b: F64, cov_b: F64) -> F64:
-    """Covariance of ``a (+) b`` for independent ``a`` and ``b`` (first order)."""
+def compose_jacobians(a: F64, b: F64) -> tuple[F64, F64]:
+    """The Jacobians (3, 3) of ``a (+) b`` with respect to ``a`` and to ``b``."""
     c, s = math.cos(a[2]), math.sin(a[2])
     ja = np.array([[1.0, 0.0, -s * b[0] - c * b[1]], [0.0, 1.0, c * b[0] - s * b[1]], [0.0, 0.0, 1.0]])
     jb = np.eye(3)
     jb[:2, :2] = [[c, -s], [s, c]]
+    return ja, jb
+
+
+def compose_cov(a: F64, cov_a: F64, b: F64, cov_b: F64) -> F64:
+    """Covariance of ``a (+) b`` for independent ``a`` and ``b`` (first order)."""
+    ja, jb = compose_jacobians(a, b)
     return np.asarray(ja @ cov_a @ ja.T + jb @ cov_b @ jb.T, np.float64)
+
+
+def rotation_t(theta: float) -> tuple[F64, F64]:
+    """``R(theta)^T`` and its derivative in theta: the start frame's view of a global point, ``R^T (p - t)``."""
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, s], [-s, c]]), np.array([[-s, c], [-c, -s]])
 
 
 def point_cov(a: F64, cov_a: F64, p: F64, cov_p: F64) -> F64:
@@ -121,6 +133,12 @@ def point_cov(a: F64, cov_a: F64, p: F64, cov_p: F64) -> F64:
     ja = np.array([[1.0, 0.0, -s * p[0] - c * p[1]], [0.0, 1.0, c * p[0] - s * p[1]]])
     r = np.array([[c, -s], [s, c]])
     return np.asarray(ja @ cov_a @ ja.T + r @ cov_p @ r.T, np.float64)
+
+
+def local_feature(x: F64, P: F64, j: int) -> tuple[F64, F64]:
+    """Feature ``j``'s estimate (2,) and covariance (2, 2) in an EKF-SLAM state (the pose first, then features)."""
+    i = 3 + 2 * j
+    return x[i:i + 2], P[i:i + 2, i:i + 2]
 
 
 def fuse_local_map(glob: F64, glob_cov: F64, local: F64, local_cov: F64,
@@ -144,11 +162,7 @@ def fuse_local_map(glob: F64, glob_cov: F64, local: F64, local_cov: F64,
     cov = np.linalg.inv(a)
     s, t = y[:3], y[n:]
     st = np.r_[0, 1, 2, n, n + 1, n + 2]
-    c, sn = math.cos(s[2]), math.sin(s[2])
-    jac = np.zeros((3, 6))
-    jac[:, :3] = [[1.0, 0.0, -sn * t[0] - c * t[1]], [0.0, 1.0, c * t[0] - sn * t[1]], [0.0, 0.0, 1.0]]
-    jac[:2, 3:5] = [[c, -sn], [sn, c]]
-    jac[2, 5] = 1.0
+    jac = np.hstack(compose_jacobians(s, t))  # (s, t) are correlated: their joint covariance, not compose_cov
     pose_cov = jac @ cov[np.ix_(st, st)] @ jac.T
     return se2.compose(s, t), np.asarray(0.5 * (pose_cov + pose_cov.T), np.float64)
 
@@ -164,8 +178,7 @@ def fuse(glob: F64, glob_cov: F64, local: F64, local_cov: F64, iterations: int =
     a = np.zeros((n + 3, n + 3))
     for _ in range(iterations):
         s, g, t = y[:3], y[3:n].reshape(k, 2), y[n:]
-        rt = se2.rot(s[2]).T
-        drt = np.array([[-math.sin(s[2]), math.cos(s[2])], [-math.cos(s[2]), -math.sin(s[2])]])
+        rt, drt = rotation_t(s[2])
         d = g - s[:2]
         h = np.concatenate([t, (d @ rt.T).reshape(-1)])
         r_l = h - local
@@ -217,7 +230,6 @@ class Slsjf:
         self._columns: dict[int, F64] = {}  # columns of the global covariance I^-1 asked for since the last join
         self._joined: tuple[int, F64, F64] | None = None  # (version, pose, covariance) of the joined robot
         self._version = 0  # counts predictions and scans: the joined robot is recomputed when it changes
-        self.joined_features = 0  # features both maps held, summed over the joined robot's estimates
         self._track = np.zeros(3)  # the tracked robot (robot_estimate="tracked") in the global frame
         self._track_cov = np.zeros((3, 3))
         self.tracked_sightings = 0  # sightings of global features used by the tracked robot
@@ -358,8 +370,7 @@ class Slsjf:
         new = len(self.feature_ids)
         if self.start < 0 or not self.map.feat_at:
             return new
-        xy, cov = np.asarray(self.local.x)[3 + 2 * f:5 + 2 * f], np.asarray(self.local.P)[3 + 2 * f:5 + 2 * f,
-                                                                                        3 + 2 * f:5 + 2 * f]
+        xy, cov = local_feature(np.asarray(self.local.x), np.asarray(self.local.P), f)
         where = se2.transform_points(self._start_pose, xy[None])[0]
         # 3 sigma of the local estimate and of the start frame (its heading error swings the feature about it)
         spread = 3.0 * math.sqrt(max(float(np.linalg.eigvalsh(cov).max()), 0.0)
@@ -451,14 +462,13 @@ class Slsjf:
             return pairs
         while len(pairs) >= MIN_FIT:
             y, _ = fuse(*self._fusion_inputs(pairs, x, P))
-            d = [self._distance(g, x[3 + 2 * j:5 + 2 * j], P[3 + 2 * j:5 + 2 * j, 3 + 2 * j:5 + 2 * j], y[:3],
-                                y[3 + 2 * i:5 + 2 * i]) for i, (j, g) in enumerate(pairs)]
+            d = [self._distance(g, *local_feature(x, P, j), y[:3], y[3 + 2 * i:5 + 2 * i])
+                 for i, (j, g) in enumerate(pairs)]
             worst = int(np.argmax(d))
             if d[worst] <= gate:
                 return pairs
             pairs = pairs[:worst] + pairs[worst + 1:]
-        return [(j, g) for j, g in pairs if self._distance(g, x[3 + 2 * j:5 + 2 * j],
-                                                            P[3 + 2 * j:5 + 2 * j, 3 + 2 * j:5 + 2 * j]) <= gate]
+        return [(j, g) for j, g in pairs if self._distance(g, *local_feature(x, P, j)) <= gate]
 
     def _fusion_inputs(self, pairs: list[tuple[int, int]], x: F64, P: F64) -> tuple[F64, F64, F64, F64]:
         """:func:`fuse`'s arguments for the common features ``pairs``: the global start frame and features with
@@ -480,11 +490,10 @@ class Slsjf:
         """:meth:`_distance`'s innovation (2,) and its covariance (2, 2)."""
         s = self._start_pose if s is None else s
         f = self.map.feature(g) if f is None else f
-        rt = se2.rot(s[2]).T
+        rt, drt = rotation_t(s[2])
         fa = self.map.feat_at[g]
         a = self.map.pose_at[self.start]
         joint = self._covariance([a, a + 1, a + 2, fa, fa + 1])
-        drt = np.array([[-math.sin(s[2]), math.cos(s[2])], [-math.cos(s[2]), -math.sin(s[2])]])
         jac = np.hstack([-rt, (drt @ (f - s[:2]))[:, None], rt])
         nu = local_xy - rt @ (f - s[:2])
         return nu, local_cov + jac @ joint @ jac.T
@@ -511,7 +520,6 @@ class Slsjf:
             pose, cov = self.composed_pose, self.composed_cov  # nothing in common: the composition is exact
         else:
             pose, cov = fuse_local_map(*self._fusion_inputs(common, x, P))
-            self.joined_features += len(common)
         self._joined = (self._version, pose, cov)
         return pose.copy(), cov.copy()
 
