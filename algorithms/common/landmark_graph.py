@@ -363,11 +363,26 @@ def landmark_covariance(graph: LandmarkGraph, poses: F64, landmarks: F64, scales
         m3 = 3 * len(graph.odo_i)
         kinds = np.concatenate([np.arange(m3) % 3, 3 + np.arange(J.shape[0] - m3) % 2])
         J = sp.diags(1.0 / scales[kinds]) @ J
+    return _covariance_block(J, 3 * graph.n_poses + np.arange(2 * graph.n_landmarks))
+
+
+def pose_landmark_covariance(graph: LandmarkGraph, poses: F64, landmarks: F64, pose: int) -> F64:
+    """The joint covariance (3 + 2 L, 3 + 2 L) of pose ``pose`` (not 0, which is fixed) and the landmarks at an
+    optimum, in that order: an EKF-SLAM state's layout, as a local map's end pose and features are (first order,
+    as :func:`landmark_covariance`)."""
+    if not 0 < pose < graph.n_poses:
+        raise ValueError(f"pose must be 1..{graph.n_poses - 1} (pose 0 is fixed), got {pose}")
+    J, _ = _system(graph, poses, landmarks, _whiten(graph.odo_info), _whiten(graph.obs_info))
+    return _covariance_block(J, np.r_[3 * pose + np.arange(3), 3 * graph.n_poses + np.arange(2 * graph.n_landmarks)])
+
+
+def _covariance_block(J: sp.csr_matrix, cols: I64) -> F64:
+    """The block of ``(J^T J)^-1`` at the state columns ``cols`` of the whitened Jacobian, pose 0 fixed."""
     free = np.arange(3, J.shape[1])
     J = J[:, free].tocsc()
     lu = sla.splu((J.T @ J).tocsc(), permc_spec="COLAMD")
-    cols = 3 * graph.n_poses - 3 + np.arange(2 * graph.n_landmarks)
-    e = np.zeros((len(free), len(cols)))
-    e[cols, np.arange(len(cols))] = 1.0
-    cov = np.asarray(lu.solve(e), np.float64)[cols]
+    at = np.asarray(cols) - 3
+    e = np.zeros((len(free), len(at)))
+    e[at, np.arange(len(at))] = 1.0
+    cov = np.asarray(lu.solve(e), np.float64)[at]
     return np.asarray(0.5 * (cov + cov.T), np.float64)

@@ -15,6 +15,7 @@ from slamreplay.algorithms.common.landmark_graph import (
     chi2,
     landmark_covariance,
     optimize,
+    pose_landmark_covariance,
     residuals,
     solve_incremental,
 )
@@ -133,3 +134,31 @@ def test_landmark_covariance_scales_with_the_noise() -> None:
     assert np.all(np.linalg.eigvalsh(base) > 0) and base.shape == (24, 24)
     with pytest.raises(ValueError, match="scales must be 5 finite factors > 0"):
         landmark_covariance(g, poses, lms, np.array([1.0, 1.0, 0.0, 1.0, 1.0]))
+
+
+def test_pose_landmark_covariance_is_the_pose_and_landmark_block() -> None:
+    """Its landmark block is ``landmark_covariance``; for a chain of odometry whose last pose sees one landmark once,
+    its pose block is the odometry composed to first order (a single sighting says nothing about the pose);
+    pose 0, which is fixed, is refused."""
+    g, poses, lms = _world(0, noise=False, n=30)
+    joint = pose_landmark_covariance(g, poses, lms, 29)
+    np.testing.assert_allclose(joint[3:, 3:], landmark_covariance(g, poses, lms), rtol=1e-8, atol=1e-12)
+    steps = np.array([[1.0, 0.0, 0.3], [0.5, 0.2, -0.1], [0.8, 0.0, 0.2]])
+    q = np.diag([0.02, 0.01, 0.005]) ** 2
+    chain = np.zeros((4, 3))
+    cov = np.zeros((3, 3))
+    for k, u in enumerate(steps):
+        c, s_ = math.cos(chain[k, 2]), math.sin(chain[k, 2])
+        ja = np.array([[1, 0, -s_ * u[0] - c * u[1]], [0, 1, c * u[0] - s_ * u[1]], [0, 0, 1]])
+        jb = np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]])
+        cov = ja @ cov @ ja.T + jb @ q @ jb.T
+        chain[k + 1] = [chain[k, 0] + c * u[0] - s_ * u[1], chain[k, 1] + s_ * u[0] + c * u[1], chain[k, 2] + u[2]]
+    mark = chain[3, :2] + [3.0, 1.0]
+    c, s_ = math.cos(chain[3, 2]), math.sin(chain[3, 2])
+    d = np.array([c * 3.0 + s_ * 1.0, -s_ * 3.0 + c * 1.0])  # the landmark in the last pose's frame
+    one = LandmarkGraph(4, 1, np.arange(3), np.arange(1, 4), steps, np.broadcast_to(np.linalg.inv(q), (3, 3, 3)).copy(),
+                        np.array([3]), np.array([0]), np.array([[math.hypot(*d), math.atan2(d[1], d[0])]]),
+                        np.array([np.diag([100.0, 1e4])]))
+    np.testing.assert_allclose(pose_landmark_covariance(one, chain, mark[None], 3)[:3, :3], cov, rtol=1e-8, atol=1e-14)
+    with pytest.raises(ValueError, match="pose must be 1..3"):
+        pose_landmark_covariance(one, chain, mark[None], 0)

@@ -82,11 +82,12 @@ def test_noisy_joining_recovers_the_truth_within_its_covariance() -> None:
 
 
 def test_one_unending_local_map_is_ekf_slam() -> None:
-    """With local maps larger than the run, SLSJF (the paper's composed robot) is EkfSlam on the same inputs, to
-    rounding."""
+    """With local maps larger than the run, SLSJF (the paper's composed robot and local map) is EkfSlam on the same
+    inputs, to rounding."""
     cfg = EkfSlamConfig()
     ekf = EkfSlam(cfg)
-    sl = Slsjf(SlsjfConfig(cfg, local_map_scans=10**6, local_map_distance_m=1e9, robot_estimate="composed"))
+    sl = Slsjf(SlsjfConfig(cfg, local_map_scans=10**6, local_map_distance_m=1e9, robot_estimate="composed",
+                           local_map_estimate="ekf"))
     rng = np.random.default_rng(3)
     for k in range(40):
         u = np.array([0.2, 0.0, 0.05]) + rng.normal(0, 0.01, 3)
@@ -114,12 +115,14 @@ def test_local_maps_end_by_scans_and_by_distance() -> None:
 
 
 def test_bad_settings_are_refused() -> None:
-    """An empty local map size, a robot estimate not offered, a malformed local map and a known-id filter without
-    ids each raise ValueError naming them."""
+    """An empty local map size, a robot or local map estimate not offered, a malformed local map and a known-id filter
+    without ids each raise ValueError naming them."""
     with pytest.raises(ValueError, match="local_map_scans"):
         SlsjfConfig(local_map_scans=0)
     with pytest.raises(ValueError, match="robot_estimate"):
         SlsjfConfig(robot_estimate="smoothed")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="local_map_estimate must be one of ekf, smoothed"):
+        SlsjfConfig(local_map_estimate="joined")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="linearization"):
         GlobalMap("twice")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="3 \\+ 2m"):
@@ -198,8 +201,9 @@ def test_the_joined_and_tracked_robots_use_the_global_map_between_joins() -> Non
 
 def test_the_joined_robot_is_the_join_of_the_local_map() -> None:
     """The joined robot between joins equals the end pose the global map gives when that local map is joined (I-SLSJF,
-    converged), to the linearization's accuracy, and is the composed robot before any feature is shared."""
-    sl = Slsjf(SlsjfConfig(local_map_scans=10**6, local_map_distance_m=1e9))
+    converged), to the linearization's accuracy, and is the composed robot before any feature is shared. With the
+    EKF's local map: the joined robot is computed from it, and a smoothed local map moves the end pose at the join."""
+    sl = Slsjf(SlsjfConfig(local_map_scans=10**6, local_map_distance_m=1e9, local_map_estimate="ekf"))
     rng = np.random.default_rng(5)
     marks = np.array([[3.0, 2.0], [4.0, -2.0], [6.0, 1.0], [8.0, -1.0]])
     truth = np.zeros(3)
