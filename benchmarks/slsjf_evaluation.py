@@ -6,7 +6,7 @@ ratios SLSJF / EKF-SLAM (landmark RMSE, robot ATE) and writes ``--json``.
 
 Run: ``.venv/bin/python benchmarks/slsjf_evaluation.py --out /tmp/slsjf-eval --data ../shared/data
 [--seeds 1 2 3] [--duration-s 1800] [--robots 1 2 3 4 5] [--skip-vp] [--paper] [--vp-band] [--batch 5]
-[--batch-incremental] [--set KEY=VALUE]
+[--batch-incremental] [--causal-every 300] [--set KEY=VALUE]
 [--json out.json]``.
 Run directories under ``--out`` are reused when their metrics exist (a fresh ``--out`` after a code change).
 """
@@ -143,7 +143,7 @@ def vp_band(vp: Path, data_dir: Path, out: Path) -> dict[str, Any]:
     return result
 
 
-def batch_optimum(recording: Path, out: Path, incremental: bool = False) -> dict[str, Any]:
+def batch_optimum(recording: Path, out: Path, incremental: bool = False, causal_every: int = 0) -> dict[str, Any]:
     """The full least-squares optimum of a landmark recording (every scan a pose), scored as the filters are.
 
     EKF-SLAM replays the recording once to collect what a filter is given: the odometry between scans, composed
@@ -153,10 +153,23 @@ def batch_optimum(recording: Path, out: Path, incremental: bool = False) -> dict
     from dead reckoning instead (about 25 minutes for an 1800 s paper-scenario recording of 9,000 poses, against
     well under a minute). Its landmark RMSE tells what the best estimate from these measurements achieves: a filter
     nearer the truth than that on one seed is lucky, not better.
+
+    ``causal_every`` > 0: the same for the robot. A filter's pose at a scan can use only the measurements up to it,
+    so its yardstick is not the optimum's pose there (smoothed by later sightings) but the last pose of the optimum
+    of the measurements up to that scan (``landmark_graph.optimize`` on the graph cut there, warm-started from the
+    previous cut). That is computed at every ``causal_every``-th scan, and the position error there of that causal
+    optimum, of EKF-SLAM and of SLSJF (run again, its defaults) is returned as an RMSE over those scans.
     """
-    from slamreplay.algorithms.common.landmark_graph import LandmarkGraph, LsqConfig, optimize, solve_incremental
+    from slamreplay.algorithms.common.landmark_graph import (
+        LandmarkGraph,
+        LsqConfig,
+        _subgraph,
+        optimize,
+        solve_incremental,
+    )
     from slamreplay.algorithms.slsjf.filter import compose_cov
     from slamreplay.replay.pipelines.ekfslam import EkfSlamPipeline
+    from slamreplay.replay.pipelines.slsjf import SlsjfPipeline
 
     steps: list[tuple[np.ndarray, np.ndarray]] = []  # (increment since the last scan, its covariance) per scan
     scans: list[tuple[np.ndarray, np.ndarray, np.ndarray, float, float]] = []
@@ -188,9 +201,16 @@ def batch_optimum(recording: Path, out: Path, incremental: bool = False) -> dict
             filtered.append(np.array(self.inner.pose, np.float64))
             return result
 
+    truth: list[np.ndarray] = []  # the true pose at each scan, in the filter's frame (NaN where unknown)
+
     class Collect(EkfSlamPipeline):
         def make_filter(self, mode: str) -> Any:
             return Recorder(super().make_filter(mode))
+
+        def _robot_nees(self, t: int, res: Any) -> None:  # called once per scan, after it
+            at = self._truth_pose_at(t)
+            truth.append(np.full(3, np.nan) if at is None else se2.between(self.T, at))
+            super()._robot_nees(t, res)
 
         def finalize(self) -> None:
             super().finalize()
@@ -219,8 +239,39 @@ def batch_optimum(recording: Path, out: Path, incremental: bool = False) -> dict
     world = pipe.to_world_xy(se2.transform_points(steps[0][0], res.landmarks))
     lookup = {int(i): k for k, i in enumerate(pipe.truth_ids.tolist())}
     err = np.array([world[index[i]] - pipe.truth_xy[lookup[i]] for i in ids if i in lookup])
-    return {"landmark_rmse_m": float(np.sqrt(np.mean(np.sum(err**2, axis=1)))), "mean_error_m": err.mean(0).tolist(),
-            "chi2": float(res.chi2), "poses": n, "iterations": res.iterations, "converged": bool(res.converged)}
+    result = {"landmark_rmse_m": float(np.sqrt(np.mean(np.sum(err**2, axis=1)))), "mean_error_m": err.mean(0).tolist(),
+              "chi2": float(res.chi2), "poses": n, "iterations": res.iterations, "converged": bool(res.converged)}
+    if causal_every <= 0:
+        return result
+    slsjf_poses: list[np.ndarray] = []
+
+    class Track(SlsjfPipeline):
+        def _robot_nees(self, t: int, res: Any) -> None:
+            slsjf_poses.append(np.array(res.pose, np.float64))
+            super()._robot_nees(t, res)
+
+    track_dir = out.parent / f"{out.name}-slsjf"
+    shutil.rmtree(track_dir, ignore_errors=True)
+    run_recording(recording, Track, track_dir, seed=0)
+    start = steps[0][0]
+    ekf = pipe.filter
+    poses = np.array([se2.between(start, p) for p in filtered])  # the warm start, replaced cut by cut
+    lms = se2.transform_points(se2.inverse(start), ekf.estimates()[[ekf.by_id[i] for i in ids]])
+    first_seen = np.full(len(ids), n)
+    np.minimum.at(first_seen, graph.obs_landmark, graph.obs_pose)
+    errors: dict[str, list[float]] = {"causal_optimum": [], "ekfslam": [], "slsjf": []}
+    for end in range(causal_every - 1, n, causal_every):
+        if not np.all(np.isfinite(truth[end])):
+            continue
+        sub = _subgraph(graph, end + 1, first_seen <= end)
+        cut = optimize(sub.graph, poses[:end + 1], lms[sub.landmarks], LsqConfig())
+        poses[:end + 1], lms[sub.landmarks] = cut.poses, cut.landmarks
+        for name, xy in (("causal_optimum", se2.compose(start, cut.poses[end])[:2]), ("ekfslam", filtered[end][:2]),
+                         ("slsjf", slsjf_poses[end][:2])):
+            errors[name].append(float(np.hypot(*(xy - truth[end][:2]))))
+    result["causal"] = {name: float(np.sqrt(np.mean(np.square(e)))) for name, e in errors.items()}
+    result["causal"]["scans"] = len(errors["ekfslam"])
+    return result
 
 
 def main() -> None:
@@ -236,6 +287,8 @@ def main() -> None:
                     help="paper-scenario seeds whose full batch optimum to compute (2-3 minutes each)")
     ap.add_argument("--batch-incremental", action="store_true",
                     help="--batch grown from dead reckoning (solve_incremental), not from EKF-SLAM's estimate: slow")
+    ap.add_argument("--causal-every", type=int, default=0, metavar="K",
+                    help="with --batch: also the robot against the optimum of the measurements up to each K-th scan")
     ap.add_argument("--vp-band", action="store_true",
                     help="Victoria Park: the tree NEES band against the reference, itself an estimate (a few minutes)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -298,10 +351,14 @@ def main() -> None:
         rec = args.out / f"sim{s}.mcap"
         if rec.exists():
             print(f"  seed {s}: the batch optimum of the same measurements (slow) ...")
-            opt = batch_optimum(rec, args.out / f"sim{s}-batch", args.batch_incremental)
+            opt = batch_optimum(rec, args.out / f"sim{s}-batch", args.batch_incremental, args.causal_every)
             out.setdefault("sim_batch_optimum", {})[s] = opt
             print(f"  seed {s}: batch optimum landmark RMSE {opt['landmark_rmse_m']:.4g} m, mean error "
                   f"({opt['mean_error_m'][0]:.3f}, {opt['mean_error_m'][1]:.3f}) m")
+            if "causal" in opt:
+                c = opt["causal"]
+                print(f"  seed {s}: robot position RMSE at {c['scans']} scans: the optimum of the measurements up to "
+                      f"each {c['causal_optimum']:.4g} m, EKF-SLAM {c['ekfslam']:.4g} m, SLSJF {c['slsjf']:.4g} m")
     if args.vp_band and vp.exists():
         out["victoria_park_band"] = vp_band(vp, args.data / "victoria-park-isam", args.out)
     if args.json:
