@@ -67,7 +67,7 @@ def vp_band(vp: Path, data_dir: Path, out: Path) -> dict[str, Any]:
         reference_covariance,
         victoria_park_reference,
     )
-    from slamreplay.replay.evaluation.metrics import mean_nees_band
+    from slamreplay.replay.evaluation.metrics import marginal_blocks, mean_nees_band
     from slamreplay.replay.pipelines.ekfslam import EkfSlamPipeline
     from slamreplay.replay.pipelines.landmark_slam import landmark_scores
     from slamreplay.replay.pipelines.slsjf import SlsjfPipeline
@@ -94,15 +94,15 @@ def vp_band(vp: Path, data_dir: Path, out: Path) -> dict[str, Any]:
         k = len(order)
         rot = np.kron(np.eye(k), se2.rot(pipe.T[2]))  # the map frame's joint covariance, in the world frame
         joint = rot @ pipe.observed_joint_covariance(order) @ rot.T
-        blocks = joint.reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :]
-        nees = landmark_scores(pipe.to_world_xy(pipe.filter.estimates()), landmarks,
-                               [(f, t) for t, f in enumerate(order)], lambda _, b=blocks: b)["landmark_nees_mean"]
+        blocks = marginal_blocks(joint)
+        trees = pipe.to_world_xy(pipe.filter.estimates())
+        pairs = [(f, t) for t, f in enumerate(order)]
+        nees = landmark_scores(trees, landmarks, pairs, lambda _, b=blocks: b)["landmark_nees_mean"]
         row: dict[str, Any] = {"landmark_nees_mean": nees, "band_if_reference_were_truth": mean_nees_band(joint)}
         w = np.linalg.eigvalsh(joint - p_ref)
         row["directions_below_reference"] = int(np.sum(w < 0))
         row["trace_ratio_filter_to_reference_median"] = float(np.median(
-            np.trace(blocks, axis1=1, axis2=2) / np.trace(p_ref.reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :],
-                                                          axis1=1, axis2=2)))
+            np.trace(blocks, axis1=1, axis2=2) / np.trace(marginal_blocks(p_ref), axis1=1, axis2=2)))
         try:
             row["band"] = mean_nees_band(joint, reference_cov=p_ref)
         except ValueError as err_:
@@ -111,28 +111,25 @@ def vp_band(vp: Path, data_dir: Path, out: Path) -> dict[str, Any]:
         print(f"  {base.name}: tree NEES {nees:.3g}; band against the reference: "
               + (f"[{row['band'][0]:.3g}, {row['band'][1]:.3g}]" if row["band"] else f"none ({row['why_no_band']})")
               + f"; tree covariance / the reference's (trace, median) {ratio:.2f}")
-        if not opt:
+        if not opt:  # the filters' noise is the recording's sensor model: known once a pipeline has read it
             cfg = pipe.config
             _, opt["landmarks"], opt["cov"] = optimum_under(data, cfg.odometry_noise(), cfg.range_sigma_m,
                                                             cfg.bearing_sigma_rad, poses, landmarks)
-            opt["noise"] = {"odometry": str(cfg.odometry_noise()), "range_sigma_m": cfg.range_sigma_m,
-                            "bearing_sigma_rad": cfg.bearing_sigma_rad}
-            e = opt["landmarks"] - landmarks
-            b = opt["cov"].reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :]
+            own = landmark_scores(opt["landmarks"], landmarks, [(t, t) for t in range(k)],
+                                  lambda _: marginal_blocks(opt["cov"]))
             result["declared_optimum"] = {
-                "tree_rmse_from_reference_m": float(np.sqrt(np.mean(np.sum(e**2, axis=1)))),
-                "tree_nees_against_reference": float(np.mean(np.einsum("ki,kij,kj->k", e, np.linalg.inv(b), e))),
-                "noise": opt["noise"]}
-            d = result["declared_optimum"]
-            print(f"  the optimum under the noise the filters are given: {d['tree_rmse_from_reference_m']:.3g} m "
+                "tree_rmse_from_reference_m": own["landmark_rmse_m"],
+                "tree_nees_against_reference": own["landmark_nees_mean"],
+                "noise": {"odometry": str(cfg.odometry_noise()), "range_sigma_m": cfg.range_sigma_m,
+                          "bearing_sigma_rad": cfg.bearing_sigma_rad}}
+            print(f"  the optimum under the noise the filters are given: {own['landmark_rmse_m']:.3g} m "
                   f"(tree RMSE) from the recording's reference, whose tree NEES against it is "
-                  f"{d['tree_nees_against_reference']:.3g}")
-        e = pipe.to_world_xy(pipe.filter.estimates())[order] - opt["landmarks"]
-        ratios = np.linalg.eigvalsh(np.linalg.solve(np.linalg.cholesky(opt["cov"]),
-                                                    np.linalg.solve(np.linalg.cholesky(opt["cov"]), joint).T))
+                  f"{own['landmark_nees_mean']:.3g}")
+        against = landmark_scores(trees, opt["landmarks"], pairs, lambda _, b=blocks: b)
+        chol = np.linalg.cholesky(opt["cov"])
+        ratios = np.linalg.eigvalsh(np.linalg.solve(chol, np.linalg.solve(chol, joint).T))  # P_opt^-1/2 P P_opt^-T/2
         row["against_declared_optimum"] = {
-            "tree_rmse_m": float(np.sqrt(np.mean(np.sum(e**2, axis=1)))),
-            "tree_nees": float(np.mean(np.einsum("ki,kij,kj->k", e, np.linalg.inv(blocks), e))),
+            "tree_rmse_m": against["landmark_rmse_m"], "tree_nees": against["landmark_nees_mean"],
             "upper": mean_nees_band(joint)[1],
             "covariance_ratio_min_median_max": [float(ratios.min()), float(np.median(ratios)), float(ratios.max())]}
         a = row["against_declared_optimum"]
@@ -167,6 +164,7 @@ def batch_optimum(recording: Path, out: Path, incremental: bool = False, causal_
         optimize,
         solve_incremental,
     )
+    from slamreplay.algorithms.common.rangebearing import scan_sigmas
     from slamreplay.algorithms.slsjf.filter import compose_cov
     from slamreplay.replay.pipelines.ekfslam import EkfSlamPipeline
     from slamreplay.replay.pipelines.slsjf import SlsjfPipeline
@@ -196,7 +194,7 @@ def batch_optimum(recording: Path, out: Path, incremental: bool = False, causal_
             self.acc, self.cov = np.zeros(3), np.zeros((3, 3))
             cfg = self.inner.config
             scans.append((np.asarray(r, np.float64), np.asarray(b, np.float64), np.asarray(ids, np.int64),
-                          sr if sr > 0 else cfg.default_range_sigma_m, sb if sb > 0 else cfg.default_bearing_sigma_rad))
+                          *scan_sigmas(sr, sb, cfg.default_range_sigma_m, cfg.default_bearing_sigma_rad)))
             result = self.inner.observe(r, b, ids, sr, sb)
             filtered.append(np.array(self.inner.pose, np.float64))
             return result
@@ -216,6 +214,7 @@ def batch_optimum(recording: Path, out: Path, incremental: bool = False, causal_
             super().finalize()
             kept["pipe"] = self
 
+    shutil.rmtree(out, ignore_errors=True)  # a scratch run, replaced each time
     run_recording(recording, Collect, out, seed=0)
     pipe = kept["pipe"]
     ids = sorted({int(i) for _, _, scan_ids, _, _ in scans for i in scan_ids.tolist()})
@@ -227,16 +226,14 @@ def batch_optimum(recording: Path, out: Path, incremental: bool = False, causal_
                           np.array([np.linalg.inv(c + 1e-12 * np.eye(3)) for _, c in steps[1:]]),
                           np.array([o[0] for o in obs]), np.array([o[1] for o in obs]), np.array([o[2] for o in obs]),
                           np.array([o[3] for o in obs]))
-    if incremental:
-        res = solve_incremental(graph, LsqConfig())
-    else:
-        ekf = pipe.filter
-        start = steps[0][0]  # the graph's pose 0, as below
-        lms = ekf.estimates()[[ekf.by_id[i] for i in ids]]
-        res = optimize(graph, np.array([se2.between(start, p) for p in filtered]),
-                       se2.transform_points(se2.inverse(start), lms), LsqConfig())
     # the graph's first pose is the first scan's, at the origin; the filter's frame holds it at steps[0]
-    world = pipe.to_world_xy(se2.transform_points(steps[0][0], res.landmarks))
+    start = steps[0][0]
+    ekf = pipe.filter  # EKF-SLAM's estimate in the graph's frame: where Levenberg-Marquardt starts
+    init_poses = np.array([se2.between(start, p) for p in filtered])
+    init_lms = se2.transform_points(se2.inverse(start), ekf.estimates()[[ekf.by_id[i] for i in ids]])
+    res = (solve_incremental(graph, LsqConfig()) if incremental
+           else optimize(graph, init_poses, init_lms, LsqConfig()))
+    world = pipe.to_world_xy(se2.transform_points(start, res.landmarks))
     lookup = {int(i): k for k, i in enumerate(pipe.truth_ids.tolist())}
     err = np.array([world[index[i]] - pipe.truth_xy[lookup[i]] for i in ids if i in lookup])
     result = {"landmark_rmse_m": float(np.sqrt(np.mean(np.sum(err**2, axis=1)))), "mean_error_m": err.mean(0).tolist(),
@@ -253,10 +250,7 @@ def batch_optimum(recording: Path, out: Path, incremental: bool = False, causal_
     track_dir = out.parent / f"{out.name}-slsjf"
     shutil.rmtree(track_dir, ignore_errors=True)
     run_recording(recording, Track, track_dir, seed=0)
-    start = steps[0][0]
-    ekf = pipe.filter
-    poses = np.array([se2.between(start, p) for p in filtered])  # the warm start, replaced cut by cut
-    lms = se2.transform_points(se2.inverse(start), ekf.estimates()[[ekf.by_id[i] for i in ids]])
+    poses, lms = init_poses, init_lms  # the warm start, replaced cut by cut
     first_seen = np.full(len(ids), n)
     np.minimum.at(first_seen, graph.obs_landmark, graph.obs_pose)
     errors: dict[str, list[float]] = {"causal_optimum": [], "ekfslam": [], "slsjf": []}

@@ -13,6 +13,8 @@ References
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -34,6 +36,17 @@ def check_scan(ranges: ArrayLike, bearings: ArrayLike) -> tuple[F64, F64]:
     if np.any(r < 0):
         raise ValueError("ranges must be >= 0")
     return r, b
+
+
+def scan_sigmas(range_sigma: float, bearing_sigma: float, default_range_sigma: float,
+                default_bearing_sigma: float) -> tuple[float, float]:
+    """A scan's range and bearing sigmas: the ones it states, or where it states 0 (none) the filter's defaults.
+    ValueError naming a sigma that is negative or not finite."""
+    for name, value in (("range_sigma", range_sigma), ("bearing_sigma", bearing_sigma)):
+        if not math.isfinite(value) or value < 0:
+            raise ValueError(f"{name} must be finite and >= 0, got {value}")
+    return (range_sigma if range_sigma > 0 else default_range_sigma,
+            bearing_sigma if bearing_sigma > 0 else default_bearing_sigma)
 
 
 def to_points(ranges: F64, bearings: F64) -> tuple[F64, F64]:

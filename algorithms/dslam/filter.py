@@ -38,7 +38,6 @@ References
 from __future__ import annotations
 
 import enum
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Literal
@@ -220,11 +219,8 @@ class DSlam:
             self.window.move(u, q)
 
     def _sigmas(self, range_sigma: float, bearing_sigma: float) -> tuple[float, float]:
-        for name, value in (("range_sigma", range_sigma), ("bearing_sigma", bearing_sigma)):
-            if not math.isfinite(value) or value < 0:
-                raise ValueError(f"{name} must be finite and >= 0, got {value}")
-        return (range_sigma if range_sigma > 0 else self.config.default_range_sigma_m,
-                bearing_sigma if bearing_sigma > 0 else self.config.default_bearing_sigma_rad)
+        return rangebearing.scan_sigmas(range_sigma, bearing_sigma, self.config.default_range_sigma_m,
+                                        self.config.default_bearing_sigma_rad)
 
     def within(self, position: F64, radius: float) -> list[int]:
         """Mapped features whose estimate is within ``radius`` of ``position`` (2,) (a grid: O(1) in N)."""

@@ -205,11 +205,8 @@ class EkfSlam:
                 range_sigma: float = 0.0, bearing_sigma: float = 0.0) -> EkfScanResult:
         """Associate, update and augment with one scan (same arguments and errors as ``DSlam.observe``)."""
         r, b = rangebearing.check_scan(ranges, bearings)
-        for name, value in (("range_sigma", range_sigma), ("bearing_sigma", bearing_sigma)):
-            if not math.isfinite(value) or value < 0:
-                raise ValueError(f"{name} must be finite and >= 0, got {value}")
-        sr = range_sigma if range_sigma > 0 else self.config.default_range_sigma_m
-        sb = bearing_sigma if bearing_sigma > 0 else self.config.default_bearing_sigma_rad
+        sr, sb = rangebearing.scan_sigmas(range_sigma, bearing_sigma, self.config.default_range_sigma_m,
+                                          self.config.default_bearing_sigma_rad)
         ids_arr = self._check_ids(ids, len(r))
         self.scans += 1
         m = len(r)

@@ -407,9 +407,8 @@ class Slsjf:
         res = self.local.observe(ranges, bearings, ids if known else None, range_sigma, bearing_sigma)
         if self.config.local_map_estimate == "smoothed":
             r, b = rangebearing.check_scan(ranges, bearings)
-            self._record.observe(self.local.pose, res.features, r, b,
-                                 range_sigma if range_sigma > 0 else self.config.local.default_range_sigma_m,
-                                 bearing_sigma if bearing_sigma > 0 else self.config.local.default_bearing_sigma_rad)
+            sr, sb = self._sigmas(range_sigma, bearing_sigma)
+            self._record.observe(self.local.pose, res.features, r, b, sr, sb)
         self.local_scans += 1
         self._version += 1
         new: list[int] = []
@@ -484,8 +483,7 @@ class Slsjf:
         """The tracked robot: CI-updated by this scan's sightings of global features, then CI-fused with the
         composed estimate (module docstring)."""
         r, b = rangebearing.check_scan(ranges, bearings)
-        sr = range_sigma if range_sigma > 0 else self.config.local.default_range_sigma_m
-        sb = bearing_sigma if bearing_sigma > 0 else self.config.local.default_bearing_sigma_rad
+        sr, sb = self._sigmas(range_sigma, bearing_sigma)
         r_cov = np.diag([sr**2, sb**2])
         gate = self.config.local.association_params.outlier_gate
         x, p = self._track, self._track_cov + FLOOR * np.eye(3)
@@ -516,6 +514,11 @@ class Slsjf:
         fused = covariance_intersection(x, p, self.composed_pose, self.composed_cov + FLOOR * np.eye(3),
                                         angular=(2,))
         self._track, self._track_cov = fused.mean, fused.cov
+
+    def _sigmas(self, range_sigma: float, bearing_sigma: float) -> tuple[float, float]:
+        local = self.config.local
+        return rangebearing.scan_sigmas(range_sigma, bearing_sigma, local.default_range_sigma_m,
+                                        local.default_bearing_sigma_rad)
 
     def _gate(self, features: I64, z: F64, P: F64) -> NDArray[np.bool_]:
         """Which local features to join: those :meth:`_common` leaves out are, and counted in ``gated``.

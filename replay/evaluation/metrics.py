@@ -117,6 +117,12 @@ def metrics_markdown(title: str, values: Mapping[str, float], specs: Mapping[str
     return "\n".join(lines) + "\n"
 
 
+def marginal_blocks(joint_cov: F64) -> F64:
+    """The k marginal (2, 2) blocks on the diagonal of a joint covariance (2k, 2k) of k landmarks."""
+    k = len(joint_cov) // 2
+    return np.asarray(joint_cov.reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :], np.float64)
+
+
 def mean_nees_band(joint_cov: F64, level: float = 0.95, reference_cov: F64 | None = None) -> tuple[float, float]:
     """The central ``level`` band of the mean of k landmark NEES values when the estimate is consistent.
 
@@ -154,9 +160,8 @@ def mean_nees_band(joint_cov: F64, level: float = 0.95, reference_cov: F64 | Non
                              f"(most: {-w.min():.3g} m^2): it claims less uncertainty than the batch optimum of the "
                              "same measurements has, so it cannot be consistent and no NEES band applies")
         factor = v * np.sqrt(np.maximum(w, 0.0))
-    blocks = p.reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :]
     b = np.zeros_like(p)
-    inv = np.linalg.inv(blocks)
+    inv = np.linalg.inv(marginal_blocks(p))
     for i in range(k):
         b[2 * i:2 * i + 2, 2 * i:2 * i + 2] = inv[i]
     lam = np.linalg.eigvalsh(factor.T @ b @ factor) / k
