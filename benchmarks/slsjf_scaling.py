@@ -8,7 +8,7 @@ with single-threaded BLAS:
 1. warm-up, untimed per step: SLSJF (``linearization="once"``, the paper's composed robot) drives the
    lawnmower and the ``--settle`` scans; every join is timed, so the warm-up also gives the join cost
    as the map grows (``warmup_join_*``: the joins of the warm-up's last tenth);
-2. three timed segments of ``--steps`` scans each, one after the other along the way back (a robot
+2. five timed segments of ``--steps`` scans each, one after the other along the way back (a robot
    working in a mapped area: the steady state), each step one odometry prediction and one scan,
    wall clock and process CPU time; a step that ends a local map includes its join (every 30 scans
    here), whose time ``Slsjf.profile["join"]`` also gives alone:
@@ -17,6 +17,10 @@ with single-threaded BLAS:
    - ``once_joined``: the same map with the filter's default robot (``robot_estimate="joined"``: the
      local map fused at every scan with the global map's marginal over its start frame and the features
      both hold; the global covariance columns it needs are solved once per local map);
+   - ``once_pcg``: the same, the state and the covariance columns recovered by preconditioned CG
+     (``state_recovery="pcg"``, D-SLAM's recovery) from its first join on, no factor held;
+   - ``once_pcg_composed``: the same with the paper's composed robot (3 covariance columns per local map,
+     the start frame's, instead of the joined robot's 3 + 2 per shared feature);
    - ``iterated``: I-SLSJF (every local map re-linearized at each join, Gauss-Newton), the composed
      robot, switched on for the map built so far: one untimed Gauss-Newton run first
      (``iterated_first_s``), then the timed steps, stopped after ``--iterated-budget-s`` seconds (at
@@ -78,19 +82,25 @@ from slamreplay.recorder.sim.landmarks import LandmarkSimConfig, landmark_positi
 
 HERE = Path(__file__).resolve().parent
 MIN_JOINS = 2  # the iterated segment times at least this many joins
-VARIANTS = ("once", "once_joined", "iterated")
+VARIANTS = ("once", "once_joined", "once_pcg", "once_pcg_composed", "iterated")
+SEGMENTS = len(VARIANTS)  # timed segments of --steps scans, one per variant, one after the other
 
 
 def map_bytes(gm: GlobalMap) -> dict[str, float]:
-    """SLSJF's arrays (MB): the local maps held, the running information (once), the last factor, the state."""
+    """SLSJF's arrays (MB): the local maps held, the running information (once), the last factor (direct
+    recovery) or the preconditioner and the covariance columns kept as initial guesses (PCG), the state."""
     maps = sum(m.z.nbytes + m.W.nbytes + m.features.nbytes for m in gm.maps)
     info = gm._info  # the running information matrix (SLSJF): private, read for the measurement only
     info_b = 0 if info is None else info.data.nbytes + info.indices.nbytes + info.indptr.nbytes
     f = gm._factor
     factor = 0 if f is None else (f.L.nnz + f.U.nnz) * 12 + 2 * f.L.shape[0] * 8  # values, indices, perms
+    pcg = 0
+    if gm.recovery == "pcg" and gm._precondition is not None:
+        pcg = gm._precondition.nbytes + sum(c.nbytes for c in (*gm._warm.values(), *gm._fresh.values()))
     mb = 2.0**20
+    total = maps + info_b + gm._vector.nbytes + factor + pcg + gm.x.nbytes
     return {"local_maps_mb": maps / mb, "information_mb": (info_b + gm._vector.nbytes) / mb, "factor_mb": factor / mb,
-            "state_mb": gm.x.nbytes / mb, "total_mb": (maps + info_b + gm._vector.nbytes + factor + gm.x.nbytes) / mb}
+            "pcg_mb": pcg / mb, "state_mb": gm.x.nbytes / mb, "total_mb": total / mb}
 
 
 def stats(prefix: str, wall: np.ndarray, cpu: np.ndarray | None = None) -> dict[str, float]:
@@ -117,7 +127,10 @@ def segment(slam: Slsjf, steps: list[Scan], name: str, budget_s: float = math.in
     wall, cpu = timed(step, steps, budget_s, min_steps)
     joins = np.asarray(slam.profile.get("join", []))
     plain = ~np.asarray(joined, bool)
+    parts = {k: 1e3 * float(np.sum(slam.profile.get(k, []))) / max(1, len(joins))
+             for k in ("global_join", "start_covariance", "columns")}  # ms per local map
     return {**stats(f"{name}_step", wall, cpu), **stats(f"{name}_join", joins),
+            **{f"{name}_{k}_per_local_map_ms": v for k, v in parts.items()},
             **stats(f"{name}_nojoin_step", wall[plain]), f"{name}_iterations": slam.map.iterations[-len(joins):]
             if len(joins) else []}
 
@@ -147,11 +160,11 @@ def one_size(n: int, args: argparse.Namespace) -> dict[str, Any]:
     landmarks = landmark_positions(cfg)
     rng = np.random.default_rng(args.seed)
     path = lawnmower(cfg.side_m)
-    back = way_back(path[-1], args.settle + 3 * args.steps)
+    back = way_back(path[-1], args.settle + SEGMENTS * args.steps)
     warm = scans(path, landmarks, rng)
     tail = scans(back, landmarks, rng, first=path[-1])
     settle, tests = tail[: args.settle], [tail[args.settle + k * args.steps:args.settle + (k + 1) * args.steps]
-                                          for k in range(3)]
+                                          for k in range(SEGMENTS)]
     rss0 = rss_mb()
     local = EkfSlamConfig(odometry_noise=NOISE, association_params=NO_OUTLIERS)
     slam = Slsjf(SlsjfConfig(local=local, linearization="once", robot_estimate="composed"), clock=time.perf_counter)
@@ -179,6 +192,14 @@ def one_size(n: int, args: argparse.Namespace) -> dict[str, Any]:
     row.update({f"arrays_after_{k}": v for k, v in after.items()}, mapped_after=slam.n,
                local_maps_after=len(gm.maps), rss_after_once_mb=rss_mb() - rss0)
     row["mb_per_local_map"] = (after["total_mb"] - before["total_mb"]) / max(1, len(gm.maps) - maps0)
+    gm.recovery = "pcg"  # D-SLAM's recovery from the next join on (the factor is dropped there)
+    row.update(segment(slam, tests[2], "once_pcg"))
+    row.update({f"arrays_pcg_{k}": v for k, v in map_bytes(gm).items()}, once_pcg_fallbacks=gm.fallbacks,
+               once_pcg_state_iterations=float(np.mean(gm.pcg_iterations)) if gm.pcg_iterations else math.nan,
+               once_pcg_column_iterations=float(np.mean(gm.column_iterations)) if gm.column_iterations else math.nan)
+    slam.config = replace(slam.config, robot_estimate="composed")  # the paper's robot: 3 columns per local map
+    row.update(segment(slam, tests[3], "once_pcg_composed"))
+    gm.recovery = "direct"
     if n > args.iterated_max_n:
         row["iterated_not_run"] = f"I-SLSJF at N = {args.iterated_max_n} was over its budget"
     else:
@@ -187,7 +208,7 @@ def one_size(n: int, args: argparse.Namespace) -> dict[str, Any]:
         if reason:
             row["iterated_not_run"] = reason
         else:
-            row.update(segment(slam, tests[2], "iterated", args.iterated_budget_s,
+            row.update(segment(slam, tests[4], "iterated", args.iterated_budget_s,
                                min_steps=MIN_JOINS * slam.config.local_map_scans + 1))
             row["arrays_iterated_total_mb"] = map_bytes(gm)["total_mb"]
     row.update(rss_end_mb=rss_mb() - rss0, peak_rss_mb=peak_rss_mb())
@@ -228,7 +249,9 @@ def fit(rows: list[dict[str, Any]], key: str) -> float:
 def report(rows: list[dict[str, Any]]) -> dict[str, float]:
     """Print the tables, the fits and the ratios; return the fits."""
     cols = ("N", "mapped", "local_maps", "once_step_mean_ms", "once_step_p95_ms", "once_join_mean_ms",
-            "once_join_p95_ms", "once_joined_step_mean_ms", "once_joined_step_p95_ms", "iterated_step_mean_ms",
+            "once_join_p95_ms", "once_joined_step_mean_ms", "once_joined_step_p95_ms", "once_pcg_step_mean_ms",
+            "once_pcg_join_mean_ms", "once_pcg_composed_step_mean_ms", "once_pcg_composed_join_mean_ms",
+            "arrays_pcg_total_mb", "iterated_step_mean_ms",
             "iterated_step_p95_ms", "iterated_join_mean_ms", "iterated_join_p95_ms", "iterated_join_count",
             "dslam_mean_ms", "dslam_p95_ms", "ekf_mean_ms", "arrays_total_mb", "arrays_local_maps_mb",
             "arrays_factor_mb", "mb_per_local_map", "rss_growth_mb", "peak_rss_mb", "warmup_s")
@@ -239,6 +262,8 @@ def report(rows: list[dict[str, Any]]) -> dict[str, float]:
     fits = {}
     for key in ("once_step_mean_ms", "once_step_p95_ms", "once_nojoin_step_mean_ms", "once_join_mean_ms",
                 "warmup_join_mean_ms", "once_joined_step_mean_ms", "once_joined_nojoin_step_mean_ms",
+                "once_pcg_step_mean_ms", "once_pcg_join_mean_ms", "once_pcg_composed_step_mean_ms",
+                "once_pcg_global_join_per_local_map_ms", "once_global_join_per_local_map_ms", "arrays_pcg_total_mb",
                 "iterated_step_mean_ms", "iterated_join_mean_ms", "arrays_total_mb", "arrays_factor_mb",
                 "rss_growth_mb", "dslam_mean_ms", "ekf_mean_ms"):
         fits[key] = b = fit(rows, key)
@@ -256,9 +281,17 @@ def report(rows: list[dict[str, Any]]) -> dict[str, float]:
                      f"{fmt(r['arrays_information_mb'])}, local maps {fmt(r['arrays_local_maps_mb'])}), then "
                      f"+{fmt(r['arrays_after_total_mb'] - r['arrays_total_mb'])} MB over "
                      f"{r['local_maps_after'] - r['local_maps']} more local maps with the map unchanged")
+        for k in ("once_joined", "once_pcg", "once_pcg_composed"):
+            if f"{k}_global_join_per_local_map_ms" in r:
+                notes.append(f"{k} per local map: global join {fmt(r[f'{k}_global_join_per_local_map_ms'])} ms, "
+                             f"start covariance {fmt(r[f'{k}_start_covariance_per_local_map_ms'])} ms, robot's "
+                             f"columns {fmt(r[f'{k}_columns_per_local_map_ms'])} ms")
+        if "once_pcg_state_iterations" in r:
+            notes.append(f"PCG iterations: state {fmt(r['once_pcg_state_iterations'])}, covariance columns "
+                         f"{fmt(r['once_pcg_column_iterations'])}, fallbacks {r['once_pcg_fallbacks']}")
         if "dslam_mean_ms" in r:
             ratios = [f"{v} {fmt(r[f'{k}_step_mean_ms'] / r['dslam_mean_ms'])}" for k, v in
-                      (("once", "once"), ("once_joined", "joined"), ("iterated", "iterated"))
+                      (("once", "once"), ("once_joined", "joined"), ("once_pcg", "PCG"), ("iterated", "iterated"))
                       if f"{k}_step_mean_ms" in r]
             notes.append(f"SLSJF / D-SLAM mean step ({r['compare_source']}): " + ", ".join(ratios))
         if "ekf_mean_ms" in r:

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import cast
+from typing import Protocol, cast
 
 import numpy as np
 import scipy.linalg as sla
@@ -79,6 +79,12 @@ def error_estimate(inv_blocks: F64, r: F64) -> F64:
     return np.max(np.abs(e), axis=0) if len(e) else np.zeros(e.shape[1:])
 
 
+class Operator(Protocol):
+    """A symmetric positive definite matrix known by its product (an :class:`InformationMatrix`, or SLSJF's)."""
+
+    def matvec(self, x: F64) -> F64: ...
+
+
 @dataclass(frozen=True, slots=True)
 class SolveResult:
     """Solution (2N,) or (2N, k), the iterations used and whether every column met its tolerance."""
@@ -88,11 +94,11 @@ class SolveResult:
     converged: bool
 
 
-def pcg(info: InformationMatrix, b: F64, x0: F64, inv_blocks: F64, tol: float | F64,
+def pcg(info: Operator, b: F64, x0: F64, inv_blocks: F64 | None, tol: float | F64,
         maxiter: int, precondition: Callable[[F64], F64] | None = None) -> SolveResult:
     """Preconditioned CG on ``I x = b`` from ``x0``; columns of b iterate in lock-step.
 
-    The preconditioner is block-Jacobi (``inv_blocks``) unless ``precondition`` (R (2N, k) ->
+    The preconditioner is block-Jacobi (``inv_blocks``, 2x2 blocks) unless ``precondition`` (R (n, k) ->
     M^-1 R) is given. A column stops when its preconditioned residual, the error estimate of
     the module docstring, is at most ``tol`` (scalar or (k,)) for every entry.
     """
@@ -101,8 +107,11 @@ def pcg(info: InformationMatrix, b: F64, x0: F64, inv_blocks: F64, tol: float | 
     X = (x0[:, None] if single else x0).copy()
     tol_arr = np.broadcast_to(np.asarray(tol, dtype=np.float64), (B.shape[1],))
 
+    if precondition is None and inv_blocks is None:
+        raise ValueError("pcg needs inv_blocks or precondition")
+
     def apply(r: F64) -> F64:
-        return apply_blocks(inv_blocks, r) if precondition is None else precondition(r)
+        return apply_blocks(cast(F64, inv_blocks), r) if precondition is None else precondition(r)
 
     R = B - info.matvec(X)
     Z = apply(R)

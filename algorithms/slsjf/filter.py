@@ -79,7 +79,7 @@ from slamreplay.algorithms.common.ci import covariance_intersection, covariance_
 from slamreplay.algorithms.common.landmark_graph import LandmarkGraph, LsqConfig, optimize, pose_landmark_covariance
 from slamreplay.algorithms.ekfslam import EkfSlam, EkfSlamConfig
 from slamreplay.algorithms.observe import NULL_OBSERVER, Observer, Scalar
-from slamreplay.algorithms.slsjf.joining import GlobalMap, Linearization
+from slamreplay.algorithms.slsjf.joining import STATE_RECOVERIES, GlobalMap, Linearization, StateRecovery
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -103,6 +103,7 @@ class SlsjfConfig:
     max_iterations: int = 10
     robot_estimate: RobotEstimate = "joined"  # "composed": the paper's (eq. 13); module docstring
     local_map_estimate: LocalEstimate = "ekf"  # "smoothed": the local map re-solved at its join; module docstring
+    state_recovery: StateRecovery = "direct"  # "pcg": D-SLAM's preconditioned CG (algorithms/slsjf/recovery.py)
 
     def __post_init__(self) -> None:
         if self.robot_estimate not in ROBOT_ESTIMATES:
@@ -110,6 +111,9 @@ class SlsjfConfig:
         if self.local_map_estimate not in LOCAL_ESTIMATES:
             raise ValueError(f"local_map_estimate must be one of {', '.join(LOCAL_ESTIMATES)}, "
                              f"got {self.local_map_estimate!r}")
+        if self.state_recovery not in STATE_RECOVERIES:
+            raise ValueError(f"state_recovery must be one of {', '.join(STATE_RECOVERIES)}, "
+                             f"got {self.state_recovery!r}")
         if self.local_map_scans < 1 or not self.local_map_distance_m > 0:
             raise ValueError(f"local_map_scans must be >= 1 and local_map_distance_m > 0, got "
                              f"{self.local_map_scans} and {self.local_map_distance_m}")
@@ -285,7 +289,7 @@ class Slsjf:
                  clock: Callable[[], float] | None = None) -> None:
         self.config = config
         self.observer = observer
-        self.map = GlobalMap(config.linearization, config.max_iterations)
+        self.map = GlobalMap(config.linearization, config.max_iterations, recovery=config.state_recovery)
         self.start = -1  # global pose index of the current local map's start frame (-1: the origin)
         self._start_pose = np.zeros(3)
         self._start_cov = np.zeros((3, 3))
@@ -358,10 +362,12 @@ class Slsjf:
         return out
 
     def marginal_covariances(self, features: list[int] | None = None) -> F64:
-        """Marginal covariances (k, 2, 2) of ``features`` (default all) in the global frame."""
+        """Marginal covariances (k, 2, 2) of ``features`` (default all, for scoring: exact by a direct solve
+        whatever the state recovery, as D-SLAM's) in the global frame."""
+        exact = features is None
         features = list(range(self.n)) if features is None else features
         joined = [g for g in features if self.map.has_feature(g)]
-        glob = dict(zip(joined, self.map.feature_covariances(joined), strict=True))
+        glob = dict(zip(joined, self.map.feature_covariances(joined, exact), strict=True))
         out = np.zeros((len(features), 2, 2))
         if len(joined) < len(features):
             local_covs = self.local.marginal_covariances()
@@ -589,9 +595,12 @@ class Slsjf:
         join (the global map does not change between joins), so each is solved for once per local map."""
         missing = [i for i in dict.fromkeys(idx) if i not in self._columns]
         if missing:
+            tic = self._clock() if self._clock else 0.0
             cols = self.map.covariance_columns(missing)
             for k, i in enumerate(missing):
                 self._columns[i] = cols[:, k]
+            if self._clock is not None:
+                self.profile.setdefault("columns", []).append(self._clock() - tic)
         out = np.array([self._columns[j][idx] for j in idx])
         return np.asarray(0.5 * (out + out.T), np.float64)
 
@@ -621,10 +630,15 @@ class Slsjf:
             x, P = self._record.smoothed(loc.pose, loc.estimates())  # never moved: no pose to solve for
         keep = self._gate(features, x, P) & (features >= 0)
         rows = np.concatenate([np.arange(3), (3 + 2 * np.flatnonzero(keep)[:, None] + np.arange(2)).reshape(-1)])
+        tic_map = self._clock() if self._clock else 0.0
         end = self.map.join(self.start, x[:3], features[keep], x[rows], P[np.ix_(rows, rows)])
+        tic_cov = self._clock() if self._clock else 0.0
         self.start = end
         self._start_pose = self.map.pose(end)
         self._start_cov = self.map.pose_covariance(end)
+        if self._clock is not None:
+            self.profile.setdefault("global_join", []).append(tic_cov - tic_map)
+            self.profile.setdefault("start_covariance", []).append(self._clock() - tic_cov)
         self.rejected_joined += loc.rejected
         self.local = EkfSlam(self.config.local)
         self._record = LocalRecord()

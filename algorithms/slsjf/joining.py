@@ -19,12 +19,19 @@ local map) to them), or re-linearizes every local map at the current estimate an
 Gauss-Newton to convergence (I-SLSJF [2]_: the estimate is the maximum-likelihood joining of all local
 maps, at the cost of rebuilding the information matrix, which is O(size of the map); its sparsity
 pattern changes only at a join, so it is worked out once per join and each iteration only sums values
-into it). The state is recovered by a sparse LU (SuperLU) of the information matrix, which is
-symmetric positive definite: the fill-reducing ordering is symmetric (minimum degree on ``A + A^T``)
-and the pivots stay on the diagonal, so the factor has the fill of the Cholesky factor [1]_ recovers the
-state with (the D-SLAM pipeline's preconditioned CG would do too, but the direct factor also gives the
-covariance blocks the robot and the gates need). The factorization is redone at every join: its cost
-grows faster than the map (``benchmarks/slsjf_scaling.py``).
+into it).
+
+State recovery (``recovery``):
+
+- ``direct`` (the paper's): a sparse LU (SuperLU) of the information matrix, which is symmetric positive
+  definite: the fill-reducing ordering is symmetric (minimum degree on ``A + A^T``) and the pivots stay on
+  the diagonal, so the factor has the fill of the Cholesky factor [1]_ recovers the state with. It is
+  redone at every join and kept until the next, for the covariance columns: its time and memory grow
+  faster than the map (``benchmarks/slsjf_scaling.py``).
+- ``pcg`` (D-SLAM's, a departure from [1]_): preconditioned CG from the previous estimate, covariance
+  columns by PCG from the previous join's (:mod:`slamreplay.algorithms.slsjf.recovery`). No factor is
+  held. A solve that does not converge within ``pcg_max_iterations`` is redone by a direct factorization,
+  not kept, and counted in ``fallbacks``.
 
 References
 ----------
@@ -46,10 +53,20 @@ import scipy.sparse.linalg as sla
 from numpy.typing import NDArray
 
 from slamreplay.algorithms.common import se2
+from slamreplay.algorithms.dslam.recovery import pcg
+from slamreplay.algorithms.slsjf.recovery import Matrix, TwoLevel
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 Linearization = Literal["once", "iterated"]
+StateRecovery = Literal["direct", "pcg"]
+STATE_RECOVERIES: tuple[str, ...] = ("direct", "pcg")
+PCG_TOLERANCE = 1e-7  # m, rad: the estimate's PCG stops when no entry of M^-1 r exceeds this (I-SLSJF's
+# Gauss-Newton stops at steps below 1e-6, so the solve is ten times finer)
+COVARIANCE_RTOL = 1e-4  # a covariance column's PCG: the same, relative to the entry's block-Jacobi variance
+# (D-SLAM's covariance_rtol)
+PCG_MAX_ITERATIONS = 400
+WARM_COLUMNS = 256  # covariance columns kept from one join to the next as PCG's initial guesses, at most
 # The smallest variance a local map's covariance is given before it is inverted (m^2, rad^2): a local map
 # whose robot did not move has an exactly zero end-pose covariance, which no information form can hold.
 MIN_VARIANCE = 1e-12
@@ -141,6 +158,8 @@ class GlobalMap:
     linearization: Linearization = "iterated"
     max_iterations: int = 10
     tolerance: float = 1e-6  # Gauss-Newton stops when the largest state change is below this (m, rad)
+    recovery: StateRecovery = "direct"
+    pcg_max_iterations: int = PCG_MAX_ITERATIONS
     x: F64 = field(default_factory=lambda: np.zeros(0))
     pose_at: dict[int, int] = field(default_factory=dict)  # global pose index -> offset in x
     feat_at: dict[int, int] = field(default_factory=dict)  # global feature index -> offset in x
@@ -149,13 +168,22 @@ class GlobalMap:
     _info: sp.csc_matrix | None = None  # SLSJF: the running sum of every local map's A
     _vector: F64 = field(default_factory=lambda: np.zeros(0))  # SLSJF: the running sum of their g
     _pattern: _Pattern | None = None  # I-SLSJF: the pattern of the current local maps' A
-    _factor: sla.SuperLU | None = None
+    _factor: sla.SuperLU | None = None  # recovery="direct": the factor of the last solve
+    _matrix: sp.csc_matrix | None = None  # the information matrix of the last solve
+    _precondition: TwoLevel | None = None  # recovery="pcg": the preconditioner of the last solve
+    _warm: dict[int, F64] = field(default_factory=dict)  # recovery="pcg": covariance columns of the last join
+    _fresh: dict[int, F64] = field(default_factory=dict)  # ... and of this one
+    pcg_iterations: list[int] = field(default_factory=list)  # recovery="pcg": CG iterations of each state solve
+    column_iterations: list[int] = field(default_factory=list)  # ... of each covariance solve
+    fallbacks: int = 0  # recovery="pcg": solves that did not converge and were redone directly
 
     def __post_init__(self) -> None:
         if self.linearization not in ("once", "iterated"):
             raise ValueError(f"linearization must be 'once' or 'iterated', got {self.linearization!r}")
-        if self.max_iterations < 1 or not self.tolerance > 0:
-            raise ValueError("max_iterations must be >= 1 and tolerance > 0")
+        if self.recovery not in STATE_RECOVERIES:
+            raise ValueError(f"recovery must be one of {', '.join(STATE_RECOVERIES)}, got {self.recovery!r}")
+        if self.max_iterations < 1 or not self.tolerance > 0 or self.pcg_max_iterations < 1:
+            raise ValueError("max_iterations and pcg_max_iterations must be >= 1 and tolerance > 0")
 
     @property
     def n_poses(self) -> int:
@@ -204,9 +232,11 @@ class GlobalMap:
         p = 0.5 * (P + P.T) + MIN_VARIANCE * np.eye(len(P))
         m = LocalMap(start, end, features, z, np.linalg.inv(p))
         self.maps.append(m)
+        self._warm = {i: np.concatenate([c, np.zeros(self.dim - len(c))]) for i, c in self._fresh.items()}
+        self._fresh = {}
         if self.linearization == "once":
             self._add(self._linearize(m))
-            self.x = np.asarray(self._factorize(self._info).solve(self._vector), np.float64)
+            self.x = self._solve(self._info, self._vector)
             self.iterations.append(1)
         else:
             self._pattern = None  # a new local map: new pattern
@@ -242,18 +272,36 @@ class GlobalMap:
             np.add.at(g, p.idx, p.g)
         return self._pattern.matrix(parts, self.dim), g
 
-    def _factorize(self, a: sp.csc_matrix) -> sla.SuperLU:
+    @staticmethod
+    def _factorize(a: sp.csc_matrix) -> sla.SuperLU:
         # Symmetric positive definite: a symmetric ordering and diagonal pivots, the Cholesky factor's fill.
-        self._factor = sla.splu(a.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                                options={"SymmetricMode": True})
-        return self._factor
+        return sla.splu(a.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+
+    def _offsets(self) -> tuple[I64, I64]:
+        return (np.fromiter(self.pose_at.values(), np.int64, len(self.pose_at)),
+                np.fromiter(self.feat_at.values(), np.int64, len(self.feat_at)))
+
+    def _solve(self, a: sp.csc_matrix, g: F64) -> F64:
+        """The estimate ``a^-1 g``: by a factor (kept for the covariance columns) or by PCG from ``self.x``."""
+        self._matrix = a
+        if self.recovery == "direct":
+            self._factor = self._factorize(a)
+            return np.asarray(self._factor.solve(g), np.float64)
+        self._factor = None
+        self._precondition = TwoLevel(a, self.x, *self._offsets())
+        result = pcg(Matrix(a), g, self.x, None, PCG_TOLERANCE, self.pcg_max_iterations, self._precondition)
+        self.pcg_iterations.append(result.iterations)
+        if result.converged:
+            return np.asarray(result.x, np.float64)
+        self.fallbacks += 1
+        return np.asarray(self._factorize(a).solve(g), np.float64)
 
     def _gauss_newton(self) -> int:
         """I-SLSJF: every local map re-linearized at the current estimate until the update is below tolerance."""
         for it in range(1, self.max_iterations + 1):
             parts = [self._linearize(m) for m in self.maps]
             a, g = self._assemble(parts)
-            new = np.asarray(self._factorize(a).solve(g), np.float64)
+            new = self._solve(a, g)
             step = float(np.max(np.abs(new - self.x), initial=0.0))
             self.x = new
             if step < self.tolerance:
@@ -268,32 +316,55 @@ class GlobalMap:
             return self._info.copy()
         return self._assemble([self._linearize(m) for m in self.maps])[0]
 
-    def covariance_block(self, offsets: list[int], size: int) -> F64:
+    def covariance_block(self, offsets: list[int], size: int, exact: bool = False) -> F64:
         """The joint covariance of the blocks of ``size`` starting at each of ``offsets`` (columns of I^-1)."""
         if not offsets:
             return np.zeros((0, 0))
         idx = (np.asarray(offsets)[:, None] + np.arange(size)).reshape(-1)
-        out = self.covariance_columns(idx.tolist())[idx]
+        out = self.covariance_columns(idx.tolist(), exact)[idx]
         return np.asarray(0.5 * (out + out.T), np.float64)
 
-    def covariance_columns(self, idx: list[int]) -> F64:
-        """The columns (dim, len(idx)) of the covariance I^-1 at state indices ``idx``: one solve with the
-        factor of the last join, O(fill of the factor) per column."""
-        if self._factor is None:
+    def covariance_columns(self, idx: list[int], exact: bool = False) -> F64:
+        """The columns (dim, len(idx)) of the covariance I^-1 at state indices ``idx``.
+
+        ``recovery="direct"``: one solve with the factor of the last join, O(fill of the factor) per column.
+        ``recovery="pcg"``: PCG from the same columns at the last join where they were asked for (module
+        docstring); ``exact`` (for scoring every feature, as D-SLAM's exact marginals) factorizes instead,
+        without keeping the factor.
+        """
+        if self._matrix is None:
             raise ValueError("no local map has been joined yet")
         e = np.zeros((self.dim, len(idx)))
         e[idx, np.arange(len(idx))] = 1.0
-        return np.asarray(self._factor.solve(e), np.float64)
+        if self._factor is not None:
+            return np.asarray(self._factor.solve(e), np.float64)
+        if exact:
+            return np.asarray(self._factorize(self._matrix).solve(e), np.float64)
+        assert self._precondition is not None
+        x0 = np.stack([self._fresh.get(i, self._warm.get(i, np.zeros(self.dim))) for i in idx], -1)
+        scale = self._precondition.variances()[idx]
+        result = pcg(Matrix(self._matrix), e, x0, None, COVARIANCE_RTOL * np.maximum(scale, 1e-300),
+                     self.pcg_max_iterations, self._precondition)
+        self.column_iterations.append(result.iterations)
+        cols = np.asarray(result.x, np.float64)
+        if not result.converged:
+            self.fallbacks += 1
+            cols = np.asarray(self._factorize(self._matrix).solve(e), np.float64)
+        for k, i in enumerate(idx):
+            if i in self._fresh or len(self._fresh) < WARM_COLUMNS:
+                self._fresh[i] = cols[:, k]
+        return cols
 
     def pose_covariance(self, k: int) -> F64:
         """The marginal covariance (3, 3) of global pose ``k`` (zeros for -1, the fixed origin)."""
         return np.zeros((3, 3)) if k < 0 else self.covariance_block([self.pose_at[k]], 3)
 
-    def feature_covariances(self, features: list[int]) -> F64:
-        """Marginal covariances (k, 2, 2) of global features (one solve with all their columns)."""
+    def feature_covariances(self, features: list[int], exact: bool = False) -> F64:
+        """Marginal covariances (k, 2, 2) of global features (one solve with all their columns; ``exact``: as
+        :meth:`covariance_columns`)."""
         if not features:
             return np.zeros((0, 2, 2))
-        joint = self.covariance_block([self.feat_at[g] for g in features], 2)
+        joint = self.covariance_block([self.feat_at[g] for g in features], 2, exact)
         k = len(features)
         return np.asarray(joint.reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :], np.float64)
 

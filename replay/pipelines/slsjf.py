@@ -61,6 +61,11 @@ class SlsjfPipelineConfig(LandmarkSlamConfig):
         "estimate and with the EKF's associations, and joined with the covariance at that optimum (beyond the "
         "paper: the EKF's linearization errors stay out of the global map; better on simulated data and on two "
         "MRCLAM robots, worse on two others: docs/dslam.md)")})
+    state_recovery: Literal["direct", "pcg"] = field(default="direct", metadata={"help": (
+        "direct: the global estimate and the covariance columns the robot and the gates need come from a sparse "
+        "factorization of the information matrix, redone at each join (the paper); pcg: from preconditioned "
+        "conjugate gradients started at the previous join's values, as D-SLAM recovers its map (no factor held; "
+        "the same map to micrometres; its cost: docs/dslam.md)")})
 
     def __post_init__(self) -> None:
         LandmarkSlamConfig.__post_init__(self)
@@ -71,7 +76,7 @@ class SlsjfPipelineConfig(LandmarkSlamConfig):
                               default_bearing_sigma_rad=self.bearing_sigma_rad, association=mode,  # type: ignore[arg-type]
                               association_params=self.association_params())
         return SlsjfConfig(local, self.local_map_scans, self.local_map_distance_m, self.linearization,
-                           self.max_iterations, self.robot_estimate, self.local_map_estimate)
+                           self.max_iterations, self.robot_estimate, self.local_map_estimate, self.state_recovery)
 
 
 class SlsjfPipeline(LandmarkSlamPipeline):
@@ -133,6 +138,8 @@ class SlsjfPipeline(LandmarkSlamPipeline):
         obs.log("slsjf/information", Image(sparsity_image(gm.information())))
         obs.log("metrics/slsjf/local_maps", Scalar(float(len(gm.maps))))
         obs.log("metrics/slsjf/gauss_newton_iterations", Scalar(float(gm.iterations[-1])))
+        if gm.recovery == "pcg" and gm.pcg_iterations:  # the join's state solves, one per Gauss-Newton iteration
+            obs.log("metrics/slsjf/pcg_iterations", Scalar(float(sum(gm.pcg_iterations[-gm.iterations[-1]:]))))
 
     def finalize(self) -> None:
         """Join the last local map, so that every sighting is in the global map that is scored."""
@@ -142,6 +149,14 @@ class SlsjfPipeline(LandmarkSlamPipeline):
         if self.mode == "unknown":
             self.ctx.log(f"unknown ids: {self.filter.associated} local-map features matched to the global map's, "
                          f"{self.filter.ambiguous} ambiguous (left out of the global map)")
+        gm = self.filter.map
+        if gm.recovery == "pcg" and gm.pcg_iterations:
+            cols = gm.column_iterations
+            self.ctx.log(f"state_recovery=pcg: {len(gm.pcg_iterations)} state solves, {np.mean(gm.pcg_iterations):.1f} "
+                         f"CG iterations each on average; {len(cols)} covariance solves"
+                         + (f", {np.mean(cols):.1f} iterations each" if cols else "")
+                         + f"; {gm.fallbacks} redone by a direct factorization (not converged in "
+                         f"{gm.pcg_max_iterations} iterations)")
 
     def extra_metrics(self) -> dict[str, float]:
         return {"local_maps": float(len(self.filter.map.maps))}
@@ -151,5 +166,6 @@ class SlsjfPipeline(LandmarkSlamPipeline):
         return (views.image_view("Global information matrix sparsity (local-map end poses and features, in the order "
                                  "they were added)", "/slsjf/information"),
                 rrb.Vertical(views.series_view("Local maps joined", "metrics/slsjf/local_maps"),
-                             views.series_view("Gauss-Newton iterations per join (I-SLSJF)",
-                                               "metrics/slsjf/gauss_newton_iterations")))
+                             views.series_view("Iterations per join: Gauss-Newton (I-SLSJF), conjugate gradients "
+                                               "(state_recovery=pcg)", "metrics/slsjf/gauss_newton_iterations",
+                                               "metrics/slsjf/pcg_iterations")))

@@ -189,3 +189,25 @@ def test_slsjf_smoothed_local_maps(sim: Path, tmp_path: Path, association: str) 
     manifest = json.loads((res.run_dir / "manifest.json").read_text())
     assert manifest["config"]["local_map_estimate"] == "smoothed"
     assert manifest["config_sources"]["local_map_estimate"] == "user"
+
+
+def test_slsjf_pcg_state_recovery(sim: Path, tmp_path: Path) -> None:
+    """``state_recovery=pcg`` (D-SLAM's recovery): the run's metrics are the direct factor's to the solves' tolerance,
+    the setting is recorded as the user's, and a value not offered is refused before anything runs."""
+    direct = run_recording(sim, "slsjf", tmp_path / "d", seed=1).metrics
+    res = run_recording(sim, "slsjf", tmp_path / "p", seed=1, config={"state_recovery": "pcg"})
+    for key in ("landmark_rmse_m", "landmark_nees_mean", "ape_rmse_m", "robot_nees_mean"):
+        assert res.metrics[key] == pytest.approx(direct[key], rel=1e-4), key
+    assert res.metrics["landmarks_mapped"] == direct["landmarks_mapped"]
+    manifest = json.loads((res.run_dir / "manifest.json").read_text())
+    assert manifest["config"]["state_recovery"] == "pcg" and manifest["config_sources"]["state_recovery"] == "user"
+    with pytest.raises(ReplayError, match="config key 'state_recovery' must be one of"):
+        run_recording(sim, "slsjf", tmp_path / "bad", config={"state_recovery": "cholesky"})
+    assert not (tmp_path / "bad").exists()
+    cls, obs, logs = get_pipeline("slsjf"), MemoryObserver(), []  # what the view and the log show
+    replay(RecordingReader(sim), cls, resolve_config(cls, {"state_recovery": "pcg"}), obs, seed=1, log=logs.append)
+    per_join = [e.value for e in obs.of("metrics/slsjf/pcg_iterations")]
+    assert len(per_join) == res.metrics["local_maps"] and all(0 <= v <= 400 * 10 for v in per_join)
+    assert per_join[0] == 0 and min(per_join[1:]) > 0  # the first local map alone is its own solution
+    said = [line for line in logs if line.startswith("state_recovery=pcg: ")]
+    assert len(said) == 1 and "; 0 redone by a direct factorization" in said[0], said
