@@ -22,14 +22,20 @@ FEATS = np.array([[2.0, 3.0], [6.0, -1.0], [10.0, 6.0], [4.0, 8.0], [12.0, 1.0]]
 SEEN = [np.array([0, 1]), np.array([1, 2, 4]), np.array([2, 3])]  # features each local map sees
 
 
-@pytest.mark.parametrize("linearization", ["once", "iterated"])
-def test_noise_free_local_maps_join_into_the_true_map(linearization: str) -> None:
-    """Three exact local maps along a curving path: the joined poses and features are the truth."""
+def three_local_maps(linearization: str = "iterated") -> GlobalMap:
+    """The three exact local maps of POSES, FEATS and SEEN, joined."""
     gm = GlobalMap(linearization)  # type: ignore[arg-type]
     start = -1
     for k, seen in enumerate(SEEN):
         z, p = local_map(POSES[k], POSES[k + 1], FEATS[seen])
         start = gm.join(start, z[:3], seen, z, p)
+    return gm
+
+
+@pytest.mark.parametrize("linearization", ["once", "iterated"])
+def test_noise_free_local_maps_join_into_the_true_map(linearization: str) -> None:
+    """Three exact local maps along a curving path: the joined poses and features are the truth."""
+    gm = three_local_maps(linearization)
     for k in range(3):
         np.testing.assert_allclose(gm.pose(k), POSES[k + 1], atol=1e-9)
     for g in range(5):
@@ -51,11 +57,7 @@ def test_one_joined_local_map_keeps_its_estimate_and_covariance() -> None:
 
 def test_the_information_matrix_is_exactly_sparse() -> None:
     """A feature seen only in the third local map has no link to the first local map's end pose."""
-    gm = GlobalMap("iterated")
-    start = -1
-    for k, seen in enumerate(SEEN):
-        z, p = local_map(POSES[k], POSES[k + 1], FEATS[seen])
-        start = gm.join(start, z[:3], seen, z, p)
+    gm = three_local_maps()
     info = gm.information().toarray()
     pose0, feat3 = gm.pose_at[0], gm.feat_at[3]
     assert np.all(info[pose0:pose0 + 3, feat3:feat3 + 2] == 0)

@@ -11,7 +11,7 @@ from slamreplay.algorithms.ekfslam import EkfSlamConfig
 from slamreplay.algorithms.slsjf import GlobalMap, Slsjf, SlsjfConfig
 from slamreplay.algorithms.slsjf.recovery import Matrix, TwoLevel, block_jacobi, coarse_space
 from tests.algorithms.test_dslam_sim import NOISE, SIGMA_B, SIGMA_R, landmark_world
-from tests.algorithms.test_slsjf import FEATS, POSES, SEEN, local_map
+from tests.algorithms.test_slsjf import three_local_maps
 
 
 def _spd(n: int, seed: int) -> np.ndarray:
@@ -47,11 +47,7 @@ def test_the_coarse_space_moves_each_cell_rigidly() -> None:
 
 def test_pcg_with_the_two_level_preconditioner_solves_a_joined_map() -> None:
     """The information matrix of three joined local maps: PCG from zero reaches the direct solution."""
-    gm = GlobalMap("once")
-    start = -1
-    for k, seen in enumerate(SEEN):
-        z, p = local_map(POSES[k], POSES[k + 1], FEATS[seen])
-        start = gm.join(start, z[:3], seen, z, p)
+    gm = three_local_maps("once")
     a = gm.information()
     b = np.arange(gm.dim, dtype=float)
     m = TwoLevel(a, gm.x, np.array(list(gm.pose_at.values())), np.array(list(gm.feat_at.values())))
