@@ -49,16 +49,19 @@ def row(name: str, ekf: dict[str, float], sl: dict[str, float]) -> dict[str, Any
 def vp_band(vp: Path, data_dir: Path, out: Path) -> dict[str, Any]:
     """The tree NEES band on Victoria Park, where the reference is the batch optimum of the same measurements.
 
-    The reference's own joint covariance ``P_ref`` (first order, under the measured noise:
-    ``landmark_reference.reference_covariance``) and each filter's final joint covariance ``P`` of the 151 trees give
-    the band of a consistent filter's mean NEES, its errors from the reference having covariance ``P - P_ref``
-    (``metrics.mean_nees_band``); when ``P - P_ref`` is not positive semi-definite there is none, and why is printed.
+    GTSAM's optimum (the file's weights, ``landmark_reference.victoria_park_reference``), its own joint covariance
+    ``P_ref`` (first order, under the measured noise: ``landmark_reference.reference_covariance``) and each filter's
+    final joint covariance ``P`` of the 151 trees give the band of a consistent filter's mean NEES, its errors from
+    that optimum having covariance ``P - P_ref`` (``metrics.mean_nees_band``); when ``P - P_ref`` is not positive
+    semi-definite there is none, and why is printed.
 
-    That reference weighs the measurements as GTSAM does, not with the noise the filters are given, so it is not the
-    efficient estimate under their model. The optimum under their noise (``landmark_reference.optimum_under``) is:
-    printed are its distance from the reference, each filter's tree RMSE and mean tree NEES against it, the upper end
-    a consistent filter's NEES stays below there (its errors have covariance ``P - P_opt``, below ``P``: the upper
-    end of the band against the truth), and ``P`` over ``P_opt`` whitened (min / median / max eigenvalue).
+    GTSAM's optimum weighs the measurements as GTSAM does, not with the noise the filters are given, so it is not
+    the efficient estimate under their model. The optimum under their noise (``landmark_reference.optimum_under``;
+    the recording's reference, ``landmark_reference.recording_reference``, when the filters are given the recording's
+    sensor model) is: printed are its distance from GTSAM's, each filter's tree RMSE and mean tree NEES against it,
+    the upper end a consistent filter's NEES stays below there (its errors have covariance ``P - P_opt``, below
+    ``P``: the upper end of the band against the truth), and ``P`` over ``P_opt`` whitened (min / median / max
+    eigenvalue).
     """
     from slamreplay.recorder.importers.victoria_park import read_victoria_park
     from slamreplay.replay.evaluation.landmark_reference import (
@@ -73,7 +76,7 @@ def vp_band(vp: Path, data_dir: Path, out: Path) -> dict[str, Any]:
     from slamreplay.replay.pipelines.slsjf import SlsjfPipeline
 
     data = read_victoria_park(data_dir)
-    print("Victoria Park: the reference's covariance (the batch optimum again, 2-3 minutes)")
+    print("Victoria Park: GTSAM's optimum and its covariance (1-3 minutes)")
     poses, landmarks, _ = victoria_park_reference(data)
     p_ref = reference_covariance(data, poses, landmarks, measured_scales(data, poses, landmarks))
     result: dict[str, Any] = {}
@@ -107,8 +110,8 @@ def vp_band(vp: Path, data_dir: Path, out: Path) -> dict[str, Any]:
             row["band"] = mean_nees_band(joint, reference_cov=p_ref)
         except ValueError as err_:
             row["band"], row["why_no_band"] = None, str(err_)
-        ratio = row["trace_ratio_filter_to_reference_median"]
-        print(f"  {base.name}: tree NEES {nees:.3g}; band against the reference: "
+        ratio = row["trace_ratio_filter_to_reference_median"]  # the reference: GTSAM's optimum, here
+        print(f"  {base.name}: tree NEES against GTSAM's optimum {nees:.3g}; band against it: "
               + (f"[{row['band'][0]:.3g}, {row['band'][1]:.3g}]" if row["band"] else f"none ({row['why_no_band']})")
               + f"; tree covariance / the reference's (trace, median) {ratio:.2f}")
         if not opt:  # the filters' noise is the recording's sensor model: known once a pipeline has read it
@@ -123,7 +126,7 @@ def vp_band(vp: Path, data_dir: Path, out: Path) -> dict[str, Any]:
                 "noise": {"odometry": str(cfg.odometry_noise()), "range_sigma_m": cfg.range_sigma_m,
                           "bearing_sigma_rad": cfg.bearing_sigma_rad}}
             print(f"  the optimum under the noise the filters are given: {own['landmark_rmse_m']:.3g} m "
-                  f"(tree RMSE) from the recording's reference, whose tree NEES against it is "
+                  f"(tree RMSE) from GTSAM's optimum, whose tree NEES against it is "
                   f"{own['landmark_nees_mean']:.3g}")
         against = landmark_scores(trees, opt["landmarks"], pairs, lambda _, b=blocks: b)
         chol = np.linalg.cholesky(opt["cov"])

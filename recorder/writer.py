@@ -27,6 +27,10 @@ from slamreplay.recorder.sensor_model import SensorModel, sensor_model_key
 from slamreplay.recorder.version import version
 
 METADATA_NAME = "slamreplay.recording"
+# A key of a recording's ``source``: true when its /ground_truth topics hold an estimate from the same measurements
+# (a batch optimum: Victoria Park), not the truth. A consistent filter's NEES against such a reference has 0 as
+# the lower end of its band (the pipelines draw it so).
+GROUND_TRUTH_IS_ESTIMATE = "ground_truth_is_estimate"
 CHUNK_SIZE = 1 << 20
 
 

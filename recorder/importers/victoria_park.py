@@ -10,8 +10,9 @@ landmark ids share one integer space. The recording holds:
   range ``hypot(x, y)`` and bearing ``atan2(y, x)``, ids = the file's landmark ids; sigmas from
   :func:`sensor_model` (measured; the file's own, looser, are :func:`gtsam_noise`);
 - with a ``reference`` (the batch least-squares optimum of these same measurements, as
-  ``slamreplay record victoria-park`` computes it; the file has no ground truth):
-  ``/ground_truth/pose`` and ``/ground_truth/landmarks``, so that runs are scored against it.
+  ``slamreplay record victoria-park`` computes it: ``replay.evaluation.landmark_reference.recording_reference``;
+  the file has no ground truth): ``/ground_truth/pose`` and ``/ground_truth/landmarks``, so that runs are
+  scored against it, and ``ground_truth_is_estimate`` in the recording's source.
 
 With ``merge_window_m`` > 0 (default 0: one scan per observing pose, as in the file), the
 sightings of consecutive poses are gathered until the robot has driven that far by odometry and
@@ -57,7 +58,7 @@ from slamreplay.recorder.messages import (
     RangeBearingScan,
 )
 from slamreplay.recorder.sensor_model import SensorModel
-from slamreplay.recorder.writer import Recorder
+from slamreplay.recorder.writer import GROUND_TRUTH_IS_ESTIMATE, Recorder
 
 IMPORTER: Final = "victoria-park"
 DATASET: Final = "Victoria Park (iSAM/GTSAM graph form)"
@@ -114,8 +115,8 @@ def gtsam_noise() -> dict[str, float]:
 def sensor_model() -> dict[str, float]:
     """The data set's noise as pipeline config keys: landmarks measured about the batch optimum, odometry stated.
 
-    Landmarks: 0.25 m in range and 0.049 rad in bearing, the sigmas the sightings show about the
-    reference (the optimum under :func:`gtsam_noise`), corrected for what the optimum absorbs, as
+    Landmarks: 0.25 m in range and 0.049 rad in bearing, the sigmas the sightings show about GTSAM's
+    optimum (the optimum under :func:`gtsam_noise`), corrected for what the optimum absorbs, as
     :func:`slamreplay.replay.evaluation.landmark_reference.measured_noise` computes at import (``slamreplay record
     victoria-park`` stores its values in the recording's parameters); the file's own convention says
     0.63 m and 0.2 rad. Odometry: the optimum absorbs its residuals almost whole, so its noise cannot
@@ -306,12 +307,13 @@ def write_victoria_park(data: VictoriaPark, out: str | Path, *, reference: tuple
     source = {"importer": IMPORTER, "dataset": DATASET}
     if reference is not None:
         source["ground_truth"] = reference_note or "batch least-squares optimum of the same measurements"
+        source[GROUND_TRUTH_IS_ESTIMATE] = True
     rec = Recorder(out, source=source, parameters={"stamp_step_ns": STEP_NS, "file_noise_gtsam": gtsam_noise(),
                                                   "measured_noise": measured_model or {},
                                                   "merge_window_m": merge_window_m},
                    robot={"name": "ACFR utility vehicle", "sensor": "SICK laser, tree trunks as point landmarks"},
-                   sensor_model=SensorModel(**model, source="landmarks: measured about the batch optimum; odometry: "
-                                            "the file's stated noise (recorder/importers/victoria_park.py)"))
+                   sensor_model=SensorModel(**model, source="landmarks: measured about GTSAM's batch optimum; "
+                                            "odometry: the file's stated noise (recorder/importers/victoria_park.py)"))
     groups = _scan_groups(data, odom, merge_window_m)
     scans = 0
     every = max(1, n // 200)

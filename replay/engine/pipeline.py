@@ -21,11 +21,12 @@ import numpy as np
 import rerun.blueprint as rrb
 
 from slamreplay.algorithms.observe import Observation
+from slamreplay.recorder.codec.bounds import MAX_JSON_DEPTH, json_depth
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.options import did_you_mean, parse_value, type_name
 from slamreplay.recorder.plugins import Plugin, discover, missing_builtins_hint
 from slamreplay.recorder.sensor_model import SensorModel
-from slamreplay.recorder.writer import METADATA_NAME
+from slamreplay.recorder.writer import GROUND_TRUTH_IS_ESTIMATE, METADATA_NAME
 from slamreplay.replay.engine import views
 from slamreplay.replay.engine.declared import DECLARED, DeclaredPlugin, declared_pipelines
 from slamreplay.replay.engine.reader import ROBOT_NAMESPACE, Envelope, RecordingInfo, topic_type
@@ -289,6 +290,20 @@ def recording_sensor_model(info: RecordingInfo, robot: str | None = None) -> Sen
         return SensorModel.from_record(info.metadata.get(METADATA_NAME, {}), "" if robot is None else f"/robot{robot}")
     except RecorderError as err:
         raise ReplayError(str(err)) from err
+
+
+def ground_truth_is_estimate(info: RecordingInfo) -> bool:
+    """Whether the recording says its /ground_truth topics hold an estimate from its own measurements (a batch
+    optimum), not the truth (``recorder.writer.GROUND_TRUTH_IS_ESTIMATE``); False when it does not say, or its
+    source record cannot be read."""
+    text = info.metadata.get(METADATA_NAME, {}).get("source", "")
+    if not text or json_depth(text) > MAX_JSON_DEPTH:
+        return False
+    try:
+        source = json.loads(text)
+    except ValueError:
+        return False
+    return isinstance(source, dict) and source.get(GROUND_TRUTH_IS_ESTIMATE) is True
 
 
 def robots_in(info: RecordingInfo) -> list[str]:

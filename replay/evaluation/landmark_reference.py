@@ -10,6 +10,10 @@ That optimum weighs the measurements as GTSAM's loader does; the recording's sen
 filters are given, is what the sightings show about it (:func:`measured_noise`), several times tighter in
 range and bearing. Two weightings, two optima: :func:`optimum_under` is the optimum of the same measurements
 under the noise a filter is given, the efficient estimate that filter's consistency is judged against.
+:func:`recording_reference` is what ``slamreplay record victoria-park`` writes as ``/ground_truth/*``: the
+optimum under the recording's own sensor model, the noise every pipeline is given unless a user sets
+another, so that a consistent filter's NEES against it stays below the upper end of its band (the lower
+end is 0: an efficient estimate scores 0 against itself).
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ from slamreplay.algorithms.common.landmark_graph import (
     solve_incremental,
 )
 from slamreplay.algorithms.common.motion import OdometryNoise
-from slamreplay.recorder.importers.victoria_park import VictoriaPark, gtsam_noise
+from slamreplay.recorder.importers.victoria_park import VictoriaPark, gtsam_noise, sensor_model
 
 
 def victoria_park_graph(data: VictoriaPark) -> LandmarkGraph:
@@ -91,6 +95,21 @@ def measured_noise(data: VictoriaPark, poses: NDArray[np.float64], landmarks: ND
     }
 
 
+def graph_under(data: VictoriaPark, odometry_noise: OdometryNoise, range_sigma_m: float,
+                bearing_sigma_rad: float) -> LandmarkGraph:
+    """The least-squares problem of ``data`` with each odometry step weighed by ``odometry_noise``'s covariance of
+    that step (as a filter predicting with it does) and each sighting by ``range_sigma_m`` and
+    ``bearing_sigma_rad``; ValueError for a sigma that is not finite and positive."""
+    for name, value in (("range_sigma_m", range_sigma_m), ("bearing_sigma_rad", bearing_sigma_rad)):
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be finite and > 0, got {value}")
+    graph = victoria_park_graph(data)
+    # a step the model gives no noise (the robot stood still) is held by the floor, as a filter holds it exactly
+    odo_info = np.array([np.linalg.inv(odometry_noise.covariance(u) + 1e-12 * np.eye(3)) for u in graph.odo_z])
+    obs_info = np.broadcast_to(np.diag([1.0 / range_sigma_m**2, 1.0 / bearing_sigma_rad**2]), graph.obs_info.shape)
+    return replace(graph, odo_info=odo_info.reshape(-1, 3, 3), obs_info=obs_info.copy())
+
+
 def optimum_under(data: VictoriaPark, odometry_noise: OdometryNoise, range_sigma_m: float, bearing_sigma_rad: float,
                   poses: NDArray[np.float64], landmarks: NDArray[np.float64]
                   ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
@@ -103,15 +122,35 @@ def optimum_under(data: VictoriaPark, odometry_noise: OdometryNoise, range_sigma
     noise lands on it; a consistent one's error from it has covariance ``P - P_opt`` (the optimum is efficient),
     below ``P``, so its mean landmark NEES against it stays below the upper end of the band against the truth.
     RuntimeError when Levenberg-Marquardt does not converge."""
-    for name, value in (("range_sigma_m", range_sigma_m), ("bearing_sigma_rad", bearing_sigma_rad)):
-        if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be finite and > 0, got {value}")
-    graph = victoria_park_graph(data)
-    # a step the model gives no noise (the robot stood still) is held by the floor, as a filter holds it exactly
-    odo_info = np.array([np.linalg.inv(odometry_noise.covariance(u) + 1e-12 * np.eye(3)) for u in graph.odo_z])
-    obs_info = np.broadcast_to(np.diag([1.0 / range_sigma_m**2, 1.0 / bearing_sigma_rad**2]), graph.obs_info.shape)
-    graph = replace(graph, odo_info=odo_info, obs_info=obs_info.copy())
+    graph = graph_under(data, odometry_noise, range_sigma_m, bearing_sigma_rad)
     res = optimize(graph, poses, landmarks, LsqConfig())
     if not res.converged:
         raise RuntimeError(f"the optimum under the given noise did not converge in {res.iterations} iterations")
     return res.poses, res.landmarks, landmark_covariance(graph, res.poses, res.landmarks)
+
+
+def recording_reference(data: VictoriaPark) -> tuple[NDArray[np.float64], NDArray[np.float64], dict[str, float], str]:
+    """The reference a Victoria Park recording carries: poses (n, 3) and landmarks (L, 2), the noise measured
+    about GTSAM's optimum (config keys) and a note saying what the reference is.
+
+    First GTSAM's optimum (:func:`victoria_park_reference`, whose χ² checks that the file is read as GTSAM reads
+    it) and the noise the sightings show about it (:func:`measured_noise`), then from it the optimum under the
+    recording's sensor model (:func:`~slamreplay.recorder.importers.victoria_park.sensor_model`, that noise
+    rounded: what every pipeline is given). Should that not converge, GTSAM's optimum is the reference, and the
+    note says so."""
+    poses, landmarks, res = victoria_park_reference(data)
+    measured = measured_noise(data, poses, landmarks)
+    model = sensor_model()
+    odometry = OdometryNoise(model["translation_sigma_per_sqrt_m"], model["heading_sigma_per_sqrt_m"],
+                             model["heading_sigma_per_sqrt_rad"])
+    gtsam = (f"GTSAM's optimum of the file's weights, chi2 {res.chi2:.1f}, "
+             f"{'converged' if res.converged else 'not converged'}")
+    under = optimize(graph_under(data, odometry, model["range_sigma_m"], model["bearing_sigma_rad"]), poses,
+                     landmarks, LsqConfig())
+    if not under.converged:
+        return poses, landmarks, measured, (f"{gtsam} (its optimum under the recording's sensor model did not "
+                                            f"converge); the file has no ground truth")
+    moved = float(np.sqrt(np.mean(np.sum((under.landmarks - landmarks) ** 2, axis=1)))) if len(landmarks) else 0.0
+    return under.poses, under.landmarks, measured, (
+        f"batch least-squares optimum of the same measurements under the recording's sensor model (from {gtsam}, "
+        f"{moved:.2f} m tree RMSE away); the file has no ground truth")

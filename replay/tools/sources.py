@@ -39,14 +39,11 @@ class VictoriaPark:
         data = read_victoria_park(Path(options["dir"]))
         reference, note, measured = None, "", None
         if not options["no_reference"]:
-            from slamreplay.replay.evaluation.landmark_reference import measured_noise, victoria_park_reference
+            from slamreplay.replay.evaluation.landmark_reference import recording_reference
 
-            log("computing the reference: the batch least-squares optimum of the measurements (2-3 minutes)")
-            poses, landmarks, res = victoria_park_reference(data)
+            log("computing the reference: the batch least-squares optimum of the measurements (1-3 minutes)")
+            poses, landmarks, measured, note = recording_reference(data)
             reference = (poses, landmarks)
-            measured = measured_noise(data, poses, landmarks)
-            note = (f"batch least-squares optimum of the same measurements (chi2 {res.chi2:.1f}, "
-                    f"{'converged' if res.converged else 'not converged'}); the file has no ground truth")
         s = write_victoria_park(data, Path(options["out"]), reference=reference, reference_note=note,
                                 measured_model=measured, merge_window_m=options["merge_window_m"], progress=progress)
         return (f"{s.poses:,} poses, {s.scans:,} scans with {s.observations:,} observations of {s.landmarks} "

@@ -4,18 +4,20 @@ from __future__ import annotations
 
 import json
 import subprocess
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from slamreplay.algorithms.observe import Image, Points, Text
-from slamreplay.recorder import GroundTruthPose, OdometryPose, RangeBearingScan, Recorder
+from slamreplay.recorder import GroundTruthPose, LandmarkMap, OdometryPose, RangeBearingScan, Recorder
 from slamreplay.recorder.importers.mrclam import import_mrclam
 from slamreplay.recorder.sim import LandmarkSimConfig, simulate_landmarks
+from slamreplay.recorder.writer import GROUND_TRUTH_IS_ESTIMATE, METADATA_NAME
 from slamreplay.replay.engine.loop import replay
 from slamreplay.replay.engine.observer import MemoryObserver
-from slamreplay.replay.engine.pipeline import get_pipeline, resolve_config
+from slamreplay.replay.engine.pipeline import get_pipeline, ground_truth_is_estimate, resolve_config
 from slamreplay.replay.engine.reader import RecordingReader
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.runs.diff import rerun_cli
@@ -97,9 +99,12 @@ def test_two_runs_are_identical(sim: Path, tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr[-2000:]
 
 
-def write_recording(path: Path, scans: list[tuple[list[float], list[float], list[int]]], odom: bool = True) -> Path:
+def write_recording(path: Path, scans: list[tuple[list[float], list[float], list[int]]], odom: bool = True,
+                    source: dict[str, object] | None = None, landmarks: LandmarkMap | None = None) -> Path:
     """Odometry along +x at 0.1 m per step (when ``odom``) with ground truth, and the given scans."""
-    with Recorder(path, source={"test": "landmark pipelines"}) as rec:
+    with Recorder(path, source=source or {"test": "landmark pipelines"}) as rec:
+        if landmarks is not None:
+            rec.write("/ground_truth/landmarks", landmarks)
         for k, (r, b, ids) in enumerate(scans):
             t = 1_000_000_000 + k * 100_000_000
             rec.write("/ground_truth/pose", GroundTruthPose(t, 0.1 * k, 0.0, 0.0))
@@ -211,3 +216,26 @@ def test_slsjf_pcg_state_recovery(sim: Path, tmp_path: Path) -> None:
     assert per_join[0] == 0 and min(per_join[1:]) > 0  # the first local map alone is its own solution
     said = [line for line in logs if line.startswith("state_recovery=pcg: ")]
     assert len(said) == 1 and "; 0 redone by a direct factorization" in said[0], said
+
+
+def test_a_reference_that_is_an_estimate_has_its_nees_bands_start_at_zero(tmp_path: Path) -> None:
+    """A recording whose ground truth is an estimate of its own measurements (Victoria Park's batch optimum): both
+    NEES bands are drawn from 0 and the log says why; without the flag, or with a source record that cannot be read,
+    the bands are the truth's, with their lower ends above 0."""
+    scans = [([2.0, 3.0], [0.3, -0.4], [0, 1])] * 6
+    truth = LandmarkMap(0, [0, 1], [[1.9, 0.6], [2.8, -1.2]])
+    lows = {}
+    for flag in (True, False):
+        path = write_recording(tmp_path / f"{flag}.mcap", scans, source={"test": "x", GROUND_TRUTH_IS_ESTIMATE: flag},
+                               landmarks=truth)
+        reader = RecordingReader(path)
+        assert ground_truth_is_estimate(reader.info) is flag
+        cls, obs, logs = get_pipeline("ekfslam"), MemoryObserver(), []
+        replay(reader, cls, resolve_config(cls), obs, seed=0, log=logs.append)
+        lows[flag] = [e.value for p in ("landmark", "robot") for e in obs.of(f"metrics/nees_band/{p}_95_low")]
+        assert any("the ground truth is an estimate" in line for line in logs) is flag
+    assert len(lows[True]) >= 6 and all(v == 0.0 for v in lows[True])
+    assert len(lows[False]) >= 6 and all(v > 0.0 for v in lows[False])
+    info = RecordingReader(tmp_path / "True.mcap").info
+    for text in ("{not json", "[1, 2]", "[" * 100 + "]" * 100, '{"ground_truth_is_estimate": "yes"}'):
+        assert not ground_truth_is_estimate(replace(info, metadata={METADATA_NAME: {"source": text}}))

@@ -11,8 +11,13 @@ import pytest
 from slamreplay.algorithms.common.motion import OdometryNoise
 from slamreplay.algorithms.ekfslam import EkfSlamConfig
 from slamreplay.algorithms.slsjf import Slsjf, SlsjfConfig
-from slamreplay.recorder.importers.victoria_park import VictoriaPark
-from slamreplay.replay.evaluation.landmark_reference import measured_noise, optimum_under, victoria_park_reference
+from slamreplay.recorder.importers.victoria_park import VictoriaPark, sensor_model
+from slamreplay.replay.evaluation.landmark_reference import (
+    measured_noise,
+    optimum_under,
+    recording_reference,
+    victoria_park_reference,
+)
 from slamreplay.replay.evaluation.metrics import marginal_blocks, mean_nees_band
 
 
@@ -112,3 +117,28 @@ def test_optimum_under_refuses_bad_noise_and_says_when_it_does_not_converge() ->
         optimum_under(data, noise, 0.3, 0.0, poses, landmarks)
     with pytest.raises(RuntimeError, match="did not converge in 50 iterations"):
         optimum_under(data, noise, 0.3, 0.05, poses, landmarks)
+
+
+def test_the_recorded_reference_is_the_optimum_under_the_recordings_sensor_model() -> None:
+    """What ``record victoria-park`` writes: the optimum under the recording's sensor model, started from GTSAM's
+    optimum (the file's weights), the noise measured about GTSAM's, and a note saying both; where that optimum is
+    not reached (seed 2), GTSAM's optimum, and the note says so."""
+    data, _, _ = _world(0)
+    poses, landmarks, res = victoria_park_reference(data)
+    model = sensor_model()
+    noise = OdometryNoise(model["translation_sigma_per_sqrt_m"], model["heading_sigma_per_sqrt_m"],
+                          model["heading_sigma_per_sqrt_rad"])
+    want_poses, want_landmarks, _ = optimum_under(data, noise, model["range_sigma_m"], model["bearing_sigma_rad"],
+                                                  poses, landmarks)
+    ref_poses, ref_landmarks, measured, note = recording_reference(data)
+    np.testing.assert_allclose(ref_landmarks, want_landmarks, atol=1e-9)
+    np.testing.assert_allclose(ref_poses, want_poses, atol=1e-9)
+    assert np.abs(ref_landmarks - landmarks).max() > 1e-3  # a different weighting, a different optimum
+    assert measured == measured_noise(data, poses, landmarks)
+    assert note.startswith("batch least-squares optimum of the same measurements under the recording's sensor model")
+    assert f"chi2 {res.chi2:.1f}, converged" in note
+    data, _, _ = _world(2)
+    poses, landmarks, _ = victoria_park_reference(data)
+    ref_poses, ref_landmarks, _, note = recording_reference(data)
+    np.testing.assert_array_equal(ref_landmarks, landmarks)
+    assert "its optimum under the recording's sensor model did not converge" in note
