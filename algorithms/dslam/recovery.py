@@ -138,29 +138,56 @@ def pcg(info: Operator, b: F64, x0: F64, inv_blocks: F64 | None, tol: float | F6
     return SolveResult(x=x, iterations=it, converged=not active.any())
 
 
-def coarse_space(x: F64, cell_m: float) -> sp.csr_matrix:
-    """The prolongation P (2N, 3C): translations and a rotation of the features of each square cell.
+def coarse_space(x: F64, cell_m: float, poses: I64 | None = None, features: I64 | None = None) -> sp.csr_matrix:
+    """The prolongation P (n, 3C): translations and a rotation of the variables of each square cell.
 
-    Features are grouped by the cell of side ``cell_m`` holding their estimate ``x`` (2N,); each
-    group moves rigidly in the plane (x, y and a rotation about its centroid, lever arms scaled
-    by ``1 / cell_m``). A group of one feature has no rotation column.
+    Features (2 dofs at each offset in ``features``; default: all of ``x`` (n,), D-SLAM's state) and poses
+    (x, y, heading at each offset in ``poses``: SLSJF's state) are grouped by the cell of side ``cell_m``
+    holding their position in ``x``; each group moves rigidly in the plane (x, y and a rotation about its
+    centroid, lever arms scaled by ``1 / cell_m``, which turns a pose's heading by the same angle). A group of
+    one feature has no rotation column.
     """
-    pts = x.reshape(-1, 2)
-    n = len(pts)
+    poses = np.zeros(0, np.int64) if poses is None else np.asarray(poses, np.int64)
+    features = np.arange(0, len(x), 2, dtype=np.int64) if features is None else np.asarray(features, np.int64)
+    offsets = np.concatenate([poses, features])
+    is_pose = np.arange(len(offsets)) < len(poses)
+    n, v = len(x), len(offsets)
+    pts = np.stack([x[offsets], x[offsets + 1]], -1) if v else np.zeros((0, 2))
     _, agg = np.unique(np.floor(pts / cell_m).astype(np.int64), axis=0, return_inverse=True)
     agg = agg.reshape(-1)
-    c = int(agg.max()) + 1 if n else 0
+    c = int(agg.max()) + 1 if v else 0
     counts = np.bincount(agg, minlength=c)
     sums = np.stack([np.bincount(agg, pts[:, 0], c), np.bincount(agg, pts[:, 1], c)], -1)
     cent = sums / np.maximum(counts, 1)[:, None]
     lever = (pts - cent[agg]) / cell_m
-    rot = np.cumsum(counts >= 2) - 1  # rotation column of each group with two features or more
-    f = np.arange(n)
-    has_rot = counts[agg] >= 2
-    rows = np.concatenate([2 * f, 2 * f + 1, 2 * f[has_rot], 2 * f[has_rot] + 1])
-    cols = np.concatenate([2 * agg, 2 * agg + 1, 2 * c + rot[agg[has_rot]], 2 * c + rot[agg[has_rot]]])
-    vals = np.concatenate([np.ones(2 * n), -lever[has_rot, 1], lever[has_rot, 0]])
-    return sp.csr_matrix((vals, (rows, cols)), shape=(2 * n, 2 * c + int(np.sum(counts >= 2))))
+    rotates = (counts >= 2) | (np.bincount(agg, is_pose.astype(np.float64), c) > 0)
+    rot = np.cumsum(rotates) - 1  # rotation column of each group that has one
+    r = rotates[agg]
+    turned = is_pose & r  # poses whose heading the rotation turns
+    rows = np.concatenate([offsets, offsets + 1, offsets[r], offsets[r] + 1, offsets[turned] + 2])
+    cols = np.concatenate([2 * agg, 2 * agg + 1, 2 * c + rot[agg[r]], 2 * c + rot[agg[r]], 2 * c + rot[agg[turned]]])
+    vals = np.concatenate([np.ones(2 * v), -lever[r, 1], lever[r, 0], np.full(int(turned.sum()), 1.0 / cell_m)])
+    return sp.csr_matrix((vals, (rows, cols)), shape=(n, 2 * c + int(np.sum(rotates))))
+
+
+class Coarse:
+    """The coarse half of a two-level preconditioner: ``r -> P (P^T A P)^-1 P^T r`` for a prolongation P."""
+
+    def __init__(self, a: sp.csr_matrix, p: sp.csr_matrix) -> None:
+        self.p = p
+        self.pt = p.T.tocsr()
+        coarse = (self.pt @ (a @ p)).tocsc()
+        self.lu = spla.splu(0.5 * (coarse + coarse.T), permc_spec="MMD_AT_PLUS_A") if coarse.shape[0] else None
+
+    def __call__(self, r: F64) -> F64:
+        if self.lu is None:
+            return np.zeros_like(r)
+        return cast(F64, self.p @ np.asarray(self.lu.solve(np.asarray(self.pt @ r))))
+
+    @property
+    def nbytes(self) -> int:
+        mats = [self.p, self.pt] + ([self.lu.L, self.lu.U] if self.lu is not None else [])
+        return int(sum(m.data.nbytes + m.indices.nbytes + m.indptr.nbytes for m in mats))
 
 
 class TwoLevel:
@@ -174,13 +201,10 @@ class TwoLevel:
 
     def __init__(self, info: InformationMatrix, inv_blocks: F64, x: F64, cell_m: float = COARSE_CELL_M) -> None:
         self.inv_blocks = inv_blocks
-        self.p = coarse_space(x, cell_m)
-        self.pt = self.p.T.tocsr()
-        coarse = (self.pt @ (info.csr() @ self.p)).tocsc()
-        self.lu = spla.splu(0.5 * (coarse + coarse.T), permc_spec="MMD_AT_PLUS_A")
+        self.coarse = Coarse(info.csr(), coarse_space(x, cell_m))
 
     def __call__(self, r: F64) -> F64:
-        return cast(F64, apply_blocks(self.inv_blocks, r) + self.p @ np.asarray(self.lu.solve(np.asarray(self.pt @ r))))
+        return cast(F64, apply_blocks(self.inv_blocks, r) + self.coarse(r))
 
 
 def factor(info: InformationMatrix) -> spla.SuperLU:

@@ -170,6 +170,7 @@ class GlobalMap:
     _pattern: _Pattern | None = None  # I-SLSJF: the pattern of the current local maps' A
     _factor: sla.SuperLU | None = None  # recovery="direct": the factor of the last solve
     _matrix: sp.csc_matrix | None = None  # the information matrix of the last solve
+    _operator: Matrix | None = None  # recovery="pcg": the information matrix of the last solve, as PCG multiplies by it
     _precondition: TwoLevel | None = None  # recovery="pcg": the preconditioner of the last solve
     _warm: dict[int, F64] = field(default_factory=dict)  # recovery="pcg": covariance columns of the last join
     _fresh: dict[int, F64] = field(default_factory=dict)  # ... and of this one
@@ -288,8 +289,9 @@ class GlobalMap:
             self._factor = self._factorize(a)
             return np.asarray(self._factor.solve(g), np.float64)
         self._factor = None
-        self._precondition = TwoLevel(a, self.x, *self._offsets())
-        result = pcg(Matrix(a), g, self.x, None, PCG_TOLERANCE, self.pcg_max_iterations, self._precondition)
+        self._operator = Matrix(a)
+        self._precondition = TwoLevel(self._operator.a, self.x, *self._offsets())
+        result = pcg(self._operator, g, self.x, None, PCG_TOLERANCE, self.pcg_max_iterations, self._precondition)
         self.pcg_iterations.append(result.iterations)
         if result.converged:
             return np.asarray(result.x, np.float64)
@@ -340,10 +342,10 @@ class GlobalMap:
             return np.asarray(self._factor.solve(e), np.float64)
         if exact:
             return np.asarray(self._factorize(self._matrix).solve(e), np.float64)
-        assert self._precondition is not None
+        assert self._operator is not None and self._precondition is not None
         x0 = np.stack([self._fresh.get(i, self._warm.get(i, np.zeros(self.dim))) for i in idx], -1)
         scale = self._precondition.variances()[idx]
-        result = pcg(Matrix(self._matrix), e, x0, None, COVARIANCE_RTOL * np.maximum(scale, 1e-300),
+        result = pcg(self._operator, e, x0, None, COVARIANCE_RTOL * np.maximum(scale, 1e-300),
                      self.pcg_max_iterations, self._precondition)
         self.column_iterations.append(result.iterations)
         cols = np.asarray(result.x, np.float64)

@@ -19,7 +19,7 @@ end is 0: an efficient estimate scores 0 against itself).
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -141,8 +141,7 @@ def recording_reference(data: VictoriaPark) -> tuple[NDArray[np.float64], NDArra
     poses, landmarks, res = victoria_park_reference(data)
     measured = measured_noise(data, poses, landmarks)
     model = sensor_model()
-    odometry = OdometryNoise(model["translation_sigma_per_sqrt_m"], model["heading_sigma_per_sqrt_m"],
-                             model["heading_sigma_per_sqrt_rad"])
+    odometry = OdometryNoise(**{f.name: model[f.name] for f in fields(OdometryNoise)})  # the same config keys
     gtsam = (f"GTSAM's optimum of the file's weights, chi2 {res.chi2:.1f}, "
              f"{'converged' if res.converged else 'not converged'}")
     under = optimize(graph_under(data, odometry, model["range_sigma_m"], model["bearing_sigma_rad"]), poses,

@@ -41,7 +41,7 @@ class VictoriaPark:
         if not options["no_reference"]:
             from slamreplay.replay.evaluation.landmark_reference import recording_reference
 
-            log("computing the reference: the batch least-squares optimum of the measurements (1-3 minutes)")
+            log("computing the reference: the batch least-squares optimum of the measurements (under a minute)")
             poses, landmarks, measured, note = recording_reference(data)
             reference = (poses, landmarks)
         s = write_victoria_park(data, Path(options["out"]), reference=reference, reference_note=note,

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from slamreplay.algorithms.dslam.recovery import pcg
+from slamreplay.algorithms.dslam.recovery import coarse_space, pcg
 from slamreplay.algorithms.ekfslam import EkfSlamConfig
 from slamreplay.algorithms.slsjf import GlobalMap, Slsjf, SlsjfConfig
-from slamreplay.algorithms.slsjf.recovery import Matrix, TwoLevel, block_jacobi, coarse_space
+from slamreplay.algorithms.slsjf.recovery import Matrix, TwoLevel, block_jacobi
 from tests.algorithms.test_dslam_sim import NOISE, SIGMA_B, SIGMA_R, landmark_world
 from tests.algorithms.test_slsjf import three_local_maps
 
@@ -35,7 +35,7 @@ def test_the_coarse_space_moves_each_cell_rigidly() -> None:
     in the other (translations only). A coarse rotation by w about the first cell's centroid moves its points by
     w x (p - c) and turns the heading by w."""
     x = np.array([1.0, 1.0, 0.3, 3.0, 1.0, 25.0, 25.0])  # pose (1, 1, 0.3), features (3, 1) and (25, 25)
-    p = coarse_space(x, np.array([0]), np.array([3, 5]), 10.0).toarray()
+    p = coarse_space(x, 10.0, np.array([0]), np.array([3, 5])).toarray()
     assert p.shape == (7, 5)  # 2 translations per cell, 1 rotation for the first
     np.testing.assert_allclose(p[:, 0], [1, 0, 0, 1, 0, 0, 0])  # first cell, x translation
     w = 0.01
