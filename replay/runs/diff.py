@@ -15,9 +15,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
-import subprocess
-import sys
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -26,6 +23,7 @@ from typing import Any
 from slamreplay.recorder.options import did_you_mean
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import direction_label, normalize, target_distance
+from slamreplay.replay.runs.rrd_compare import rerun_cli, rrd_content_equal
 
 MANIFEST_FIELDS = ("pipeline", "recording.sha256", "seed", "config_hash", "slamreplay.version",
                    "slamreplay.git_commit", "window_ns", "status")
@@ -224,28 +222,6 @@ def diff_runs(a_dir: str | Path, b_dir: str | Path, tolerances: Mapping[str, str
     if compare_rrd:
         out.rrd_equal, out.rrd_detail = rrd_content_equal(a_dir / "run.rrd", b_dir / "run.rrd")
     return out
-
-
-def rerun_cli() -> str | None:
-    """The ``rerun`` executable that ships with rerun-sdk (beside this Python, or on PATH)."""
-    beside = Path(sys.executable).parent / "rerun"
-    return str(beside) if beside.exists() else shutil.which("rerun")
-
-
-def rrd_content_equal(a: Path, b: Path) -> tuple[bool | None, str]:
-    """``rerun rrd compare``: (True, "") when equal, (False, first lines of the diff), (None, why) if unknown."""
-    exe = rerun_cli()
-    if exe is None:
-        return None, "the rerun CLI was not found; content equality not checked"
-    try:
-        proc = subprocess.run([exe, "rrd", "compare", str(a), str(b)], capture_output=True, text=True, timeout=600)
-    except (OSError, subprocess.TimeoutExpired) as err:
-        return None, f"rerun rrd compare could not run: {err}"
-    if proc.returncode == 0:
-        return True, ""
-    text = (proc.stderr or proc.stdout).strip()
-    last = text.splitlines()[-1] if text else f"exit code {proc.returncode}"
-    return False, last[:500]
 
 
 def formatted(m: MetricDelta) -> tuple[str, str, str]:
