@@ -115,7 +115,8 @@ def what_changed(changes: list[dict[str, Any]], a: Run, b: Run, topic_maps: tupl
 
 def two_runs(jobs: JobService, ids: list[str], tolerances: dict[str, str] | None = None) -> dict[str, Any]:
     """Run B against run A as ``slamreplay diff`` judges it: changes, metric rows, verdict counts, and a plot."""
-    from slamreplay.replay.runs.diff import diff_runs, formatted
+    from slamreplay.replay.metric_registry import LOST
+    from slamreplay.replay.runs.diff import diff_runs, formatted, verdict_text
 
     a, b = runs_of(jobs, ids)
     d = diff_runs(jobs.finished_run(a.job.id), jobs.finished_run(b.job.id), tolerances or {}, compare_rrd=False)
@@ -126,11 +127,12 @@ def two_runs(jobs: JobService, ids: list[str], tolerances: dict[str, str] | None
         spec = specs.get(m.name)
         fa, fb, fd = formatted(m)
         rows.append({"name": m.name, "unit": spec.unit if spec is not None else "", "a": m.a, "b": m.b,
-                     "a_text": fa, "b_text": fb, "delta": fd, "verdict": m.verdict,
+                     "a_text": fa, "b_text": fb, "delta": fd, "verdict": m.verdict, "verdict_text": verdict_text(m),
                      "direction": direction_text(m.better, m.target),
                      "meaning": spec.description if spec is not None else ""})
-    rows.sort(key=lambda r: r["verdict"] in ("added", "removed"))  # metrics of both runs first, then one side's
-    counts = {v: sum(r["verdict"] == v for r in rows) for v in ("better", "worse", "same", "changed")}
+    rows.sort(key=lambda r: (r["verdict"] != LOST, r["verdict"] in ("added", "removed")))  # lost first, one side's last
+    counts = {v: sum(r["verdict"] == v for r in rows) for v in ("better", "worse", "same", "changed", LOST)}
+    counts["worse"] += counts.pop(LOST)
     return {"a": a, "b": b, "changes": what_changed(d.changes, a, b, maps), "metrics": rows, "counts": counts,
             "worse": d.worse, "plot": overlay(jobs, [a, b], ("A", "B"))}
 

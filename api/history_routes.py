@@ -170,7 +170,7 @@ def history_page(request: Request, name: SuiteName, suites: SuitesDep) -> HTMLRe
         link = f"/ui/compare?a={prev[-1]}&b={mine[-1]}" if prev and mine else None
         versions.append({"k": k, "version": c.sha, "short": c.sha[:10], "date": c.date, "subject": c.subject,
                          "suites": mine, "compare": link})
-    shown = [{**ch.to_json(), "short": ch.commit[:10], "before": fmt(ch.mean_before), "after": fmt(ch.mean_after),
+    shown = [{**ch.to_json(), "short": ch.commit[:10], "before": fmt(ch.mean_before), "after": "missing" if ch.mean_after is None else fmt(ch.mean_after),
               "delta": fmt(ch.delta, signed=True), "rel": f"{ch.relative:+.1%}" if ch.relative is not None else "",
               "k": ch.index} for ch in changes]
     return _page(request, "suite_history.html", suite_name=name, groups=groups, versions=versions, changes=shown,

@@ -62,6 +62,7 @@ class MetricSpec:
     tolerance: float = 0.0  # absolute floor
     rel_tolerance: float = 0.0  # relative to run A's value
     target: float | None = None  # the consistent value, with better="target"
+    optional: str = ""  # why a run may leave it out (see LOST); "" : a run that had it and lost it got worse
 
     def __post_init__(self) -> None:
         if (self.better == "target") != (self.target is not None):
@@ -71,16 +72,16 @@ class MetricSpec:
 
     @classmethod
     def measured(cls, better: Literal["lower", "higher", "target", "none"], unit: str, description: str,
-                 target: float | None = None) -> MetricSpec:
+                 target: float | None = None, optional: str = "") -> MetricSpec:
         """A floating-point metric: numerical noise between environments is "same", a 1 % change is not."""
-        return cls(better, unit, description, MEASURED_ABS_TOLERANCE, MEASURED_REL_TOLERANCE, target)
+        return cls(better, unit, description, MEASURED_ABS_TOLERANCE, MEASURED_REL_TOLERANCE, target, optional)
 
 
 _m = MetricSpec.measured
 
 
-def _count(better: str, description: str) -> MetricSpec:
-    return MetricSpec(better, "", description)  # type: ignore[arg-type]
+def _count(better: str, description: str, optional: str = "") -> MetricSpec:
+    return MetricSpec(better, "", description, optional=optional)  # type: ignore[arg-type]
 
 
 def _nees(description: str, dof: int) -> MetricSpec:
@@ -88,6 +89,7 @@ def _nees(description: str, dof: int) -> MetricSpec:
                                              "higher when overconfident)", target=float(dof))
 
 
+_NO_EDGE_IN_TRUTH = "undefined when no accepted edge joins two images inside the ground truth's time span"
 RPE_METRE_DELTA_M = 1.0  # the per-distance RPE of every run: segments of 1 m of true path
 
 METRICS: dict[str, MetricSpec] = {
@@ -124,9 +126,10 @@ METRICS: dict[str, MetricSpec] = {
     "locations": _count("none", "locations (graph nodes)"),
     "loop_closures": _count("none", "accepted loop closures"),
     "loop_closures_rejected": _count("none", "validated loop closures the robust relaxation rejected "
-                                             "(only with relax_robust)"),
+                                             "(only with relax_robust)", optional="reported only with relax_robust"),
     "loop_closure_precision": _m("higher", "", "correct / accepted loop closures (truth rule in "
-                                               "replay/pipelines/topometric.py)"),
+                                               "replay/pipelines/topometric.py)",
+                                 optional="undefined when no loop closure is accepted (loop_closures then says 0)"),
     "loop_closure_recall": _m("higher", "", "images that closed a loop / images that should have"),
     "odometry_ate_rmse_m": _m("lower", "m", "RMS position error of odometry at the same images: the baseline "
                                             "the relaxed map is measured against"),
@@ -157,15 +160,17 @@ METRICS: dict[str, MetricSpec] = {
     "chi2_final": _m("lower", "", "squared Mahalanobis sum over all edges after optimization"),
     "chi2_per_dof": MetricSpec.measured("target", "", "chi2 after optimization over the edges the optimizer kept, "
                                                       "per degree of freedom (3 per kept edge - 3 per free node): "
-                                                      "1 when the edge covariances are calibrated", target=1.0),
+                                                      "1 when the edge covariances are calibrated", target=1.0,
+                                      optional="undefined when the kept edges leave no degree of freedom"),
     "mosaic_ncc": _m("higher", "", "mean NCC of the image pairs overlapping by 30 % or more at the optimized "
                                    "poses (illumination flattened): the mosaic's agreement with itself"),
     "edges_rejected": _count("none", "edges the optimizer's chi2 gate left out (covariance=calibrated)"),
     "ate_rmse_px_initial": _m("lower", "px", "node position RMSE before optimization (similarity-aligned)"),
     "ate_rmse_px": _m("lower", "px", "node position RMSE after optimization (similarity-aligned)"),
-    "rotation_error_deg_median": _m("lower", "deg", "median |rotation error| of accepted edges"),
+    "rotation_error_deg_median": _m("lower", "deg", "median |rotation error| of accepted edges",
+                                    optional=_NO_EDGE_IN_TRUTH),
     "translation_error_px_median": _m("lower", "px", "median translation error of accepted edges (scaled by the "
-                                                     "ATE alignment)"),
+                                                     "ATE alignment)", optional=_NO_EDGE_IN_TRUTH),
 }
 
 # Per-robot metrics of multi-robot runs: robot{k}_<name>, k = 1, 2, ...
@@ -198,7 +203,7 @@ def spec(name: str) -> MetricSpec:
     if m and m.group(2) in PER_ROBOT:
         base = PER_ROBOT[m.group(2)]
         return MetricSpec(base.better, base.unit, f"robot {m.group(1)}: {base.description}", base.tolerance,
-                          base.rel_tolerance, base.target)
+                          base.rel_tolerance, base.target, base.optional)
     raise KeyError(name)
 
 
@@ -215,6 +220,24 @@ def current_name(name: str) -> str:
     if m and f"robot{{k}}_{m.group(2)}" in RENAMED:
         return RENAMED[f"robot{{k}}_{m.group(2)}"].replace("{k}", m.group(1))
     return name
+
+
+LOST = "lost"  # the verdict of a metric run A reported and run B did not: worse, whatever its direction
+
+
+def optional_reason(name: str, entry: Mapping[str, Any] | None = None) -> str:
+    """Why a run may leave out metric ``name`` ("" when it may not: losing it is a regression).
+
+    A metric that disappears is the loudest regression there is (an estimate that lost its time overlap
+    reports no APE at all), so ``diff``, ``compare``, ``history`` and the service judge a metric present in
+    A and absent in B as ``LOST``, unless it is declared optional here (``MetricSpec.optional``, the reason)
+    or in the run's own metrics.json entry (a plugin's spec)."""
+    if isinstance(entry, Mapping) and entry.get("optional"):
+        return str(entry["optional"])
+    try:
+        return spec(current_name(name)).optional
+    except KeyError:
+        return ""
 
 
 def direction_label(better: str, target: float | None = None) -> str:

@@ -43,6 +43,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from slamreplay.replay.metric_registry import LOST, optional_reason
 from slamreplay.replay.runs.compare import judge
 
 if TYPE_CHECKING:
@@ -80,11 +81,11 @@ class Change:
     previous: str
     index: int  # position of ``commit`` in the history's commits
     mean_before: float
-    mean_after: float
-    delta: float
+    mean_after: float | None  # None: lost (the cell ran and did not report the metric)
+    delta: float | None
     relative: float | None
     p_value: float | None
-    verdict: str
+    verdict: str  # regression | improvement | changed | lost
     report: str | None = None  # the compare report of previous -> commit, relative to the history directory
 
     @property
@@ -181,6 +182,29 @@ def find_steps(values: Sequence[dict[int, float]], better: str, tolerance: float
     return out
 
 
+def _succeeded(history: History) -> dict[tuple[str, str, str], list[bool]]:
+    """Per cell group, at each commit (history order): whether any of its cells succeeded there."""
+    out: dict[tuple[str, str, str], list[bool]] = {}
+    for k, c in enumerate(history.commits):
+        for r in history.cells(c.sha):
+            g = (str(r["recording"]), str(r["pipeline"]), str(r["variant"]))
+            out.setdefault(g, [False] * len(history.commits))[k] |= r.get("status") == "succeeded"
+    return out
+
+
+def _lost_at(values: Sequence[dict[int, float]], ran: Sequence[bool]) -> list[tuple[int, int]]:
+    """(commit, commit before it) where a metric stopped being reported: the cells ran and succeeded, and the
+    last commit where they succeeded before reported it. Judged as a regression (``LOST``), as ``diff`` does."""
+    out, before = [], None
+    for k, ok in enumerate(ran):
+        if not ok:
+            continue
+        if not values[k] and before is not None and values[before]:
+            out.append((k, before))
+        before = k
+    return out
+
+
 def detect_changes(history: History, metrics: Sequence[str] = ()) -> list[Change]:
     """Every change of every cell group's metric (``metrics``: only these) over the history, oldest first."""
     from slamreplay.replay.runs.history import series
@@ -193,13 +217,20 @@ def detect_changes(history: History, metrics: Sequence[str] = ()) -> list[Change
                                         "unit": r.get("units", {}).get(name, ""),
                                         "tolerance": float(r.get("tolerance", {}).get(name, 0.0)),
                                         "rel_tolerance": float(r.get("rel_tolerance", {}).get(name, 0.0)),
-                                        "target": r.get("targets", {}).get(name)})
+                                        "target": r.get("targets", {}).get(name),
+                                        "optional": r.get("optional", {}).get(name)})
+    ran = _succeeded(history)
     out = []
     for (rec, pipe, variant), by_metric in series(history).items():
         for name, values in sorted(by_metric.items()):
             if metrics and name not in metrics:
                 continue
             s = specs[name]
+            if not optional_reason(name, s):
+                for k, before in _lost_at(values, ran[(rec, pipe, variant)]):
+                    mean = float(np.mean(list(values[before].values())))
+                    out.append(Change(rec, pipe, variant, name, s["unit"], s["better"], history.commits[k].sha,
+                                      history.commits[before].sha, k, mean, None, None, None, None, LOST))
             for st in find_steps(values, s["better"], s["tolerance"], s["rel_tolerance"], s["target"]):
                 rel = st.delta / abs(st.mean_before) if st.mean_before else None
                 out.append(Change(rec, pipe, variant, name, s["unit"], s["better"], history.commits[st.index].sha,

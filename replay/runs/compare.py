@@ -42,11 +42,12 @@ from scipy import stats
 from slamreplay.recorder.options import did_you_mean
 from slamreplay.replay.runs.diff import determinism_of, direction_verdict, judge_metric
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.metric_registry import direction_label, target_distance
+from slamreplay.replay.metric_registry import LOST, direction_label, optional_reason, target_distance
 from slamreplay.replay.runs.suite_run import add_metrics, read_results, unfinished
 
 ALPHA = 0.05
-VERDICT_ORDER = ("regression", "failed", "improvement", "noise", "unchanged", "changed", "missing")
+VERDICT_ORDER = ("regression", "failed", LOST, "improvement", "noise", "unchanged", "changed", "missing")
+REGRESSION_VERDICTS = ("regression", "failed", LOST)  # what fails the gate (exit 1)
 
 
 @dataclass(frozen=True, slots=True)
@@ -70,7 +71,7 @@ class MetricResult:
     tolerance: float
     p_value: float | None
     test: str
-    verdict: str  # regression | improvement | noise | unchanged | changed | failed | missing
+    verdict: str  # regression | improvement | noise | unchanged | changed | failed | lost | missing
     target: float | None = None  # the consistent value, with better="target"
 
     @property
@@ -105,7 +106,7 @@ class Comparison:
 
     @property
     def regressions(self) -> list[MetricResult]:
-        return [r for r in self.results if r.verdict in ("regression", "failed")]
+        return [r for r in self.results if r.verdict in REGRESSION_VERDICTS]
 
     def to_json(self) -> dict[str, Any]:
         return {"a": self.a.label, "b": self.b.label, "code_versions": {"a": self.a.code_versions,
@@ -290,6 +291,14 @@ def compare(a: Side, b: Side, tolerances: Mapping[str, str] | None = None) -> Co
             pairs = [s for s in ok if name in ra[s]["metrics"] and name in rb[s]["metrics"]]
             spec = next(r for r in (*[rb[s] for s in ok], *[ra[s] for s in ok]) if name in r["metrics"])
             better, unit = spec["better"].get(name, "none"), spec.get("units", {}).get(name, "")
+            lost = [s for s in ok if name in ra[s]["metrics"] and name not in rb[s]["metrics"]]
+            if lost and not optional_reason(name, {"optional": spec.get("optional", {}).get(name)}):
+                va = [float(ra[s]["metrics"][name]) for s in lost]
+                out.results.append(MetricResult(*key, name, better, unit, [list(s) for s in lost], va, [],
+                                                float(np.mean(va)), _sd(va), None, None, None, 0.0, None,
+                                                f"missing in B ({len(lost)} of {len(ok)} seeds)", LOST,
+                                                spec.get("targets", {}).get(name)))
+                continue
             if not pairs:
                 out.results.append(MetricResult(*key, name, better, unit, [], [], [], None, None, None, None,
                                                 None, 0.0, None, "", "missing"))
@@ -325,7 +334,7 @@ def format_table(c: Comparison) -> str:
     lines.append(f"  {'cell':<40} {'metric':<26} {'A mean±sd':>20} {'B mean±sd':>20} {'B - A':>11} {'p':>7}  verdict")
     for r in c.results:
         cell = f"{r.recording}/{r.pipeline}/{r.variant}"
-        verdict = r.verdict.upper() if r.verdict in ("regression", "failed") else r.verdict
+        verdict = r.verdict.upper() if r.verdict in REGRESSION_VERDICTS else r.verdict
         lines.append(f"  {cell:<40} {r.metric:<26} {fmt_ms(r.a_mean, r.a_sd):>20} {fmt_ms(r.b_mean, r.b_sd):>20} "
                      f"{fmt(r.delta, signed=True):>11} {fmt(r.p_value, 3):>7}  {verdict}")
     for f in c.failures:

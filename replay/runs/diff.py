@@ -22,7 +22,7 @@ from typing import Any
 
 from slamreplay.recorder.options import did_you_mean
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.metric_registry import direction_label, normalize, target_distance
+from slamreplay.replay.metric_registry import LOST, direction_label, normalize, optional_reason, target_distance
 from slamreplay.replay.runs.rrd_compare import rerun_cli, rrd_content_equal
 
 MANIFEST_FIELDS = ("pipeline", "recording.sha256", "seed", "config_hash", "slamreplay.version",
@@ -37,8 +37,9 @@ class MetricDelta:
     delta: float | None
     better: str
     tolerance: float
-    verdict: str  # better | worse | same | changed | added | removed
+    verdict: str  # better | worse | same | changed | added | lost | removed (an optional metric left out)
     target: float | None = None  # the consistent value, with better="target"
+    note: str = ""  # why: "missing in B", or the reason an optional metric may be left out
 
     @property
     def direction(self) -> str:
@@ -58,11 +59,16 @@ class RunDiff:
 
     @property
     def worse(self) -> list[str]:
-        return [m.name for m in self.metrics if m.verdict == "worse"]
+        """Metrics that regressed: worse beyond their tolerance, or lost (in A, not in B)."""
+        return [m.name for m in self.metrics if m.verdict in ("worse", LOST)]
+
+    @property
+    def lost(self) -> list[str]:
+        return [m.name for m in self.metrics if m.verdict == LOST]
 
     def to_json(self) -> dict[str, Any]:
         return {"a": self.a, "b": self.b, "changes": self.changes, "metrics": [asdict(m) for m in self.metrics],
-                "worse": self.worse, "rrd_equal": self.rrd_equal, "rrd_detail": self.rrd_detail, "notes": self.notes}
+                "worse": self.worse, "lost": self.lost, "rrd_equal": self.rrd_equal, "rrd_detail": self.rrd_detail, "notes": self.notes}
 
 
 def load_run(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -212,8 +218,10 @@ def diff_runs(a_dir: str | Path, b_dir: str | Path, tolerances: Mapping[str, str
                                            spec.get("target")))
             continue
         if eb is None:
-            out.metrics.append(MetricDelta(name, ea["value"], None, None, spec["better"], 0.0, "removed",
-                                           spec.get("target")))
+            why = optional_reason(name, ea)
+            out.metrics.append(MetricDelta(name, ea["value"], None, None, spec["better"], 0.0,
+                                           "removed" if why else LOST, spec.get("target"),
+                                           f"optional: {why}" if why else "missing in B"))
             continue
         tol = metric_tolerance(spec, ea["value"], tolerances.get(name, tolerances.get("*")))
         delta, verdict = _verdict(ea["value"], eb["value"], spec["better"], tol, spec.get("target"))
@@ -230,6 +238,17 @@ def formatted(m: MetricDelta) -> tuple[str, str, str]:
     fb = "-" if m.b is None else f"{m.b:.6g}"
     fd = "" if m.delta is None or not math.isfinite(m.delta) else f"{m.delta:+.4g}"
     return fa, fb, fd
+
+
+def verdict_text(m: MetricDelta) -> str:
+    """A metric's verdict as every view of a diff shows it: WORSE, better, same, "WORSE (missing in B)", ..."""
+    if m.verdict == LOST:
+        return "WORSE (missing in B)"
+    if m.verdict == "removed":
+        return f"only in A ({m.note})" if m.note else "only in A"
+    if m.verdict == "added":
+        return "only in B"
+    return "WORSE" if m.verdict == "worse" else m.verdict
 
 
 def determinism_of(manifest: Mapping[str, Any]) -> bool | None:
@@ -255,8 +274,7 @@ def format_table(diff: RunDiff) -> str:
     lines.append(f"  {'metric':<{width}}  {'A':>14}  {'B':>14}  {'B - A':>12}  better  verdict")
     for m in diff.metrics:
         fa, fb, fd = formatted(m)
-        mark = {"worse": "WORSE", "better": "better"}.get(m.verdict, m.verdict)
-        lines.append(f"  {m.name:<{width}}  {fa:>14}  {fb:>14}  {fd:>12}  {m.direction:<6}  {mark}")
+        lines.append(f"  {m.name:<{width}}  {fa:>14}  {fb:>14}  {fd:>12}  {m.direction:<6}  {verdict_text(m)}")
     lines.append("")
     rrd = {True: "identical content", False: f"content differs ({diff.rrd_detail})", None: diff.rrd_detail}
     lines.append(f"run.rrd: {rrd[diff.rrd_equal]}")

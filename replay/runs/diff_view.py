@@ -29,7 +29,7 @@ from rerun.chunk import Chunk, RrdReader
 
 from slamreplay.recorder.files import replacing
 from slamreplay.replay.engine import views
-from slamreplay.replay.runs.diff import RunDiff, diff_runs, formatted
+from slamreplay.replay.runs.diff import RunDiff, diff_runs, formatted, verdict_text
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.engine.observer import deterministic_batcher
 
@@ -117,7 +117,7 @@ def _markdown(diff: RunDiff, a: _RunContent, b: _RunContent) -> str:
              "| metric | A | B | B - A | better | verdict |", "|---|---:|---:|---:|---|---|"]
     for m in diff.metrics:
         fa, fb, fd = formatted(m)
-        verdict = {"worse": "**WORSE**", "better": "better"}.get(m.verdict, m.verdict)
+        verdict = verdict_text(m).replace("WORSE", "**WORSE**")
         lines.append(f"| `{m.name}` | {fa} | {fb} | {fd} | {m.direction} | {verdict} |")
     lines += ["", f"**{len(diff.worse)} metric(s) worse**" + (f": {', '.join(diff.worse)}" if diff.worse else ""),
               "", "#### What changed"]

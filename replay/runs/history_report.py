@@ -27,10 +27,10 @@ from slamreplay.replay.runs.compare import compare, fmt, side_of_rows
 from slamreplay.replay.runs.history import History, series
 from slamreplay.replay.runs.report import write_reports
 
-COLOURS = {"regression": "#c62828", "improvement": "#2e7d32", "changed": "#757575"}
+COLOURS = {"regression": "#c62828", "lost": "#c62828", "improvement": "#2e7d32", "changed": "#757575"}
 CSS = """body{font:14px system-ui,sans-serif;margin:1.2em;color:#222}table{border-collapse:collapse}
 td,th{padding:2px 8px;border-bottom:1px solid #ddd;text-align:left;vertical-align:top}
-.grid td{border:none;padding:4px}.regression{color:#c62828}.improvement{color:#2e7d32}
+.grid td{border:none;padding:4px}.regression,.lost{color:#c62828}.improvement{color:#2e7d32}
 tr:target{background:#fff3c4}svg{background:#fafafa;border:1px solid #e0e0e0}code{font-size:90%}
 .failed{color:#c62828}.small{color:#666;font-size:90%}"""
 
@@ -201,14 +201,14 @@ def render_markdown(history: History, changes: Sequence[Change], base: Path, out
         return f"[{text}]({prefix}{rel})"
 
     name = next((str(s.get("suite")) for s in history.status.values() if s.get("suite")), "suite")
-    worse = sum(1 for ch in changes if ch.verdict == "regression")
+    worse = sum(1 for ch in changes if ch.verdict in ("regression", "lost"))
     lines = [f"### History of suite {name}: {len(changes)} change(s), {worse} for the worse, over "
              f"{len(history.commits)} commit(s) ({link(out / 'index.html', 'report')})", ""]
     if not changes:
         return "\n".join(lines + ["No metric changed beyond seed noise and its tolerance.", ""])
     lines += ["| commit | cell | metric | before | after | change | verdict | report |",
               "| --- | --- | --- | ---: | ---: | ---: | --- | --- |"]
-    icon = {"regression": "🔴 ", "improvement": "🟢 ", "changed": ""}
+    icon = {"regression": "🔴 ", "lost": "🔴 ", "improvement": "🟢 ", "changed": ""}
     for ch in changes:
         c = history.commits[ch.index]
         rel = f" ({ch.relative:+.1%})" if ch.relative is not None else ""
@@ -228,8 +228,9 @@ def format_changes(history: History, changes: Sequence[Change]) -> str:
     for ch in changes:
         c = history.commits[ch.index]
         rel = f" ({ch.relative:+.1%})" if ch.relative is not None else ""
+        after = "missing" if ch.mean_after is None else fmt(ch.mean_after)
         lines.append(f"  {c.short} {ch.verdict.upper():11s} {ch.cell} {ch.metric}: {fmt(ch.mean_before)} -> "
-                     f"{fmt(ch.mean_after)}{rel}  {c.subject[:50]}")
+                     f"{after}{rel}  {c.subject[:50]}")
     return "changes:\n" + "\n".join(lines)
 
 

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from slamreplay.replay.runs.compare import VERDICT_ORDER, Comparison, MetricResult, fmt, fmt_ms
+from slamreplay.replay.runs.compare import REGRESSION_VERDICTS, VERDICT_ORDER, Comparison, MetricResult, fmt, fmt_ms
 from slamreplay.replay.runs.run import atomic_write
 from slamreplay.replay.engine.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, paired_with_truth, read_tum
 
@@ -28,7 +28,7 @@ A_COLOUR, B_COLOUR = "#7f7f7f", "#1f77b4"  # A grey (the baseline), B blue (the 
 CSS = """
 body{font-family:system-ui,sans-serif;margin:2em;color:#222}
 table{border-collapse:collapse;font-size:13px}td,th{padding:3px 8px;border-bottom:1px solid #ddd;text-align:right}
-td.l,th.l{text-align:left}tr.regression,tr.failed{background:#fde0e0;color:#8b0000;font-weight:bold}
+td.l,th.l{text-align:left}tr.regression,tr.failed,tr.lost{background:#fde0e0;color:#8b0000;font-weight:bold}
 tr.improvement{background:#e3f4e3;color:#1b5e20}tr.unchanged,tr.noise,tr.changed,tr.missing{color:#777}
 code{background:#f3f3f3;padding:0 3px}.legend span{margin-right:1em}td a{white-space:nowrap}
 """
@@ -42,7 +42,7 @@ def _named(metric: str, unit: str) -> str:
 def _strip_plot(r: MetricResult, width: int = 220, height: int = 34) -> str:
     """Per-seed values: A (grey) on the upper row, B (blue) on the lower, pairs joined."""
     vals = [*r.a, *r.b]
-    if not vals:
+    if not vals or len(r.a) != len(r.b):  # a lost metric: nothing in B to pair with
         return ""
     lo, hi = min(vals), max(vals)
     span = (hi - lo) or (abs(hi) or 1.0)
@@ -216,7 +216,7 @@ def _links_here(r: MetricResult, shown: set[tuple[str, str, str]]) -> bool:
     key = (r.recording, r.pipeline, r.variant)
     first = key not in shown
     shown.add(key)
-    return first or r.verdict in ("regression", "failed")
+    return first or r.verdict in REGRESSION_VERDICTS
 
 
 def _pair_label(ra: Row) -> str:
@@ -347,7 +347,8 @@ def render_markdown(c: Comparison, base: Path, links: Links | None = None, base_
         return None if href is None else prefix + href
 
     links = Links(run=run, pair=pair if inner.pair is not None else None)
-    mark = {"regression": "🔴 **regression**", "failed": "🔴 **failed**", "improvement": "🟢 improvement"}
+    mark = {"regression": "🔴 **regression**", "failed": "🔴 **failed**", "lost": "🔴 **lost** (missing in B)",
+            "improvement": "🟢 improvement"}
     reg = c.regressions
     lines = [f"### slamreplay compare: {len(reg)} regression(s)", "",
              f"A: `{c.a.label}` ({', '.join(c.a.code_versions)})  ",

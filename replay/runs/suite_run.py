@@ -269,7 +269,7 @@ def row(job: CellJob, code: str, error: str | None = None, cached: bool = False)
     return out
 
 
-ROW_METRIC_KEYS = ("metrics", "better", "tolerance", "rel_tolerance", "units", "targets")
+ROW_METRIC_KEYS = ("metrics", "better", "tolerance", "rel_tolerance", "units", "targets", "optional")
 
 
 def add_metrics(row: dict[str, Any], metrics: dict[str, Any]) -> None:
@@ -285,6 +285,8 @@ def add_metrics(row: dict[str, Any], metrics: dict[str, Any]) -> None:
         row["units"][name] = m.get("unit", "")
         if m.get("target") is not None:
             row["targets"][name] = m["target"]
+        if m.get("optional"):
+            row["optional"][name] = m["optional"]
 
 
 def normalized_row(row: dict[str, Any]) -> dict[str, Any]:
@@ -294,7 +296,8 @@ def normalized_row(row: dict[str, Any]) -> dict[str, Any]:
                       "tolerance": row.get("tolerance", {}).get(name, 0.0),
                       "rel_tolerance": row.get("rel_tolerance", {}).get(name, 0.0),
                       "unit": row.get("units", {}).get(name, ""),
-                      **({"target": row["targets"][name]} if name in row.get("targets", {}) else {})}
+                      **({"target": row["targets"][name]} if name in row.get("targets", {}) else {}),
+                      **({"optional": row["optional"][name]} if name in row.get("optional", {}) else {})}
                for name, v in values.items()}
     out = {k: v for k, v in row.items() if k not in ROW_METRIC_KEYS}
     add_metrics(out, entries)
