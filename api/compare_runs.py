@@ -103,7 +103,9 @@ def what_changed(changes: list[dict[str, Any]], a: Run, b: Run, topic_maps: tupl
         if field == "recording.sha256":
             va, vb = f"{a.recording} ({str(va)[:8]})", f"{b.recording} ({str(vb)[:8]})"
         name = FIELD_NAMES.get(field) or (f"config {field[7:]}" if field.startswith("config.") else
-                                          f"library {field[10:]}" if field.startswith("libraries.") else field)
+                                          f"library {field[10:]}" if field.startswith("libraries.") else
+                                          f"program {field[16:].replace('_sha256', ' sha256')}"
+                                          if field.startswith("pipeline_origin.") else field)
         # a config key of one side's pipeline only: listed apart, as there are many when the pipelines differ
         only = field.startswith("config.") and (va is None or vb is None)
         out.append({"field": name, "a": _shown(va), "b": _shown(vb), "only": only})
@@ -134,7 +136,7 @@ def two_runs(jobs: JobService, ids: list[str], tolerances: dict[str, str] | None
     counts = {v: sum(r["verdict"] == v for r in rows) for v in ("better", "worse", "same", "changed", LOST)}
     counts["worse"] += counts.pop(LOST)
     return {"a": a, "b": b, "changes": what_changed(d.changes, a, b, maps), "metrics": rows, "counts": counts,
-            "worse": d.worse, "plot": overlay(jobs, [a, b], ("A", "B"))}
+            "worse": d.worse, "programs": d.programs, "plot": overlay(jobs, [a, b], ("A", "B"))}
 
 
 def _trajectory(jobs: JobService, job_id: str, name: str) -> Any:
@@ -211,7 +213,7 @@ def runs_json(jobs: JobService, ids: list[str]) -> dict[str, Any]:
     if len(ids) == 2:
         ctx = two_runs(jobs, ids)
         return {"a": ids[0], "b": ids[1], "a_label": ctx["a"].label, "b_label": ctx["b"].label,
-                "changes": ctx["changes"], "worse": ctx["worse"],
+                "changes": ctx["changes"], "worse": ctx["worse"], "programs": ctx["programs"],
                 "metrics": [{k: r[k] for k in ("name", "unit", "a", "b", "delta", "verdict", "direction")}
                             for r in ctx["metrics"]], "page": f"/ui/compare?runs={','.join(ids)}"}
     ctx = many_runs(jobs, ids)

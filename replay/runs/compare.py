@@ -40,7 +40,7 @@ import numpy as np
 from scipy import stats
 
 from slamreplay.recorder.options import did_you_mean
-from slamreplay.replay.runs.diff import determinism_of, direction_verdict, judge_metric
+from slamreplay.replay.runs.diff import describe_origin, determinism_of, direction_verdict, judge_metric, origin_changes
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import LOST, direction_label, optional_reason, target_distance
 from slamreplay.replay.runs.suite_run import add_metrics, read_results, unfinished
@@ -103,6 +103,7 @@ class Comparison:
     only_b: list[str] = field(default_factory=list)
     failures: list[dict[str, Any]] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)  # e.g. cells whose program is not deterministic
+    programs: list[dict[str, str]] = field(default_factory=list)  # per cell with an external program: A's, B's
 
     @property
     def regressions(self) -> list[MetricResult]:
@@ -112,7 +113,7 @@ class Comparison:
         return {"a": self.a.label, "b": self.b.label, "code_versions": {"a": self.a.code_versions,
                 "b": self.b.code_versions}, "commits": self.commits, "changes": self.changes,
                 "only_in_a": self.only_a, "only_in_b": self.only_b, "failures": self.failures, "notes": self.notes,
-                "results": [asdict(r) for r in self.results],
+                "programs": self.programs, "results": [asdict(r) for r in self.results],
                 "regressions": [f"{r.recording}/{r.pipeline}/{r.variant}: {r.metric}" for r in self.regressions]}
 
 
@@ -144,6 +145,18 @@ def _run_row(run_dir: Path) -> dict[str, Any]:
             raise ReplayError(f"{run_dir}/metrics.json is missing or unreadable: {err}") from None
         add_metrics(out, metrics)
     return out
+
+
+def _origin(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None:
+    """The ``pipeline_origin`` of a cell's first run whose manifest records one (None for older runs)."""
+    for r in rows:
+        try:
+            origin = json.loads((Path(r["run_dir"]) / "manifest.json").read_text()).get("pipeline_origin")
+        except (OSError, json.JSONDecodeError, KeyError, TypeError):
+            continue
+        if isinstance(origin, dict):
+            return origin
+    return None
 
 
 def _libraries(rows: Sequence[Mapping[str, Any]]) -> dict[str, str]:
@@ -282,6 +295,10 @@ def compare(a: Side, b: Side, tolerances: Mapping[str, str] | None = None) -> Co
         if broke:
             out.results.append(MetricResult(*key, "(run status)", "none", "", [list(s) for s in broke], [], [],
                                             None, None, None, None, None, 0.0, None, "status", "failed"))
+        oa, ob = _origin(ga[key]), _origin(gb[key])
+        out.changes += origin_changes(oa, ob, prefix=f"{'/'.join(key)} ")
+        if describe_origin(oa) or describe_origin(ob):
+            out.programs.append({"cell": "/".join(key), "A": describe_origin(oa), "B": describe_origin(ob)})
         cfg_a, cfg_b = ga[key][0].get("config", {}), gb[key][0].get("config", {})
         for k in sorted(set(cfg_a) | set(cfg_b)):
             if cfg_a.get(k) != cfg_b.get(k):
@@ -330,6 +347,7 @@ def format_table(c: Comparison) -> str:
         lines += [f"  {line}" for line in c.commits[:20]]
     for ch in c.changes:
         lines.append(f"changed: {ch['field']}: {ch['a']!r} -> {ch['b']!r}")
+    lines += program_lines(c)
     lines.append("")
     lines.append(f"  {'cell':<40} {'metric':<26} {'A mean±sd':>20} {'B mean±sd':>20} {'B - A':>11} {'p':>7}  verdict")
     for r in c.results:
@@ -346,6 +364,17 @@ def format_table(c: Comparison) -> str:
     lines.append(f"Result: {len(reg)} regression(s)" + (": " + ", ".join(
         f"{r.recording}/{r.pipeline}/{r.variant} {r.metric}" for r in reg) if reg else ""))
     return "\n".join(lines)
+
+
+def program_lines(c: Comparison) -> list[str]:
+    """The external programs each side ran, per cell (one line when A's and B's are the same)."""
+    out = []
+    for p in c.programs:
+        if p["A"] == p["B"]:
+            out.append(f"program {p['cell']}: {p['A']} (A and B)")
+        else:
+            out += [f"program {p['cell']} A: {p['A'] or '-'}", f"program {p['cell']} B: {p['B'] or '-'}"]
+    return out
 
 
 def variants_table(rows: list[dict[str, Any]]) -> str:

@@ -56,6 +56,7 @@ class RunDiff:
     rrd_equal: bool | None = None
     rrd_detail: str = ""
     notes: list[str] = field(default_factory=list)  # e.g. a run found not deterministic (docs/external.md)
+    programs: dict[str, str] = field(default_factory=dict)  # "A"/"B" -> an external program's identity, in words
 
     @property
     def worse(self) -> list[str]:
@@ -68,7 +69,7 @@ class RunDiff:
 
     def to_json(self) -> dict[str, Any]:
         return {"a": self.a, "b": self.b, "changes": self.changes, "metrics": [asdict(m) for m in self.metrics],
-                "worse": self.worse, "lost": self.lost, "rrd_equal": self.rrd_equal, "rrd_detail": self.rrd_detail, "notes": self.notes}
+                "worse": self.worse, "lost": self.lost, "programs": self.programs, "rrd_equal": self.rrd_equal, "rrd_detail": self.rrd_detail, "notes": self.notes}
 
 
 def load_run(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -105,6 +106,55 @@ def parse_tolerances(items: list[str]) -> dict[str, str]:
             raise ReplayError(f"--tolerance {item!r}: {value!r} is not a number or percentage") from None
         out[name] = value
     return out
+
+
+# What a run's ``pipeline_origin`` says about the code that made it, beside slamreplay's own commit: a plugin's
+# distribution and version; an external program's version string, command, build command and the sha256 of its
+# executable, its declaration and each file its command names (docs/external.md); an evaluated estimate file's
+# sha256. Paths are left out: the same program on another machine is the same program.
+ORIGIN_FIELDS = ("distribution", "version", "command", "build", "executable_sha256", "declaration_sha256",
+                 "files_sha256", "sha256")
+
+
+def _origin_items(origin: Mapping[str, Any] | None) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key in ORIGIN_FIELDS:
+        value = (origin or {}).get(key)
+        if key == "files_sha256" and isinstance(value, Mapping):
+            out.update({f"files_sha256.{name}": h for name, h in value.items()})
+        elif value not in (None, "", [], {}):
+            out[key] = value
+    return out
+
+
+def origin_changes(oa: Mapping[str, Any] | None, ob: Mapping[str, Any] | None, prefix: str = "") -> list[dict[str, Any]]:
+    """Each field of two runs' ``pipeline_origin`` (``ORIGIN_FIELDS``, a file's hash each) that differs, as a
+    change ``{"field": "pipeline_origin.executable_sha256", "a": ..., "b": ...}``; none when either run predates
+    origins. Two runs of programs with different hashes are never "nothing changed"."""
+    if not oa or not ob:
+        return []
+    ia, ib = _origin_items(oa), _origin_items(ob)
+    return [{"field": f"{prefix}pipeline_origin.{key}", "a": ia.get(key), "b": ib.get(key)}
+            for key in sorted(set(ia) | set(ib)) if ia.get(key) != ib.get(key)]
+
+
+def describe_origin(origin: Mapping[str, Any] | None) -> str:
+    """An external program's or estimate file's identity in one line: version, command, build command and
+    hashes (12 digits); "" for a built-in or plugin pipeline, whose code is slamreplay's commit or its package."""
+    items = _origin_items(origin)
+    if not any("sha256" in key for key in items):
+        return ""
+    words = []
+    for key, value in items.items():
+        if key == "distribution":
+            continue
+        if "sha256" in key:
+            label = {"executable_sha256": "executable", "declaration_sha256": "declaration",
+                     "sha256": "file"}.get(key) or f"file {key.split('.', 1)[1]}"
+            words.append(f"{label} {str(value)[:12]}")
+        else:
+            words.append(f"{key} {' '.join(value) if isinstance(value, list) else value!s}")
+    return f"{items.get('distribution', 'program')}: " + ", ".join(words)
 
 
 def metric_tolerance(entry: Mapping[str, Any], a: float | None, override: str | None = None) -> float:
@@ -200,11 +250,9 @@ def diff_runs(a_dir: str | Path, b_dir: str | Path, tolerances: Mapping[str, str
         va, vb = _get(ma, key), _get(mb, key)
         if va != vb:
             out.changes.append({"field": key, "a": va, "b": vb})
-    oa, ob = ma.get("pipeline_origin"), mb.get("pipeline_origin")
-    if oa and ob:  # where the pipeline came from (a plugin's distribution and version); older runs lack it
-        for key in ("distribution", "version", "executable_sha256"):  # the last: an external program's (external.md)
-            if oa.get(key) != ob.get(key):
-                out.changes.append({"field": f"pipeline_origin.{key}", "a": oa.get(key), "b": ob.get(key)})
+    out.changes += origin_changes(ma.get("pipeline_origin"), mb.get("pipeline_origin"))
+    out.programs = {side: describe_origin(m.get("pipeline_origin")) for side, m in (("A", ma), ("B", mb))
+                    if describe_origin(m.get("pipeline_origin"))}
     for section in ("config", "libraries"):
         ca, cb = ma.get(section, {}), mb.get(section, {})
         for key in sorted(set(ca) | set(cb)):
@@ -268,7 +316,9 @@ def format_table(diff: RunDiff) -> str:
         for c in diff.changes:
             lines.append(f"  {c['field']}: {json.dumps(c['a'])} -> {json.dumps(c['b'])}")
     else:
-        lines.append("What changed: nothing (same recording, pipeline, config, seed and code)")
+        lines.append("What changed: nothing (same recording, pipeline, config, seed and code" +
+                     (", same program" if diff.programs else "") + ")")
+    lines += [f"  program {side}: {text}" for side, text in diff.programs.items()]
     lines.append("")
     width = max([len(m.name) for m in diff.metrics] + [6])
     lines.append(f"  {'metric':<{width}}  {'A':>14}  {'B':>14}  {'B - A':>12}  better  verdict")

@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from slamreplay.replay.runs.compare import REGRESSION_VERDICTS, VERDICT_ORDER, Comparison, MetricResult, fmt, fmt_ms
+from slamreplay.replay.runs.compare import (REGRESSION_VERDICTS, VERDICT_ORDER, Comparison, MetricResult, fmt, fmt_ms,
+                                             program_lines)
 from slamreplay.replay.runs.run import atomic_write
 from slamreplay.replay.engine.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, paired_with_truth, read_tum
 
@@ -280,8 +281,10 @@ def render_html(c: Comparison, base: Path, links: Links | None = None) -> str:
     if c.changes:
         out.append("<ul>" + "".join(f"<li><code>{e(ch['field'])}</code>: {e(repr(ch['a']))} &rarr; "
                                     f"{e(repr(ch['b']))}</li>" for ch in c.changes) + "</ul>")
+    if c.programs:
+        out.append("<ul>" + "".join(f"<li>{e(line)}</li>" for line in program_lines(c)) + "</ul>")
     if not c.commits and not c.changes:
-        out.append("<p>No configuration or library change; code versions as above.</p>")
+        out.append("<p>No configuration, library or program change; code versions as above.</p>")
     out += ["<h2>Metrics</h2>",
             "<p class='legend'>Verdict: a <b>regression</b> is worse beyond tolerance and significant "
             "(paired t-test over seeds, p &lt; 0.05; one seed: tolerance only). Plots: per-seed values, "
@@ -358,6 +361,7 @@ def render_markdown(c: Comparison, base: Path, links: Links | None = None, base_
         lines += [f"Commits A..B: {len(c.commits)}", "", *[f"- `{x}`" for x in c.commits[:30]], ""]
     for ch in c.changes:
         lines.append(f"- changed `{ch['field']}`: `{ch['a']!r}` → `{ch['b']!r}`")
+    lines += [f"- {line}" for line in program_lines(c)]
     head = ["| cell | metric | A mean ± sd | B mean ± sd | B - A | p | verdict | runs |",
             "| --- | --- | ---: | ---: | ---: | ---: | --- | --- |"]
     rows = ranked(c.results)
