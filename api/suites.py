@@ -26,6 +26,7 @@ from slamreplay.api.store import JobRow
 from slamreplay.recorder.version import git_commit
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.runs.compare import Side, run_row, side_of_rows
+from slamreplay.replay.runs.diff import determinism_of
 from slamreplay.replay.runs.suite import Suite, canonical, parse_suite
 from slamreplay.replay.runs.suite_run import add_metrics
 
@@ -243,6 +244,8 @@ class SuiteService:
             manifest = json.loads((run_dir / "manifest.json").read_text())
             row["code_version"] = manifest.get("slamreplay", {}).get("git_commit")
             row["config_hash"] = manifest.get("config_hash")
+            if (deterministic := determinism_of(manifest)) is not None:  # an external program's (external.md)
+                row["deterministic"] = deterministic
         except (OSError, json.JSONDecodeError):
             pass
         if c.job.status == "succeeded":

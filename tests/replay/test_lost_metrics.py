@@ -7,6 +7,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from conftest import write_tiny_recording
 
@@ -119,3 +120,33 @@ def test_history_flags_the_commit_that_lost_a_metric() -> None:
     lost = [ch for ch in changes if ch.verdict == LOST]
     assert [(ch.index, ch.metric, ch.mean_after) for ch in lost] == [(2, "ape_rmse_m", None)]
     assert lost[0].previous == commits[1].sha and lost[0].mean_before == pytest.approx(0.016)
+
+
+def _noisy_rows(code: str, rng: np.random.Generator, scale: float = 1.0, seeds: int = 5) -> list[dict[str, Any]]:
+    """A program that is not deterministic: eight correlated trajectory metrics, 5 % run-to-run noise."""
+    base = {f"m{k}": 0.02 * (k + 1) for k in range(8)}
+    rows = []
+    for i in range(seeds):
+        shared = rng.normal(0.0, 0.04)
+        rows.append({k: v * scale * (1 + shared + rng.normal(0.0, 0.03)) for k, v in base.items()})
+    out = _rows(code, rows)
+    for r in out:
+        r["deterministic"] = False
+        r["rel_tolerance"] = {k: 1e-3 for k in r["metrics"]}
+    return out
+
+
+def test_a_program_that_is_not_deterministic_is_judged_by_its_spread() -> None:
+    """Unchanged code, 400 comparisons: at most ALPHA of them report a regression (Holm over the metrics; a test
+    per metric alone would report about a fifth); a 30 % regression is still found; one seed gives no verdict."""
+    rng = np.random.default_rng(7)
+    alarms = sum(bool(compare(Side("A", _noisy_rows("a", rng), "results", ["a"]),
+                              Side("B", _noisy_rows("b", rng), "results", ["b"])).regressions) for _ in range(400))
+    assert alarms / 400 <= 0.07
+    found = sum(bool(compare(Side("A", _noisy_rows("a", rng), "results", ["a"]),
+                             Side("B", _noisy_rows("b", rng, 1.3), "results", ["b"])).regressions) for _ in range(50))
+    assert found >= 45
+    one = compare(Side("A", _noisy_rows("a", rng, seeds=1), "results", ["a"]),
+                  Side("B", _noisy_rows("b", rng, 3.0, seeds=1), "results", ["b"]))
+    assert not one.regressions and {r.verdict for r in one.results} == {"noise"}
+    assert "no spread" in one.results[0].test and "not deterministic" in one.notes[0]
