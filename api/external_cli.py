@@ -13,6 +13,8 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+from slamreplay.replay.tools.export_names import exports_help
+
 EXIT_OK = 0
 
 
@@ -85,9 +87,7 @@ def add_external_parsers(sub: Any, quiet: argparse.ArgumentParser) -> None:
 
     ex = sub.add_parser("export", parents=[quiet], help="write a recording's data as files an external program reads",
                         description="Write the exports of REC that external pipelines ask for (docs/external.md) "
-                                    "into DIR: odometry_tum (odometry.tum), odometry_csv (odometry.csv: t_ns,x,y,"
-                                    "yaw), range_bearing_csv (range_bearing.csv: t_ns,landmark_id,range_m,"
-                                    "bearing_rad), images (images/<t_ns>.png and images/times.csv).")
+                                    f"into DIR: {exports_help()}.")
     ex.add_argument("recording", metavar="REC", help="an .mcap recording")
     ex.add_argument("--out", required=True, metavar="DIR", help="folder to write into (created if needed)")
     ex.add_argument("--what", default="odometry_tum,odometry_csv", metavar="EXPORT[,EXPORT]",

@@ -177,8 +177,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
     write_reports(result, args.report, args.markdown, pair_links, base_url=args.base_url)
     if args.json:
         print(json.dumps(result.to_json(), indent=2, default=str))
-    else:
-        print(format_table(result))
+    else:  # -q: the verdict line alone (the exit code says it too)
+        print(format_table(result).splitlines()[-1] if args.quiet else format_table(result))
     return 1 if result.regressions else 0
 
 

@@ -167,8 +167,8 @@ def prepare_run_dir(out_dir: Path) -> None:
     """Create ``out_dir`` (and its parents) for a new run.
 
     A run never overwrites another: ReplayError when ``out_dir`` holds a succeeded or running run,
-    or anything that is not a run. A failed run (manifest ``status: failed``) never blocks its
-    retry: its files are removed and the directory reused, so the same ``--out`` works once the
+    or anything that is not a run. A failed or interrupted run (manifest ``status: failed`` or
+    ``interrupted``) never blocks its retry: its files are removed and the directory reused, so the same ``--out`` works once the
     cause is fixed.
     """
     if out_dir.exists() and not out_dir.is_dir():
@@ -178,7 +178,7 @@ def prepare_run_dir(out_dir: Path) -> None:
             manifest = json.loads((out_dir / "manifest.json").read_text())
         except (OSError, ValueError):
             manifest = None
-        if not isinstance(manifest, dict) or manifest.get("status") != "failed":
+        if not isinstance(manifest, dict) or manifest.get("status") not in ("failed", "interrupted"):
             raise ReplayError(f"{out_dir} already exists and holds {_what_is_there(out_dir, manifest)}; a run never "
                               f"overwrites another: choose a new --out")
         for path in _failed_run_files(out_dir, manifest):
@@ -305,6 +305,10 @@ def run_recording(recording: str | Path, pipeline: str | type[Pipeline], out_dir
         manifest.update(status="failed", error=str(err))
         lines.append(f"FAILED: {err}")
         raise ReplayError(str(err)) from err
+    except KeyboardInterrupt:  # the user's Ctrl-C: not a fault of slamreplay's (the CLI exits 130)
+        manifest.update(status="interrupted", error="interrupted by the user (Ctrl-C)")
+        lines.append("INTERRUPTED: by the user (Ctrl-C)")
+        raise
     except BaseException as err:
         if isinstance(err, OSError) and err.errno in DISK_FULL:
             msg = _disk_full(out_dir)

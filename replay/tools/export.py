@@ -28,6 +28,7 @@ from slamreplay.recorder.files import atomic_write
 from slamreplay.recorder.messages import TOPIC_CAMERA_IMAGE, TOPIC_ODOM, TOPIC_RANGE_BEARING
 from slamreplay.replay.engine.reader import RecordingReader
 from slamreplay.replay.engine.trajectory import to_tum
+from slamreplay.replay.tools.export_names import EXPORT_FILES
 from slamreplay.replay.errors import ReplayError
 
 
@@ -154,13 +155,14 @@ def export_ros2_bag(reader: RecordingReader, out_dir: Path) -> Path:
     return folder
 
 
-EXPORTS: dict[str, tuple[str, Callable[[RecordingReader, Path], Path]]] = {
+EXPORTS: dict[str, tuple[str, Callable[[RecordingReader, Path], Path]]] = {  # what each reads, its writer
     "odometry_tum": (TOPIC_ODOM, export_odometry_tum),
     "odometry_csv": (TOPIC_ODOM, export_odometry_csv),
     "range_bearing_csv": (TOPIC_RANGE_BEARING, export_range_bearing_csv),
     "images": (TOPIC_CAMERA_IMAGE, export_images),
     "ros2_bag": (TOPIC_ODOM, export_ros2_bag),
 }
+assert list(EXPORTS) == list(EXPORT_FILES), "each export is described once, in export_names.EXPORT_FILES"
 
 
 def parse_exports(text: str | Iterable[str]) -> list[str]:

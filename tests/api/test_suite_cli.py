@@ -174,6 +174,8 @@ def test_compare_exit_codes_and_reports(tmp_path: Path, capsys: pytest.CaptureFi
     assert "<tr class='regression'>" in html.read_text() and "landmark_rmse_m" in md.read_text()
     code, out, err = run_cli(["compare", str(a), str(b), "--tolerance", "landmark_rmse_m=100%", "--json"], capsys)
     assert code == 0 and json.loads(out)["regressions"] == []
+    code, out, err = run_cli(["compare", str(a), str(b), "-q"], capsys)  # quiet: the verdict line alone
+    assert code == 1 and out.splitlines() == ["Result: 1 regression(s): landmarks/dslam/default landmark_rmse_m"]
 
 
 def test_compare_run_directories(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

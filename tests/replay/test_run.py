@@ -234,3 +234,24 @@ def test_the_log_is_followed_live_and_ends_whole(tmp_path: Path) -> None:
     assert not (tmp_path / "run" / LIVE_LOG).exists()
     log = (tmp_path / "run" / "log.txt").read_text()
     assert log.startswith(seen[0].splitlines()[0]) and "finished:" in log
+
+
+def test_ctrl_c_is_recorded_as_interrupted(tiny_recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+                                           ) -> None:
+    """The user's Ctrl-C mid-run: manifest status interrupted (no 'internal error', no traceback in the log),
+    nothing finished-looking left, and the same --out works again."""
+    from slamreplay.replay.pipelines.odometry import OdometryPipeline
+
+    def interrupt(self: object, env: object) -> None:
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(OdometryPipeline, "step", interrupt)
+        with pytest.raises(KeyboardInterrupt):
+            run_recording(tiny_recording, "odometry", tmp_path / "r")
+    man = json.loads((tmp_path / "r" / "manifest.json").read_text())
+    assert (man["status"], man["error"]) == ("interrupted", "interrupted by the user (Ctrl-C)")
+    log = (tmp_path / "r" / "log.txt").read_text()
+    assert "INTERRUPTED: by the user (Ctrl-C)" in log and "Traceback" not in log and "internal error" not in log
+    assert sorted(p.name for p in (tmp_path / "r").iterdir()) == ["log.txt", "manifest.json"]
+    assert run_recording(tiny_recording, "odometry", tmp_path / "r").status == "succeeded"
