@@ -11,6 +11,12 @@ from its own code only: the checkout the user works in is never touched.
 ``SLAMREPLAY_REV_PYTHON`` names an interpreter that already has the dependencies, to use
 instead of building a virtual environment (tests; a cluster image): cells then run the worktree's
 own CLI with that interpreter (``_source_cli``), still the revision's code.
+
+A revision of **an external program's own repository** (docs/external.md: a declaration that lives in
+a git checkout other than slamreplay's, e.g. ``compare rev:HEAD~1 rev:HEAD`` run inside it) is that
+repository's worktree with no environment of its own: cells run with this slamreplay, the
+declaration is read from the worktree (``revision_env``) and its ``build`` key builds the program
+there, so only the program differs between two such revisions.
 """
 
 from __future__ import annotations
@@ -29,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from slamreplay.recorder.version import SOURCE_ROOT
-from slamreplay.replay.engine.declared import DECLARATIONS_ENV
+from slamreplay.replay.engine.declared import DECLARATIONS_ENV, declaration_files
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.tools.child import child_setup
 from slamreplay.replay.runs.suite_run import CellJob
@@ -85,6 +91,35 @@ def find_repo(start: Path | None = None) -> Path:
         except ReplayError:
             continue
     raise ReplayError("not in a git checkout: --rev and rev: need the slamreplay repository (cd into it)")
+
+
+def is_slamreplay_checkout(repo: Path) -> bool:
+    """Whether ``repo`` is a checkout of slamreplay itself (its pyproject.toml names the project)."""
+    try:
+        text = (repo / "pyproject.toml").read_text()
+    except OSError:
+        return False
+    return any(line.replace(" ", "") == 'name="slamreplay"' for line in text.splitlines())
+
+
+def declared_in(repo: Path) -> list[Path]:
+    """The pipeline declaration files (``$SLAMREPLAY_PIPELINES``, ./pyproject.toml) that live inside ``repo``."""
+    root = repo.resolve()
+    return [p for p in declaration_files() if p.is_relative_to(root)]
+
+
+def repository_of_revisions(repo: Path) -> str:
+    """What ``rev:`` revisions of ``repo`` are, in words; ReplayError when they can be neither (see the module
+    docstring): slamreplay's own code, or an external program declared inside ``repo``."""
+    if is_slamreplay_checkout(repo):
+        return f"slamreplay's repository {repo}"
+    files = declared_in(repo)
+    if not files:
+        raise ReplayError(f"{repo} is neither slamreplay's repository nor holds a pipeline declaration of "
+                          f"${DECLARATIONS_ENV}: a revision is slamreplay's code (cd into its checkout) or an "
+                          f"external program's, declared in a file inside that program's repository (docs/external.md)")
+    return (f"the program repository {repo} (declared in {', '.join(str(f.relative_to(repo.resolve())) for f in files)}"
+            f"; run with this slamreplay)")
 
 
 def resolve(repo: Path, rev: str) -> str:
@@ -156,7 +191,10 @@ def prepare_revision(repo: Path, rev: str, cache: Path, note: Callable[[str], No
     sha = resolve(repo, rev)
     root = cache / "revs" / sha
     src, venv = root / "src", root / "venv"
-    override = os.environ.get("SLAMREPLAY_REV_PYTHON")
+    program = not is_slamreplay_checkout(repo)
+    if program:
+        note(f"{rev} is a revision of {repository_of_revisions(repo)}")
+    override = os.environ.get("SLAMREPLAY_REV_PYTHON") or (sys.executable if program else None)
     lock = cache / "revs" / f".{sha}.lock"
     shown = sha[:10] if rev == sha else f"{rev} ({sha[:10]})"
     if not (root / "ready").is_file():
@@ -192,6 +230,8 @@ def prepare_revision(repo: Path, rev: str, cache: Path, note: Callable[[str], No
                         raise ReplayError(f"revision {rev} ({sha[:10]}) does not build: `{name}` failed; "
                                           f"see {keep}")
             (root / "ready").write_text(sha + "\n")
+    if program:  # this slamreplay, the program's worktree
+        return Revision(rev, sha, src, (sys.executable, "-c", _INSTALLED_CLI), {}, repo)
     if override:
         return Revision(rev, sha, src, (override, "-c", _source_cli(src), str(src)), {}, repo)
     return Revision(rev, sha, src, (str(venv / "bin" / "slamreplay"),), {}, repo)
@@ -203,6 +243,7 @@ def prepare_revision(repo: Path, rev: str, cache: Path, note: Callable[[str], No
 _NAMESPACED_CLI = ("import sys, types; src = sys.argv.pop(1); ns = types.ModuleType('slamreplay'); "
                    "ns.__path__ = [src]; sys.modules['slamreplay'] = ns; "
                    "from slamreplay.api.cli import main; sys.exit(main(sys.argv[1:]))")
+_INSTALLED_CLI = "import sys; from slamreplay.api.cli import main; sys.exit(main(sys.argv[1:]))"
 _BARE_CLI = "import sys; sys.path.insert(0, sys.argv.pop(1)); from api.cli import main; sys.exit(main(sys.argv[1:]))"
 
 
