@@ -28,6 +28,8 @@ def _metric(m: Any) -> dict[str, Any]:
     out = {"better": m.better, "unit": m.unit, "description": m.description}
     if getattr(m, "target", None) is not None:
         out["target"] = m.target
+    if getattr(m, "optional", ""):
+        out["optional"] = m.optional
     return out
 
 
@@ -75,7 +77,8 @@ def _print_row(r: dict[str, Any], full: bool) -> None:
         return
     for k, m in r["metrics"].items():
         unit = f"{m['unit']}, " if m["unit"] else ""
-        print(f"  metric {k} ({unit}{_direction(m)}): {m['description']}")
+        optional = f" [may be left out: {m['optional']}]" if m.get("optional") else ""
+        print(f"  metric {k} ({unit}{_direction(m)}): {m['description']}{optional}")
 
 
 def cmd_pipelines(args: argparse.Namespace) -> int:
