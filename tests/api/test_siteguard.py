@@ -143,3 +143,14 @@ def test_allowed_hosts_setting() -> None:
                                                                                                    "10.0.0.5")
     with pytest.raises(ValidationError, match="'http://slam.lan' is not a host name"):
         Settings.from_env({"SLAMREPLAY_ALLOWED_HOSTS": "http://slam.lan"})
+
+
+@pytest.mark.parametrize("path", ["/", "/runs", "/ui/jobs/0123456789abcdef/delete", "/jobs", "/docs",
+                                  "/static/favicon.svg", "/no/such/page"])
+def test_no_page_can_be_framed_by_another_site(client: TestClient, path: str) -> None:
+    """Clickjacking: every answer (pages, forms, JSON, static files, errors) forbids framing by any site."""
+    r = client.get(path)
+    assert r.headers["content-security-policy"] == "frame-ancestors 'none'"
+    assert r.headers["x-frame-options"] == "DENY" and r.headers["x-content-type-options"] == "nosniff"
+    refused = client.get(path, headers={"Host": "evil.example"})
+    assert refused.status_code == 400 and refused.headers["x-frame-options"] == "DENY"
