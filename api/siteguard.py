@@ -146,13 +146,19 @@ class SiteGuard:
 
 
 def _with_headers(send: Send) -> Send:
-    """``send`` adding ``SECURITY_HEADERS`` to the response's start (replacing any of the same name)."""
+    """``send`` adding ``SECURITY_HEADERS`` to the response's start (replacing any of the same name, but for a
+    route's own Content-Security-Policy, the web viewer's, which keeps its directives and gains frame-ancestors)."""
     names = {name for name, _ in SECURITY_HEADERS}
+    csp = SECURITY_HEADERS[0][1]
 
     async def wrapped(message: Message) -> None:
         if message["type"] == "http.response.start":
-            kept = [(k, v) for k, v in message.get("headers", []) if k.lower() not in names]
-            message = {**message, "headers": [*kept, *SECURITY_HEADERS]}
+            headers = message.get("headers", [])
+            own = [v for k, v in headers if k.lower() == b"content-security-policy"]
+            kept = [(k, v) for k, v in headers if k.lower() not in names]
+            added = [(k, own[0] + b"; " + csp if own and b"frame-ancestors" not in own[0] else own[0] if own else v)
+                     if k == b"content-security-policy" else (k, v) for k, v in SECURITY_HEADERS]
+            message = {**message, "headers": [*kept, *added]}
         await send(message)
 
     return wrapped
