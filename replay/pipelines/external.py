@@ -3,12 +3,14 @@
 A declaration (``[pipelines.NAME]`` of a file ``slamreplay.replay.engine.declared`` finds) names a command
 with placeholders for the recording, the exports slamreplay writes for it, and the folder the program
 writes its estimate into. The replay reads the recording's ground truth (drawn as it goes); at the end the
-exports are written to a temporary folder, the program is run once (twice with ``check_determinism``) under
-a wall-time and a memory limit, its TUM trajectory is read, moved to the true start pose (``frame =
-"start"``) and scored as any pipeline's trajectory is. Its stdout and stderr go to the run's log (and the
-Rerun log view) and to the artifacts ``program_stdout.txt``/``program_stderr.txt``; the manifest records the
-command, the program's version string and the sha256 of its executable (``pipeline_origin``) and what the
-run did (``pipeline_run``).
+exports are written to a temporary folder, the program is run once (twice with ``check_determinism``),
+contained (``slamreplay.replay.tools.containment``: every process it starts is killed at its exit, its limit or
+a cancel; its output is capped; a wall-time limit and an address-space limit, 4096 MiB unless declared), its TUM
+trajectory is read, moved to the true start pose (``frame = "start"``) and scored as any pipeline's trajectory
+is. Its stdout and stderr go to the run's log (the first ``LOG_LINES`` lines; and the Rerun log view) and to the
+artifacts ``program_stdout.txt``/``program_stderr.txt``, kept by a failed run too, with the landmark map it
+wrote (``program_landmarks.csv``); the manifest records the command, the program's version string and the
+sha256 of its executable (``pipeline_origin``) and what the run did (``pipeline_run``).
 """
 
 from __future__ import annotations
@@ -21,10 +23,8 @@ import shlex
 import shutil
 import signal
 import string
-import subprocess
 import sys
 import tempfile
-import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,7 +37,14 @@ from slamreplay.algorithms.observe import Points
 from slamreplay.recorder.messages import TOPIC_GROUND_TRUTH_LANDMARKS, TOPIC_ODOM, LandmarkMap
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import specs
-from slamreplay.replay.tools.child import child_setup
+from slamreplay.replay.tools.containment import (
+    OUTPUT_CAP_BYTES,
+    head_lines,
+    memory_limit_mib,
+    printable,
+    read_result,
+    run_contained,
+)
 from slamreplay.replay.tools.estimates import F64, I64, EstimateReplay, anchor_at, read_tum_ns
 from slamreplay.replay.tools.export import EXPORTS, export_recording, export_topics
 
@@ -45,6 +52,7 @@ PLACEHOLDERS = ("recording", "exports", "out", "seed", "config", "here", "python
 KEYS = {"command", "summary", "exports", "stdin", "output", "version_command", "timeout_s", "memory_mib", "frame",
         "topics", "config", "env", "adapter", "build", "landmarks"}
 BUILD_TIMEOUT_S = 600.0
+VERSION_TIMEOUT_S = 10.0
 LOG_LINES = 200  # lines of each stream copied into the run's log; the whole stream is an artifact
 
 
@@ -159,16 +167,29 @@ def static_values(decl: Declaration) -> dict[str, str]:
             "out": "{out}", "seed": "{seed}", "config": "{config}"}
 
 
+def _run_tool(decl: Declaration, argv: list[str], timeout_s: float, memory_mib: int | None) -> tuple[int | None,
+                                                                                               bytes, str, str]:
+    """A declaration's version or build command, contained as the program is: (exit status or None, the start of
+    its stdout, its last stderr line, why it did not start or end); the status is None when it did not."""
+    with tempfile.TemporaryDirectory(prefix="slamreplay-tool-", ignore_cleanup_errors=True) as tmp:
+        exe = _resolve(argv[0], decl.here)
+        done = run_contained([str(exe) if exe else argv[0], *argv[1:]], cwd=decl.here, env=dict(os.environ),
+                             stdin=None, memory_mib=memory_mib, timeout_s=timeout_s, work=Path(tmp))
+        with open(done.stdout_path, "rb") as f:
+            head = f.read(1 << 16)
+    why = (done.start_error or (f"past its limit of {timeout_s:g} s" if done.timed_out else ""))
+    return (None if why else done.status), head, done.last_stderr_line, why
+
+
 def program_version(decl: Declaration) -> str:
-    """The first line the version command prints ('' without one; the error, shortened, when it fails)."""
+    """The first line the version command prints ('' without one; the reason, shortened, when it fails)."""
     if not decl.version_command:
         return ""
     argv = [_expand(a, static_values(decl)) for a in decl.version_command]
-    try:
-        out = subprocess.run(argv, cwd=decl.here, capture_output=True, text=True, timeout=10, check=False)
-    except (OSError, subprocess.TimeoutExpired) as err:
-        return f"unknown ({type(err).__name__})"
-    lines = (out.stdout or out.stderr).strip().splitlines()
+    status, out, last_err, why = _run_tool(decl, argv, VERSION_TIMEOUT_S, memory_limit_mib(decl.memory_mib))
+    if status is None:
+        return f"unknown ({why[:100]})"
+    lines = head_lines(out, 1)[0] if out.strip() else [last_err]
     return lines[0][:200] if lines else ""
 
 
@@ -176,7 +197,7 @@ def build_program(decl: Declaration) -> None:
     """Run the declaration's ``build`` command in its folder (once per process and declaration; a lock keeps two
     processes from building one folder at once). It should be idempotent and quick when nothing changed (make):
     at a git revision (``compare rev:``, ``history``) the declaration is read from that revision's worktree, so
-    the program built is that revision's."""
+    the program built is that revision's. It is contained as the program is, without a memory limit."""
     if not decl.build:
         return
     import fcntl
@@ -185,16 +206,13 @@ def build_program(decl: Declaration) -> None:
     lock = Path(tempfile.gettempdir()) / f"slamreplay-build-{hashlib.sha256(str(decl.here).encode()).hexdigest()[:16]}"
     with open(lock, "w") as held:
         fcntl.flock(held, fcntl.LOCK_EX)
-        try:
-            done = subprocess.run(argv, cwd=decl.here, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S,
-                                  check=False)
-        except (OSError, subprocess.TimeoutExpired) as err:
-            raise ReplayError(f"external pipeline {decl.name}: build {' '.join(argv)} in {decl.here} did not run: "
-                              f"{err}") from None
-    if done.returncode != 0:
-        last = _last_line(done.stderr) or _last_line(done.stdout)
+        status, out, last_err, why = _run_tool(decl, argv, BUILD_TIMEOUT_S, None)
+    if status is None:
+        raise ReplayError(f"external pipeline {decl.name}: build {' '.join(argv)} in {decl.here} did not run: {why}")
+    if status != 0:
+        last = last_err or _last_line(out.decode("utf-8", "replace"))
         raise ReplayError(f"external pipeline {decl.name}: build {' '.join(argv)} in {decl.here} exited with "
-                          f"{done.returncode}: {last}")
+                          f"{status}: {last}")
 
 
 def origin_of(decl: Declaration) -> dict[str, Any]:
@@ -211,19 +229,45 @@ def origin_of(decl: Declaration) -> dict[str, Any]:
 
 @dataclass(frozen=True, slots=True)
 class ProgramRun:
-    """What one run of the program did."""
+    """What one run of the program did.
+
+    ``stdout`` and ``stderr`` are what was kept of each stream (the first ``OUTPUT_CAP_BYTES``, then a line
+    saying how many bytes were dropped); ``last_stderr`` is the last line it wrote on stderr, past the cap too.
+    ``output`` and ``landmarks`` are the files it wrote, read by ``read_result`` (None: not written, or refused
+    for the reason in ``output_problem``/``landmarks_problem``). ``killed`` names the processes killed besides
+    its main one: left running at its exit, or alive at its time limit.
+    """
 
     argv: list[str]
-    status: int
-    stdout: str
-    stderr: str
+    status: int  # negative: killed by that signal
+    stdout: bytes
+    stderr: bytes
     wall_s: float
     output: bytes | None
-    landmarks: bytes | None = None  # the landmark map the program wrote (``Declaration.landmarks``), if any
+    landmarks: bytes | None = None
+    last_stderr: str = ""
+    timed_out: bool = False
+    killed: tuple[tuple[int, str], ...] = ()
+    dropped: Mapping[str, int] = field(default_factory=dict)
+    memory_mib: int = 0
+    output_problem: str | None = None
+    landmarks_problem: str | None = None
 
 
-def run_program(decl: Declaration, values: Mapping[str, str], out_dir: Path) -> ProgramRun:
-    """Run the program once with ``values`` for the placeholders, its output folder ``out_dir`` (created)."""
+class ProgramError(ReplayError):
+    """A run of an external program failed; ``artifacts`` are the files its run directory keeps all the same (the
+    program's capped output, the landmark map it wrote)."""
+
+    def __init__(self, message: str, artifacts: Mapping[str, bytes]) -> None:
+        super().__init__(message)
+        self.artifacts = dict(artifacts)
+
+
+def run_program(decl: Declaration, values: Mapping[str, str], out_dir: Path,
+                scratch: Path | None = None) -> ProgramRun:
+    """Run the program once, contained, with ``values`` for the placeholders, its output folder ``out_dir``
+    (created; its capped stdout and stderr go to a folder beside it); ``scratch``, the temporary folder holding
+    them, is removed if this process dies during the run (``run_contained``)."""
     out_dir.mkdir(parents=True)
     argv = [_expand(a, values) for a in decl.command]
     exe = _resolve(argv[0], decl.here)
@@ -233,27 +277,28 @@ def run_program(decl: Declaration, values: Mapping[str, str], out_dir: Path) -> 
     argv[0] = str(exe)
     env = {**os.environ, **{f"SLAMREPLAY_{k.upper()}": v for k, v in values.items() if k != "here"},
            **{k: _expand(v, values) for k, v in decl.env.items()}}
-    stdin_path = Path(_expand(decl.stdin, values)) if decl.stdin else None
-    tic = time.perf_counter()
-    with open(stdin_path if stdin_path else os.devnull, "rb") as stdin:
-        try:
-            proc = subprocess.Popen(argv, cwd=decl.here, stdin=stdin, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                    env=env, start_new_session=True, preexec_fn=child_setup(decl.memory_mib))
-        except OSError as err:
-            raise ReplayError(f"external pipeline {decl.name}: cannot start {argv[0]}: {err.strerror}") from None
-        try:
-            out, err_bytes = proc.communicate(timeout=decl.timeout_s)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
-            raise ReplayError(f"external pipeline {decl.name}: {Path(argv[0]).name} ran past its wall-time limit of "
-                              f"{decl.timeout_s:g} s and was killed (timeout_s in {decl.path})") from None
-    stdout, stderr = out.decode(errors="replace"), err_bytes.decode(errors="replace")
-    output = Path(_expand(decl.output, values))
-    marks = Path(_expand(decl.landmarks, values)) if decl.landmarks else None
-    return ProgramRun(argv, proc.returncode, stdout, stderr, time.perf_counter() - tic,
-                      output.read_bytes() if output.is_file() else None,
-                      marks.read_bytes() if marks is not None and marks.is_file() else None)
+    stdin = Path(_expand(decl.stdin, values)) if decl.stdin else None
+    if stdin is not None and not stdin.is_file():
+        raise ReplayError(f"external pipeline {decl.name}: stdin {decl.stdin} is not a file ({stdin}); an export "
+                          f"must be listed in exports to be written")
+    memory = memory_limit_mib(decl.memory_mib)
+    done = run_contained(argv, cwd=decl.here, env=env, stdin=stdin, memory_mib=memory, timeout_s=decl.timeout_s,
+                         work=out_dir.with_name(out_dir.name + "-streams"), scratch=scratch)
+    if done.status is None:
+        raise ReplayError(f"external pipeline {decl.name}: cannot run {argv[0]}: {done.start_error}")
+    out = Path(values["out"])
+    output, output_problem = (read_result(Path(_expand(decl.output, values)), _inside(decl.output, out))
+                              if done.status == 0 and not done.timed_out else (None, None))
+    landmarks, landmarks_problem = (read_result(Path(_expand(decl.landmarks, values)), _inside(decl.landmarks, out))
+                                    if decl.landmarks else (None, None))
+    return ProgramRun(argv, done.status, done.stdout_path.read_bytes(), done.stderr_path.read_bytes(), done.wall_s,
+                      output, landmarks, done.last_stderr_line, done.timed_out, done.killed, dict(done.dropped),
+                      memory, output_problem, landmarks_problem)
+
+
+def _inside(declared: str, out: Path) -> Path | None:
+    """``out`` when a declared path is in the program's ``{out}`` (it must not lead out of it), else None."""
+    return out if declared.startswith("{out}") else None
 
 
 def read_landmarks(data: bytes, what: str) -> tuple[I64, F64]:
@@ -286,24 +331,33 @@ def read_landmarks(data: bytes, what: str) -> tuple[I64, F64]:
 
 def _last_line(text: str) -> str:
     lines = [line.strip() for line in text.splitlines() if line.strip()]
-    return lines[-1][:300] if lines else "nothing on stderr"
+    return printable(lines[-1])[:300] if lines else "nothing on stderr"
+
+
+def _last_stderr(run: ProgramRun) -> str:
+    return printable(run.last_stderr)[:300] if run.last_stderr else "nothing on stderr"
 
 
 def check_outcome(decl: Declaration, run: ProgramRun) -> None:
     """ReplayError, one line naming the program and its last stderr line, unless it exited 0 with an output."""
     prog = Path(run.argv[0]).name
+    limit = f"memory limit {run.memory_mib} MiB"
+    if run.timed_out:
+        raise ReplayError(f"external pipeline {decl.name}: {prog} ran past its wall-time limit of {decl.timeout_s:g} s "
+                          f"and was killed (timeout_s in {decl.path}): {_last_stderr(run)}")
     if run.status < 0:
         sig = signal.Signals(-run.status).name
-        mem = f" (memory limit {decl.memory_mib} MiB)" if decl.memory_mib else ""
-        raise ReplayError(f"external pipeline {decl.name}: {prog} was killed by {sig}{mem}: {_last_line(run.stderr)}")
+        raise ReplayError(f"external pipeline {decl.name}: {prog} was killed by {sig} ({limit}): {_last_stderr(run)}")
     if run.status != 0:
-        mem = (f" (memory limit {decl.memory_mib} MiB: out of memory?)" if decl.memory_mib and
-               "memory" in run.stderr.lower() else "")
+        mem = f" ({limit}: out of memory?)" if "memory" in run.last_stderr.lower() else ""
         raise ReplayError(f"external pipeline {decl.name}: {prog} exited with status {run.status}{mem}: "
-                          f"{_last_line(run.stderr)}")
+                          f"{_last_stderr(run)}")
     if run.output is None:
+        if run.output_problem:
+            raise ReplayError(f"external pipeline {decl.name}: {prog} exited 0 but its output {decl.output} "
+                              f"{run.output_problem}")
         raise ReplayError(f"external pipeline {decl.name}: {prog} exited 0 but wrote no {decl.output}: "
-                          f"{_last_line(run.stderr)}")
+                          f"{_last_stderr(run)}")
 
 
 class ExternalPipeline(EstimateReplay):
@@ -321,11 +375,20 @@ class ExternalPipeline(EstimateReplay):
         self.max_difference_m: float | None = None
 
     def estimate(self, t_gt: I64, gt: F64) -> tuple[I64, F64]:
+        try:
+            return self._estimate()
+        except ReplayError as err:  # the failed run keeps what the program wrote (run_recording writes it)
+            if not self.runs or isinstance(err, ProgramError):
+                raise
+            raise ProgramError(str(err), self._kept_files(self.runs[-1])) from None
+
+    def _estimate(self) -> tuple[I64, F64]:
         decl = self.declaration
         topic_map = {t.file_topic: t.logical_topic for t in self.ctx.info.topics
                      if t.logical_topic and t.logical_topic != t.file_topic}
         config = {k: v for k, v in dataclasses.asdict(self.config).items() if k != "check_determinism"}
-        with tempfile.TemporaryDirectory(prefix="slamreplay-external-") as tmp:
+        # a program may leave files it made unremovable: they must not turn its run into an internal error
+        with tempfile.TemporaryDirectory(prefix="slamreplay-external-", ignore_cleanup_errors=True) as tmp:
             root = Path(tmp)
             export_recording(self.ctx.info.path, root / "exports", decl.exports, topic_map)
             (root / "config.json").write_text(json.dumps(config, sort_keys=True))
@@ -334,7 +397,7 @@ class ExternalPipeline(EstimateReplay):
                 values = {"recording": str(self.ctx.info.path.resolve()), "exports": str(root / "exports"),
                           "out": str(root / f"out{k}"), "seed": str(self.ctx.seed), "config": str(root / "config.json"),
                           "here": str(decl.here), "python": sys.executable}
-                run = run_program(decl, values, root / f"out{k}")
+                run = run_program(decl, values, root / f"out{k}", scratch=root)
                 self.runs.append(run)
                 self._log_streams(run, k, times)
                 check_outcome(decl, run)
@@ -353,8 +416,9 @@ class ExternalPipeline(EstimateReplay):
         world = anchor_at(t_ns, poses, self.ctx.T_world_start) if decl.frame == "start" else poses
         if decl.landmarks:
             if first.landmarks is None:
-                raise ReplayError(f"external pipeline {decl.name}: {Path(first.argv[0]).name} exited 0 but wrote no "
-                                  f"{decl.landmarks}: {_last_line(first.stderr)}")
+                raise ReplayError(f"external pipeline {decl.name}: {Path(first.argv[0]).name} exited 0 but " + (
+                    f"its map {decl.landmarks} {first.landmarks_problem}" if first.landmarks_problem else
+                    f"wrote no {decl.landmarks}: {_last_stderr(first)}"))
             ids, xy = read_landmarks(first.landmarks, f"external pipeline {decl.name}: {Path(decl.landmarks).name}")
             if len(poses) and decl.frame == "start":  # the map moves with the trajectory to the true start
                 to_world = se2.compose(world[0], se2.inverse(poses[0]))
@@ -392,14 +456,23 @@ class ExternalPipeline(EstimateReplay):
         return metrics
 
     def _log_streams(self, run: ProgramRun, k: int, times: int) -> None:
+        """The first ``LOG_LINES`` lines of each stream, what the cap dropped, and the processes killed."""
         tag = f" (run {k + 1} of {times})" if times > 1 else ""
         if k == 0 or run.status != 0:
-            for stream, text in (("stdout", run.stdout), ("stderr", run.stderr)):
-                lines = text.splitlines()
-                for line in lines[:LOG_LINES]:
+            for stream, data in (("stdout", run.stdout), ("stderr", run.stderr)):
+                lines, count = head_lines(data, LOG_LINES)
+                for line in lines:
                     self.ctx.log(f"{stream}{tag}: {line}")
-                if len(lines) > LOG_LINES:
-                    self.ctx.log(f"{stream}{tag}: ... {len(lines) - LOG_LINES} more lines in program_{stream}.txt")
+                if count > LOG_LINES:
+                    self.ctx.log(f"{stream}{tag}: ... {count - LOG_LINES} more lines in program_{stream}.txt")
+                if run.dropped.get(stream):
+                    self.ctx.log(f"{stream}{tag}: {run.dropped[stream]:,} bytes past the first "
+                                 f"{OUTPUT_CAP_BYTES >> 20} MiB were not kept")
+        for pid, name in run.killed[:LOG_LINES]:
+            self.ctx.log(f"{'alive at the wall-time limit' if run.timed_out else 'left'} `{printable(name)}` "
+                         f"(pid {pid}) running{tag}: killed")
+        if len(run.killed) > LOG_LINES:
+            self.ctx.log(f"... and {len(run.killed) - LOG_LINES} more processes{tag}: killed")
 
     def _compare_runs(self, t_ns: I64, poses: F64) -> None:
         a, b = self.runs
@@ -419,7 +492,8 @@ class ExternalPipeline(EstimateReplay):
                      f"NOT deterministic")
 
     def provenance(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"runs": [{"argv": r.argv, "exit_status": r.status, "wall_s": round(r.wall_s, 6)}
+        out: dict[str, Any] = {"runs": [{"argv": r.argv, "exit_status": r.status, "wall_s": round(r.wall_s, 6),
+                                         "memory_limit_mib": r.memory_mib, "killed": [n for _, n in r.killed]}
                                         for r in self.runs]}
         if self.deterministic is not None:
             out["determinism"] = {"checked": True, "deterministic": self.deterministic,
@@ -427,9 +501,15 @@ class ExternalPipeline(EstimateReplay):
         return out
 
     def artifacts(self) -> dict[str, bytes]:
-        if not self.runs:
-            return {}
-        return {"program_stdout.txt": self.runs[0].stdout.encode(), "program_stderr.txt": self.runs[0].stderr.encode()}
+        return self._kept_files(self.runs[0]) if self.runs else {}
+
+    @staticmethod
+    def _kept_files(run: ProgramRun) -> dict[str, bytes]:
+        """The program's capped output and the landmark map it wrote, for the run directory."""
+        files = {"program_stdout.txt": run.stdout, "program_stderr.txt": run.stderr}
+        if run.landmarks is not None:
+            files["program_landmarks.csv"] = run.landmarks
+        return files
 
 
 def _config_class(decl: Declaration) -> type:
