@@ -10,20 +10,23 @@ here; ``--align_origin``: ``origin``) as here:
   taking the first estimated pose onto the first reference pose), ``se2`` (the rigid motion minimising the
   squared position errors: Umeyama/Kabsch without scale). The rotation part is ``|wrap(yaw_est - yaw_ref)|``.
 - **RPE** (relative pose error): for pose pairs ``(i, j)``, ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)`` with Q the
-  reference and P the estimate; its translation norm and its rotation angle. Pairs as evo makes them
-  without ``--all_pairs``: consecutive, non-overlapping segments of ``delta`` poses (``unit="step"``), or
-  of at least ``delta`` metres of the reference's path (``unit="m"``; evo's ``--pairs_from_reference``: evo
-  measures the estimate's path by default, which jitter in an estimate lengthens; KITTI's devkit also
-  measures segments on the ground truth).
+  reference and P the estimate; its translation norm and its rotation angle (evo's ``--pose_relation
+  trans_part`` and ``angle_deg``). Pairs as evo makes them without ``--all_pairs``: consecutive,
+  non-overlapping segments of ``delta`` poses (``unit="step"``), or of at least ``delta`` metres of the
+  estimate's path (``unit="m"``: ``evo_rpe --delta 1 --delta_unit m``, whose pairs come from the estimate
+  unless ``--pairs_from_reference``; ``pairs_from_reference=True`` here measures the reference's path, as
+  KITTI's devkit does).
 
 Both are statistics over poses at the estimate's times; the reference is the ground truth interpolated
 there (``truth_at``), so estimate and reference pair one to one (as in KITTI's files).
+``tests/replay/test_evo_parity.py`` runs evo itself on the same poses and checks every figure.
 """
 
 from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -37,6 +40,14 @@ F64 = NDArray[np.float64]
 Alignment = Literal["none", "origin", "se2"]
 DeltaUnit = Literal["step", "m"]
 ALIGNMENTS: tuple[Alignment, ...] = ("none", "origin", "se2")
+# How far a pose file's rotation may be from a rotation: |norm - 1| of a quaternion, and each entry of R^T R - I of
+# a matrix. Rounding a unit quaternion's components to d decimals moves its norm by at most 2 * 0.5e-d (1e-4 at 4
+# decimals, 1e-3 at 3), and a rotation matrix's entries by at most 2 sqrt(3) * 0.5e-d in R^T R (1.7e-4 at 4): 1e-3
+# accepts quaternions written with 3 or more decimals and matrices with 4 or more (KITTI's own files: 7 digits).
+# What it refuses is no rounded rotation at all: zeros, Euler angles or positions in the rotation's columns, a
+# column order mixed up. evo normalises silently (an all-zero quaternion becomes the identity); its
+# `evo_traj --full_check` calls a norm off by more than ~1e-5 invalid, which refuses files written with 4 decimals.
+ROTATION_TOL = 1e-3
 
 
 @dataclass(frozen=True, slots=True)
@@ -94,9 +105,11 @@ def ape(est: F64, ref: F64, alignment: Alignment = "none") -> tuple[ErrorStats, 
     return ErrorStats.of(np.hypot(d[:, 0], d[:, 1])), ErrorStats.of(np.degrees(np.abs(se2.wrap_angle(d[:, 2]))))
 
 
-def pairs(ref: F64, delta: float, unit: DeltaUnit) -> list[tuple[int, int]]:
-    """evo's consecutive pose pairs: every ``delta`` poses, or at least ``delta`` metres of ``ref``'s path."""
-    n = len(ref)
+def pairs(poses: F64, delta: float, unit: DeltaUnit) -> list[tuple[int, int]]:
+    """evo's consecutive pose pairs (``filters.filter_pairs_by_path``/``_by_index``, ``all_pairs=False``): every
+    ``delta`` poses, or each time at least ``delta`` metres of ``poses``' own path have been driven since the
+    last pair's end (the path summed step by step and restarted from 0 there, as evo does)."""
+    n = len(poses)
     if unit == "step":
         if delta < 1 or delta != int(delta):
             raise ValueError(f"delta in steps must be a whole number >= 1, got {delta}")
@@ -106,8 +119,8 @@ def pairs(ref: F64, delta: float, unit: DeltaUnit) -> list[tuple[int, int]]:
             raise ValueError(f"delta in metres must be > 0, got {delta}")
         ids = [0] if n else []
         path = 0.0
-        steps = np.hypot(*np.diff(np.asarray(ref)[:, :2], axis=0).T) if n > 1 else np.zeros(0)
-        for i, s in enumerate(steps.tolist(), start=1):
+        d = np.diff(np.asarray(poses, np.float64)[:, :2], axis=0) if n > 1 else np.zeros((0, 2))
+        for i, s in enumerate(np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]).tolist(), start=1):
             path += s
             if path >= delta:
                 ids.append(i)
@@ -117,10 +130,13 @@ def pairs(ref: F64, delta: float, unit: DeltaUnit) -> list[tuple[int, int]]:
     return list(itertools.pairwise(ids))
 
 
-def rpe(est: F64, ref: F64, delta: float = 1, unit: DeltaUnit = "step") -> tuple[ErrorStats, ErrorStats]:
-    """(translation stats, rotation stats in degrees) of the relative pose error over :func:`pairs`."""
+def rpe(est: F64, ref: F64, delta: float = 1, unit: DeltaUnit = "step", *,
+        pairs_from_reference: bool = False) -> tuple[ErrorStats, ErrorStats]:
+    """(translation stats, rotation stats in degrees) of the relative pose error over :func:`pairs` of the
+    estimate's path (evo's default), or of the reference's with ``pairs_from_reference`` (evo's
+    ``--pairs_from_reference``); the two differ for ``unit="m"`` only."""
     est, ref = _check(est, ref)
-    ij = pairs(ref, delta, unit)
+    ij = pairs(ref if pairs_from_reference else est, delta, unit)
     if not ij:
         return ErrorStats.of(np.zeros(0)), ErrorStats.of(np.zeros(0))
     i, j = np.array(ij).T
@@ -166,10 +182,11 @@ def to_kitti(poses: F64) -> bytes:
     return ("\n".join(lines) + ("\n" if lines else "")).encode()
 
 
-def read_kitti(text: str) -> F64:
-    """Planar poses (n, 3) of KITTI text; ValueError on a malformed line or a pose that is not planar."""
+def read_kitti(lines: str | Iterable[str]) -> F64:
+    """Planar poses (n, 3) of KITTI text (or its lines); ValueError naming the line that is not 12 finite numbers
+    or whose rotation is not one (:func:`check_rotation`). The yaw is that of the matrix's first column."""
     rows = []
-    for i, line in enumerate(text.splitlines(), 1):
+    for i, line in enumerate(lines.splitlines() if isinstance(lines, str) else lines, 1):
         if not line.strip():
             continue
         try:
@@ -178,5 +195,35 @@ def read_kitti(text: str) -> F64:
             raise ValueError(f"line {i}: not 12 numbers ({err})") from err
         if m.shape != (12,):
             raise ValueError(f"line {i}: expected 12 numbers (a 3x4 pose matrix), got {m.size}")
+        if not np.all(np.isfinite(m)):
+            raise ValueError(f"line {i}: a value is not finite")
+        problem = check_rotation(m.reshape(3, 4)[:, :3])
+        if problem:
+            raise ValueError(f"line {i}: {problem}")
         rows.append((m[3], m[7], math.atan2(m[4], m[0])))
     return np.array(rows, np.float64).reshape(-1, 3)
+
+
+def check_rotation(r: F64) -> str | None:
+    """What keeps the 3x3 matrix ``r`` from being a rotation: ``R^T R`` off the identity by more than
+    :data:`ROTATION_TOL` in an entry, or a reflection (det < 0); None when it is one."""
+    off = float(np.max(np.abs(r.T @ r - np.eye(3))))
+    if off > ROTATION_TOL:
+        return (f"the rotation part is not orthonormal (R^T R differs from the identity by {off:.3g} > "
+                f"{ROTATION_TOL:g})")
+    if np.linalg.det(r) < 0:
+        return "the rotation part is a reflection (det = -1), not a rotation"
+    return None
+
+
+def check_quaternion(qx: float, qy: float, qz: float, qw: float) -> str | None:
+    """What keeps ``(qx, qy, qz, qw)`` from being a unit quaternion within :data:`ROTATION_TOL`; None if it is."""
+    norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+    if abs(norm - 1.0) > ROTATION_TOL:
+        return f"the quaternion's norm is {norm:.6g}, not 1 (within {ROTATION_TOL:g})"
+    return None
+
+
+def quaternion_yaw(qx: float, qy: float, qz: float, qw: float) -> float:
+    """The yaw (rad) of a quaternion about +z, independent of its norm (as evo normalises before use)."""
+    return math.atan2(2 * (qw * qz + qx * qy), qw * qw + qx * qx - qy * qy - qz * qz)

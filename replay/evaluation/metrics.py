@@ -29,6 +29,20 @@ def associate(t_est_ns: NDArray[np.int64], t_gt_ns: NDArray[np.int64]) -> NDArra
     return cast(NDArray[np.bool_], (t_est_ns >= t_gt_ns[0]) & (t_est_ns <= t_gt_ns[-1]))
 
 
+def time_coverage(t_est_ns: NDArray[np.int64], t_gt_ns: NDArray[np.int64]) -> tuple[float, int, int]:
+    """(fraction of the ground truth's time span from the first to the last estimate time inside it, those two
+    times in ns); ``(0.0, 0, 0)`` when no estimate time is inside. A truth of one instant is covered (1.0) by an
+    estimate at that instant. Gaps between estimates count as covered: the rule catches a clock offset (an
+    estimate beside the truth in time), not a sparse estimate."""
+    t_est_ns, t_gt_ns = np.asarray(t_est_ns, np.int64), np.asarray(t_gt_ns, np.int64)
+    inside = t_est_ns[associate(t_est_ns, t_gt_ns)]
+    if not len(inside):
+        return 0.0, 0, 0
+    first, last = int(inside.min()), int(inside.max())
+    span = int(t_gt_ns[-1] - t_gt_ns[0])
+    return (1.0 if span == 0 else (last - first) / span), first, last
+
+
 def truth_at(t_est_ns: NDArray[np.int64], t_gt_ns: NDArray[np.int64], gt: F64) -> tuple[NDArray[np.bool_], F64]:
     """(mask of estimate times inside the ground truth's span, ground-truth poses (k, 3) at those times)."""
     t_gt_ns = np.asarray(t_gt_ns, np.int64)

@@ -14,10 +14,10 @@ from typing import Any
 import numpy as np
 
 from slamreplay.recorder.files import atomic_write
-from slamreplay.replay.runs.diff import load_run
+from slamreplay.replay.engine.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, paired_with_truth, read_tum
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.evaluation.evaluate import Alignment, DeltaUnit, ErrorStats, ape, rpe, to_kitti
-from slamreplay.replay.engine.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, paired_with_truth, read_tum
+from slamreplay.replay.runs.diff import load_run
 
 KITTI_ESTIMATE, KITTI_TRUTH = "estimate.kitti", "truth.kitti"
 
@@ -36,6 +36,7 @@ class TrajectoryReport:
     ape_rot: ErrorStats
     rpe_trans: ErrorStats
     rpe_rot: ErrorStats
+    pairs_from_reference: bool = False
 
     def to_json(self) -> dict[str, Any]:
         """Plain JSON of the report (NaN as null)."""
@@ -47,12 +48,14 @@ class TrajectoryReport:
 
         return {"run": str(self.run), "pipeline": self.pipeline, "alignment": self.alignment, "poses": self.poses,
                 "rpe_delta": self.delta, "rpe_delta_unit": self.delta_unit,
+                "rpe_pairs_from": "reference" if self.pairs_from_reference else "estimate",
                 "ape": {"translation_m": stats(self.ape_trans), "rotation_deg": stats(self.ape_rot)},
                 "rpe": {"translation_m": stats(self.rpe_trans), "rotation_deg": stats(self.rpe_rot)}}
 
     def table(self) -> str:
         """The report as aligned text."""
-        unit = "step" + ("s" if self.delta != 1 else "") if self.delta_unit == "step" else "m"
+        unit = ("step" + ("s" if self.delta != 1 else "") if self.delta_unit == "step" else
+                "m of truth" if self.pairs_from_reference else "m")
         lines = [f"{self.run}: {self.pipeline}, {self.poses:,} poses against ground truth",
                  f"{'':<34} {'rmse':>10} {'mean':>10} {'median':>10} {'max':>10}"]
         for label, s in ((f"APE translation (m), align {self.alignment}", self.ape_trans),
@@ -88,19 +91,21 @@ def read_run_trajectories(run_dir: Path) -> tuple[str, np.ndarray, np.ndarray, n
     return pipeline, t, est, truth
 
 
-def evaluate_run(run_dir: Path, alignment: Alignment = "none", delta: float = 1.0,
-                 delta_unit: DeltaUnit = "step") -> TrajectoryReport:
-    """APE with ``alignment`` and RPE over pairs ``delta`` steps or metres apart, of a finished run."""
+def evaluate_run(run_dir: Path, alignment: Alignment = "none", delta: float = 1.0, delta_unit: DeltaUnit = "step",
+                 pairs_from_reference: bool = False) -> TrajectoryReport:
+    """APE with ``alignment`` and RPE over pairs ``delta`` steps or metres apart (metres of the estimate's path, as
+    ``evo_rpe`` measures them, or of the truth's with ``pairs_from_reference``), of a finished run."""
     pipeline, _, est, truth = read_run_trajectories(run_dir)
     if truth is None:
         raise ReplayError(f"{run_dir} has no {TRUTH_TUM_ARTIFACT}: its recording has no /ground_truth/pose to "
                           f"score the trajectory against")
     try:
         at, ar = ape(est, truth, alignment)
-        rt, rr = rpe(est, truth, delta, delta_unit)
+        rt, rr = rpe(est, truth, delta, delta_unit, pairs_from_reference=pairs_from_reference)
     except ValueError as err:
         raise ReplayError(str(err)) from err
-    return TrajectoryReport(run_dir, pipeline, alignment, delta, delta_unit, len(est), at, ar, rt, rr)
+    return TrajectoryReport(run_dir, pipeline, alignment, delta, delta_unit, len(est), at, ar, rt, rr,
+                            pairs_from_reference)
 
 
 def export_kitti(run_dir: Path, out_dir: Path) -> list[Path]:

@@ -7,6 +7,13 @@ recording's ground truth (drawn as it goes), is handed the estimate at the end (
 draws the estimate against the truth and the position error over time; the engine writes
 ``trajectory.tum``/``truth.tum`` and ``evaluation.score`` adds the trajectory metrics, exactly as for a
 built-in pipeline's trajectory.
+
+Every reader refuses, naming the line (or message), what evo would read silently and score wrongly: times that
+do not increase strictly (evo keeps a file's order, so an unsorted file's RPE pairs jump in time), a rotation that
+is not one within ``ROTATION_TOL`` (evo turns an all-zero quaternion into the identity), a value that is not
+finite. Files are read a line at a time after a size check (:func:`text_lines`). A run whose estimate covers less
+than ``min_coverage`` of the ground truth's time span fails (:class:`CoverageConfig`): a clock offset otherwise
+gives a "succeeded" run that scored nothing.
 """
 
 from __future__ import annotations
@@ -14,7 +21,9 @@ from __future__ import annotations
 import math
 import re
 from abc import abstractmethod
-from dataclasses import dataclass
+from array import array
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
@@ -30,14 +39,35 @@ from slamreplay.replay.engine.pipeline import Pipeline, ReplayContext
 from slamreplay.replay.engine.reader import Envelope
 from slamreplay.replay.engine.trajectory import TrajectoryLog
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.evaluation.evaluate import Alignment, alignment_transform
-from slamreplay.replay.evaluation.metrics import truth_at
+from slamreplay.replay.evaluation.evaluate import (
+    Alignment,
+    alignment_transform,
+    check_quaternion,
+    quaternion_yaw,
+    read_kitti,
+)
+from slamreplay.replay.evaluation.metrics import associate as inside_truth_span
+from slamreplay.replay.evaluation.metrics import time_coverage, truth_at
 from slamreplay.replay.metric_registry import specs
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 EstimateFormat = Literal["tum", "kitti", "topic"]
 _DECIMAL = re.compile(r"^([+-]?)(\d*)(?:\.(\d*))?(?:[eE]([+-]?\d+))?$")
+# The largest estimate file `evaluate` reads (TUM, KITTI, KITTI's times), checked before reading: 256 MiB is about
+# 3 million TUM lines (a pose every 10 ms for 8 hours), read in ~15 s into ~100 MB. Larger: `max_bytes`.
+MAX_ESTIMATE_BYTES = 256 * 1024 * 1024
+# The longest line a pose file may have: a TUM line of 8 numbers at full float precision is under 200 bytes, a
+# KITTI line under 300. A longer "line" is not a pose file (a NUL-filled or binary file has no line breaks).
+MAX_LINE_BYTES = 4096
+# The least fraction of the ground truth's time span an estimate's times must cover, by default (min_coverage).
+# Half: an estimate that starts late (a SLAM system initialising) or stops early still passes; one whose clock
+# is off by more than half the recording, or that lost track for most of it, fails. Any shorter overlap makes the
+# accuracy metrics describe a part of the run as if it were the whole.
+MIN_COVERAGE = 0.5
+MIN_COVERAGE_HELP = ("fail the run when the estimate's times cover less than this fraction of the ground truth's "
+                     "time span (first to last estimate time inside it; 0: any overlap; none at all always fails)")
+_INT64 = (-(2**63), 2**63 - 1)
 
 
 def seconds_to_ns(text: str) -> int:
@@ -57,43 +87,110 @@ def seconds_to_ns(text: str) -> int:
     return -ns if sign == "-" else ns
 
 
-def read_tum_ns(text: str, what: str = "TUM file") -> tuple[I64, F64]:
-    """(t_ns (n,), poses (n, 3)) of TUM text (``timestamp x y z qx qy qz qw``; ``#`` comments), the yaw taken
-    from the quaternion about +z, times exact to the ns; ReplayError naming the line that is malformed."""
-    t, rows = [], []
-    for i, line in enumerate(text.splitlines(), 1):
+def text_lines(path: Path, what: str, max_bytes: int = MAX_ESTIMATE_BYTES) -> Iterator[str]:
+    """The lines of the text file ``path``, read one at a time (never the whole file at once); ReplayError, before
+    anything is read, when it is larger than ``max_bytes``, and naming the line that is longer than
+    :data:`MAX_LINE_BYTES` or not UTF-8."""
+    try:
+        size = path.stat().st_size
+    except OSError as err:
+        raise ReplayError(f"{what} cannot be read: {err.strerror or err}") from None
+    if size > max_bytes:
+        raise ReplayError(f"{what} is {size:,} bytes, more than the {max_bytes:,} an estimate may have "
+                          f"(MAX_ESTIMATE_BYTES; --max-bytes N reads a larger one)")
+    return _lines(path, what)
+
+
+def _lines(path: Path, what: str) -> Iterator[str]:
+    with path.open("rb") as f:
+        for i, raw in enumerate(iter(lambda: f.readline(MAX_LINE_BYTES + 1), b""), 1):
+            if len(raw) > MAX_LINE_BYTES and not raw.endswith(b"\n"):
+                raise ReplayError(f"{what}, line {i}: longer than {MAX_LINE_BYTES:,} bytes: not a pose file")
+            try:
+                yield raw.decode()
+            except UnicodeDecodeError:
+                raise ReplayError(f"{what}, line {i}: not UTF-8 text: not a pose file") from None
+
+
+def _time_ns(text: str) -> int:
+    ns = seconds_to_ns(text)
+    if not _INT64[0] <= ns <= _INT64[1]:
+        raise ValueError(f"time {text} s is out of range (int64 nanoseconds: within 292 years of 1970)")
+    return ns
+
+
+def _increasing(ns: int, prev: int | None, text: str, here: str, there: str) -> str | None:
+    """Why time ``ns`` (``text`` s, at ``here``) cannot follow ``prev`` (at ``there``); None when it is later."""
+    if prev is None or ns > prev:
+        return None
+    if ns == prev:
+        return f"time {text} s repeats {there}'s: two poses share a timestamp"
+    return (f"time {text} s is before {there}'s ({prev / 1e9:.9f} s): times must increase (sort the file; slamreplay "
+            f"does not reorder it, evo would score it in this order)")
+
+
+def read_tum_ns(text: str | Iterable[str], what: str = "TUM file") -> tuple[I64, F64]:
+    """(t_ns (n,), poses (n, 3)) of TUM text or its lines (``timestamp x y z qx qy qz qw``; ``#`` comments), the
+    yaw taken from the quaternion about +z, times exact to the ns; ReplayError naming the line that is malformed,
+    holds a value that is not finite or a quaternion that is not a unit one (:data:`ROTATION_TOL`), or a time that
+    is not after the previous line's."""
+    t, rows = array("q"), array("d")
+    prev: tuple[int, int] | None = None  # (time, line)
+    for i, line in enumerate(text.splitlines() if isinstance(text, str) else text, 1):
         parts = line.replace(",", " ").split()
         if not parts or parts[0].startswith("#"):
             continue
         try:
             if len(parts) != 8:
                 raise ValueError(f"expected 8 fields (timestamp x y z qx qy qz qw), got {len(parts)}")
-            x, y, _z, qx, qy, qz, qw = map(float, parts[1:])
-            t.append(seconds_to_ns(parts[0]))
+            x, y, z, qx, qy, qz, qw = map(float, parts[1:])
+            ns = _time_ns(parts[0])
         except ValueError as err:
             raise ReplayError(f"{what}, line {i}: {err}") from None
-        if not all(map(math.isfinite, (x, y, qx, qy, qz, qw))):
+        if not all(map(math.isfinite, (x, y, z, qx, qy, qz, qw))):
             raise ReplayError(f"{what}, line {i}: a value is not finite")
-        rows.append((x, y, math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))))
-    if not rows:
+        problem = (_increasing(ns, prev[0] if prev else None, parts[0], f"line {i}", f"line {prev[1]}" if prev else "")
+                   or check_quaternion(qx, qy, qz, qw))
+        if problem:
+            raise ReplayError(f"{what}, line {i}: {problem}")
+        prev = (ns, i)
+        t.append(ns)
+        rows.extend((x, y, quaternion_yaw(qx, qy, qz, qw)))
+    if not t:
         raise ReplayError(f"{what} holds no pose")
-    return _sorted(np.asarray(t, np.int64), np.asarray(rows, np.float64), what)
+    return np.frombuffer(t, np.int64).copy(), np.frombuffer(rows, np.float64).reshape(-1, 3).copy()
 
 
-def read_kitti_ns(text: str, times_text: str, what: str = "KITTI file") -> tuple[I64, F64]:
-    """KITTI poses (3x4 matrices, a line each) with the times of KITTI's ``times.txt`` (seconds, a line each)."""
-    from slamreplay.replay.evaluation.evaluate import read_kitti
-
+def read_kitti_ns(text: str | Iterable[str], times_text: str | Iterable[str], what: str = "KITTI file",
+                  times_what: str = "times file") -> tuple[I64, F64]:
+    """KITTI poses (3x4 matrices, a line each; rotations checked as :func:`read_kitti` does) with the times of
+    KITTI's ``times.txt`` (seconds, a line each, increasing strictly); ReplayError naming the file and line."""
     try:
         poses = read_kitti(text)
-        t = np.asarray([seconds_to_ns(s) for s in times_text.split()], np.int64)
     except ValueError as err:
-        raise ReplayError(f"{what}: {err}") from None
+        raise ReplayError(f"{what}, {err}") from None
+    t = array("q")
+    prev: tuple[int, int] | None = None
+    for i, line in enumerate(times_text.splitlines() if isinstance(times_text, str) else times_text, 1):
+        parts = line.split()
+        if not parts or parts[0].startswith("#"):
+            continue
+        try:
+            if len(parts) != 1:
+                raise ValueError(f"expected one time in seconds, got {len(parts)} fields")
+            ns = _time_ns(parts[0])
+        except ValueError as err:
+            raise ReplayError(f"{times_what}, line {i}: {err}") from None
+        problem = _increasing(ns, prev[0] if prev else None, parts[0], f"line {i}", f"line {prev[1]}" if prev else "")
+        if problem:
+            raise ReplayError(f"{times_what}, line {i}: {problem}")
+        prev = (ns, i)
+        t.append(ns)
     if len(t) != len(poses):
         raise ReplayError(f"{what} holds {len(poses)} poses and its times file {len(t)} times: one time a pose")
     if not len(poses):
         raise ReplayError(f"{what} holds no pose")
-    return _sorted(t, poses, what)
+    return np.frombuffer(t, np.int64).copy(), poses
 
 
 def read_pose_topic(path: Path, topic: str) -> tuple[I64, F64]:
@@ -118,7 +215,8 @@ def read_pose_topic(path: Path, topic: str) -> tuple[I64, F64]:
             if not conns:
                 have = ", ".join(sorted({c.topic for c in reader.connections}))
                 raise ReplayError(f"{path} has no topic {topic} (its topics: {have})")
-            t, rows = [], []
+            t: list[int] = []
+            rows: list[tuple[float, float, float]] = []
             for conn, _, raw in reader.messages(connections=conns):
                 msg: Any = reader.deserialize(raw, conn.msgtype)
                 pose = getattr(msg, "pose", None)
@@ -126,10 +224,16 @@ def read_pose_topic(path: Path, topic: str) -> tuple[I64, F64]:
                 if pose is None or not hasattr(pose, "orientation"):
                     raise ReplayError(f"{path}: topic {topic} is {conn.msgtype}, not a pose (PoseStamped, "
                                       f"PoseWithCovarianceStamped or Odometry)")
-                q = pose.orientation
-                t.append(int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec))
-                rows.append((pose.position.x, pose.position.y,
-                             math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))))
+                q, k = pose.orientation, len(t) + 1
+                values = (pose.position.x, pose.position.y, pose.position.z, q.x, q.y, q.z, q.w)
+                ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+                problem = ("a value is not finite" if not all(map(math.isfinite, values)) else
+                           _increasing(ns, t[-1] if t else None, f"{ns / 1e9:.9f}", f"message {k}",
+                                       f"message {k - 1}") or check_quaternion(q.x, q.y, q.z, q.w))
+                if problem:
+                    raise ReplayError(f"{path} {topic}, message {k} (stamp {ns / 1e9:.9f} s): {problem}")
+                t.append(ns)
+                rows.append((pose.position.x, pose.position.y, quaternion_yaw(q.x, q.y, q.z, q.w)))
         finally:
             reader.close()
     except ReplayError:
@@ -138,16 +242,7 @@ def read_pose_topic(path: Path, topic: str) -> tuple[I64, F64]:
         raise ReplayError(f"{path} is not a readable ROS 2 bag: {type(err).__name__}: {err}") from None
     if not rows:
         raise ReplayError(f"{path}: topic {topic} has no messages")
-    return _sorted(np.asarray(t, np.int64), np.asarray(rows, np.float64), f"{path} {topic}")
-
-
-def _sorted(t: I64, poses: F64, what: str) -> tuple[I64, F64]:
-    if np.any(np.diff(t) < 0):
-        order = np.argsort(t, kind="stable")
-        t, poses = t[order], poses[order]
-    if np.any(np.diff(t) == 0):
-        raise ReplayError(f"{what}: two poses share a timestamp")
-    return t, poses
+    return np.asarray(t, np.int64), np.asarray(rows, np.float64)
 
 
 def anchor_at(t_ns: I64, poses: F64, T_world_start: F64 | None) -> F64:
@@ -193,19 +288,64 @@ def associate(t_ns: I64, poses: F64, t_gt: I64, gt: F64, assoc: Association) -> 
     return t_ns, poses
 
 
+@dataclass(frozen=True, slots=True)
+class CoverageConfig:
+    """The setting every pipeline whose trajectory is an estimate made elsewhere has (``EstimateReplay``): a base
+    of their ``Config`` dataclasses, so that ``slamreplay pipelines NAME`` lists it and ``--set`` sets it."""
+
+    min_coverage: float = field(default=MIN_COVERAGE, metadata={"help": MIN_COVERAGE_HELP})
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.min_coverage <= 1.0:
+            raise ValueError(f"min_coverage must be a fraction in [0, 1], got {self.min_coverage}")
+
+
+def coverage_field() -> tuple[str, type, Any]:
+    """``min_coverage`` as a field of ``dataclasses.make_dataclass`` (a Config made at run time, without
+    :class:`CoverageConfig` as its base; EstimateReplay then checks the value)."""
+    return "min_coverage", float, field(default=MIN_COVERAGE, metadata={"help": MIN_COVERAGE_HELP})
+
+
+def _s(ns: int | np.integer) -> str:
+    return f"{int(ns) / 1e9:.3f}"
+
+
+def coverage_problem(t_est: I64, t_gt: I64, min_coverage: float, hint: str) -> str | None:
+    """Why an estimate at times ``t_est`` cannot be scored against a ground truth at ``t_gt`` (not empty): no
+    time inside the truth's span, or less than ``min_coverage`` of it covered; None when it can. One line."""
+    truth = f"the truth from t={_s(t_gt[0])} to {_s(t_gt[-1])} s"
+    if not len(t_est) or not inside_truth_span(t_est, t_gt).any():
+        where = f"the estimate runs from t={_s(t_est.min())} to {_s(t_est.max())} s" if len(t_est) else "it is empty"
+        return f"no estimate time falls inside the ground truth's time span ({where}, {truth}): {hint}"
+    fraction, first, last = time_coverage(t_est, t_gt)
+    if fraction >= min_coverage:
+        return None
+    percent = math.floor(fraction * 1000) / 10  # rounded down: 49.96 % is not 50 %
+    return (f"the estimate covers {percent:g} % of the ground truth's {(t_gt[-1] - t_gt[0]) / 1e9:.1f} s "
+            f"({(last - first) / 1e9:.1f} s, from t={_s(first)} to {_s(last)} s; {truth}); min_coverage = "
+            f"{min_coverage:g}: {hint}")
+
+
 class EstimateReplay(Pipeline):
     """A pipeline whose trajectory comes whole at the end (``estimate``): from a file or another program.
 
     It replays the ground truth (drawn as it goes, kept for the error series) and the subclass's
-    ``required_topics``; ``finish`` asks ``estimate()`` for the trajectory in the world frame, draws it
-    against the truth with the position error over time, and returns the registry's metrics of it.
+    ``required_topics``; ``finish`` asks ``estimate()`` for the trajectory in the world frame, checks that its
+    times cover ``min_coverage`` of the ground truth's time span (a config key: :class:`CoverageConfig`; a
+    Config without it gets :data:`MIN_COVERAGE`), draws it against the truth with the position error over time,
+    and returns the registry's metrics of it.
     """
 
     optional_topics: ClassVar[tuple[str, ...]] = (TOPIC_GROUND_TRUTH_POSE,)
     metrics = specs("robot_final_error_m", "robot_max_error_m", "path_length_m", "poses_scored")
+    coverage_hint: ClassVar[str] = ("a clock offset? the estimate's times must be the recording's log times "
+                                    "(docs/external.md)")
 
     def __init__(self, config: Any, ctx: ReplayContext) -> None:
         super().__init__(config, ctx)
+        self.min_coverage = float(getattr(config, "min_coverage", MIN_COVERAGE))
+        if not 0.0 <= self.min_coverage <= 1.0:
+            raise ReplayError(f"min_coverage must be a fraction in [0, 1], got {self.min_coverage}")
         self.truth_log = TrajectoryLog(ctx.observer, "world/trajectory/truth")
         self.t_gt: list[int] = []
         self.gt: list[F64] = []
@@ -228,6 +368,13 @@ class EstimateReplay(Pipeline):
         self.truth_log.finish()
         t_gt, gt = np.asarray(self.t_gt, np.int64), np.asarray(self.gt, np.float64).reshape(-1, 3)
         t_est, est = self.estimate(t_gt, gt)
+        if len(t_gt):  # without ground truth nothing is scored, and nothing is missed
+            problem = coverage_problem(t_est, t_gt, self.min_coverage, self.coverage_hint)
+            if problem:
+                raise ReplayError(problem)
+            fraction = time_coverage(t_est, t_gt)[0]
+            self.ctx.log(f"the estimate covers {math.floor(fraction * 1000) / 10:g} % of the ground truth's time "
+                         f"span (min_coverage {self.min_coverage:g})")
         self.result = (t_est, est)
         estimate_log = TrajectoryLog(self.ctx.observer, "world/trajectory/estimate")
         for x, y in est[:, :2].tolist():
@@ -237,9 +384,7 @@ class EstimateReplay(Pipeline):
         path = float(np.sum(np.hypot(*np.diff(est[:, :2], axis=0).T))) if len(est) > 1 else 0.0
         mask, ref = truth_at(t_est, t_gt, gt)
         metrics = {"path_length_m": path, "poses_scored": float(len(ref))}
-        if not len(ref):
-            self.ctx.log("no estimate time falls inside the ground truth's time span: the accuracy metrics do not "
-                         "apply (another time base? `slamreplay evaluate --t-offset-s`)")
+        if not len(ref):  # no ground truth
             return metrics
         err = np.hypot(*(est[mask, :2] - ref[:, :2]).T)
         at = np.clip(np.searchsorted(t_gt, t_est[mask]), 0, len(t_gt) - 1)  # the step of the truth message there

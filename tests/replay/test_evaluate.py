@@ -27,6 +27,7 @@ from slamreplay.replay.evaluation.evaluate import (
 )
 from slamreplay.replay.evaluation.metrics import truth_at
 from slamreplay.replay.runs.run import run_recording
+from slamreplay.replay.runs.trajectory_eval import evaluate_run
 
 
 def _loop(n: int = 200) -> np.ndarray:
@@ -107,6 +108,19 @@ def test_pairs_as_evo_makes_them() -> None:
         ape(line, line[:3])
 
 
+def test_per_metre_pairs_follow_the_estimates_path() -> None:
+    """As evo_rpe --delta 1 --delta_unit m: pairs where the estimate's own path reaches each metre (an estimate
+    that zigzags reaches it sooner); pairs_from_reference measures the truth's path (--pairs_from_reference)."""
+    line = np.column_stack([np.arange(0.0, 2.55, 0.25), np.zeros(11), np.zeros(11)])
+    zigzag = line + np.column_stack([np.zeros(11), 0.2 * (np.arange(11) % 2), np.zeros(11)])  # 0.32 m a step
+    assert pairs(line, 0.9, "m") == [(0, 4), (4, 8)]
+    assert pairs(zigzag, 0.9, "m") == [(0, 3), (3, 6), (6, 9)]
+    by_est, _ = rpe(zigzag, line, 0.9, "m")
+    by_ref, _ = rpe(zigzag, line, 0.9, "m", pairs_from_reference=True)
+    assert by_est.n == 3 and by_ref.n == 2  # the truth's 0.25 m steps reach 0.9 m every 4 poses
+    assert rpe(zigzag, line, 2, "step") == rpe(zigzag, line, 2, "step", pairs_from_reference=True)
+
+
 def test_kitti_round_trip_and_errors() -> None:
     """Planar poses survive a KITTI write and read; a malformed line names its number."""
     poses = np.array([[1.0, -2.0, 0.3], [3.5, 4.25, -3.0], [0.0, 0.0, math.pi / 2]])
@@ -165,6 +179,10 @@ def test_trajectory_command(odometry_run: Path, tmp_path: Path, capsys: pytest.C
     code, out, _ = _cli(["trajectory", str(odometry_run), "--json", "--delta", "0.5", "--delta-unit", "m"], capsys)
     doc = json.loads(out)
     assert code == 0 and doc["alignment"] == "none" and doc["rpe_delta_unit"] == "m"
+    assert doc["rpe_pairs_from"] == "estimate"
+    by_truth = evaluate_run(odometry_run, delta=1.0, delta_unit="m", pairs_from_reference=True)
+    assert "RPE translation (m), 1 m of truth" in by_truth.table()
+    assert by_truth.to_json()["rpe_pairs_from"] == "reference"
     assert doc["rpe"]["translation_m"]["n"] > 0
     metrics = json.loads((odometry_run / "metrics.json").read_text())["metrics"]
     assert doc["ape"]["translation_m"]["rmse"] == pytest.approx(metrics["ape_rmse_m"]["value"], rel=1e-6)

@@ -145,3 +145,81 @@ def test_pose_topics_of_a_ros2_bag(tmp_path: Path) -> None:
         evaluate_estimate(bag, rec, tmp_path / "x", topic="/slam/pose")
     with pytest.raises(ReplayError, match="is sensor_msgs/msg/Image, not a pose"):
         evaluate_estimate(bag, rec, tmp_path / "y", topic="/camera/color")
+
+
+def _line_recording(path: Path, n: int = 101, odom_from_s: float = 1.0) -> Path:
+    """Ground truth on a straight line, 10 Hz from t = 1 s to 11 s; odometry from ``odom_from_s`` (earlier: the
+    recording spans more than its ground truth)."""
+    with Recorder(path, source={}) as r:
+        for k in range(n):
+            t = 10**9 + k * 10**8
+            r.write("/ground_truth/pose", GroundTruthPose(t, 0.1 * k, 0.0, 0.0))
+        r.write("/odom", OdometryPose(round(odom_from_s * 1e9), 0.0, 0.0, 0.0))
+    return path
+
+
+def _write_tum(path: Path, t_s: np.ndarray) -> Path:
+    path.write_text("".join(f"{t:.9f} {0.1 * k:.9f} 0 0 0 0 0 1\n" for k, t in enumerate(t_s)))
+    return path
+
+
+def test_an_estimate_beside_the_recording_in_time_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                                             ) -> None:
+    """A clock offset that puts every pose outside the recording: refused before anything is written, one line,
+    exit 2 (evo refuses such a pair too); --t-offset-s puts it back."""
+    from slamreplay.api.cli import main
+
+    rec = _line_recording(tmp_path / "line.mcap")
+    est = _write_tum(tmp_path / "late.tum", 1001.0 + 0.1 * np.arange(101))
+    with pytest.raises(ReplayError, match=r"late.tum: no estimate time falls inside the recording's time span: the "
+                                          r"estimate runs from t=1001.000 to 1011.000 s, line.mcap from t=1.000 to "
+                                          r"11.000 s: a clock offset\? --t-offset-s S"):
+        evaluate_estimate(est, rec, tmp_path / "a")
+    assert not (tmp_path / "a").exists()
+    code = main(["evaluate", str(est), "--recording", str(rec), "--out", str(tmp_path / "b"), "-q"])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(err) == 1 and "no estimate time falls inside" in err[0]
+    back = evaluate_estimate(est, rec, tmp_path / "c", association=association_from(-1000.0))
+    assert back.metrics["poses_scored"] == 101 and back.metrics["ape_rmse_m"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_an_estimate_covering_too_little_of_the_truth_fails_its_run(tmp_path: Path) -> None:
+    """Inside the recording but beside its ground truth: the run fails (no overlap); covering 20 % of the truth's
+    10 s fails at the default min_coverage 0.5 and passes with min_coverage 0.2; a bad value is refused."""
+    rec = _line_recording(tmp_path / "line.mcap", odom_from_s=0.0)
+    before = _write_tum(tmp_path / "before.tum", 0.1 + 0.05 * np.arange(10))  # 0.1 .. 0.55 s: before the truth
+    with pytest.raises(ReplayError, match=r"no estimate time falls inside the ground truth's time span \(the estimate "
+                                          r"runs from t=0.100 to 0.550 s, the truth from t=1.000 to 11.000 s\): a clock"
+                                          r" offset\? --t-offset-s S"):
+        evaluate_estimate(before, rec, tmp_path / "a")
+    assert json.loads((tmp_path / "a" / "manifest.json").read_text())["status"] == "failed"
+    assert not (tmp_path / "a" / "metrics.json").exists()
+    part = _write_tum(tmp_path / "part.tum", 1.0 + 0.1 * np.arange(21))  # 1 .. 3 s of the truth's 1 .. 11 s
+    with pytest.raises(ReplayError, match=r"the estimate covers 20 % of the ground truth's 10.0 s \(2.0 s, from "
+                                          r"t=1.000 to 3.000 s; the truth from t=1.000 to 11.000 s\); min_coverage = "
+                                          r"0.5: a clock offset\?"):
+        evaluate_estimate(part, rec, tmp_path / "b")
+    ok = evaluate_estimate(part, rec, tmp_path / "c", min_coverage=0.2)
+    assert ok.metrics["poses_scored"] == 21 and ok.manifest["config"] == {"min_coverage": 0.2}
+    assert ok.manifest["config_sources"]["min_coverage"] == "user"
+    assert "covers 20 % of the ground truth's time span" in (tmp_path / "c" / "log.txt").read_text()
+    with pytest.raises(ReplayError, match=r"min_coverage must be a fraction in \[0, 1\], got 1.5"):
+        evaluate_estimate(part, rec, tmp_path / "d", min_coverage=1.5)
+    assert not (tmp_path / "d").exists()
+
+
+def test_evaluate_bounds_what_it_reads(tmp_path: Path) -> None:
+    """max_bytes refuses a larger estimate (and times file) before reading it; a value <= 0 is refused."""
+    rec = _line_recording(tmp_path / "line.mcap")
+    est = _write_tum(tmp_path / "est.tum", 1.0 + 0.1 * np.arange(101))
+    with pytest.raises(ReplayError, match=r"est.tum is 3,\d{3} bytes, more than the 1,000 an estimate may have"):
+        evaluate_estimate(est, rec, tmp_path / "a", max_bytes=1000)
+    with pytest.raises(ReplayError, match=r"--max-bytes must be > 0, got 0"):
+        evaluate_estimate(est, rec, tmp_path / "a", max_bytes=0)
+    kitti = tmp_path / "est.kitti"
+    kitti.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    times = tmp_path / "times.txt"
+    times.write_text("1.0\n" + "#" * 2000 + "\n")
+    with pytest.raises(ReplayError, match=r"times file .*times.txt is 2,005 bytes, more than the 1,000"):
+        evaluate_estimate(kitti, rec, tmp_path / "a", times=times, max_bytes=1000)
+    assert not (tmp_path / "a").exists()
