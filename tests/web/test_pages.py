@@ -150,3 +150,32 @@ def test_embedded_viewer_logs_quietly(page: Any, site: tuple[str, dict[str, str]
     chatter = [text for kind, text in lines if kind not in ("warning", "error")]
     assert chatter == [] and len(lines) < 50, (len(lines), chatter[:5])
     assert page.problems == [], page.problems  # its usage statistics and version check no longer fail in the console
+
+
+def test_another_site_cannot_frame_the_delete_page(page: Any, site: tuple[str, dict[str, str]],
+                                                   tmp_path: Path) -> None:
+    """Clickjacking (issue 40): a page on another origin frames /ui/jobs/ID/delete under a decoy button; chromium
+    refuses to show it (frame-ancestors 'none'), so the click lands on nothing of ours and the job stays."""
+    import http.server
+    import threading
+
+    base, ids = site
+    job = ids["worn"]
+    (tmp_path / "decoy.html").write_text(
+        "<!doctype html><title>free GPU hours</title><button id=decoy>Click HERE for free GPU hours</button>"
+        f"<iframe id=victim src='{base}/ui/jobs/{job}/delete' style='opacity:0.01;position:absolute;top:0;"
+        "left:0;width:800px;height:600px'></iframe>")
+    handler = lambda *a: http.server.SimpleHTTPRequestHandler(*a, directory=str(tmp_path))  # noqa: E731
+    decoy = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=decoy.serve_forever, daemon=True).start()
+    try:
+        page.goto(f"http://127.0.0.1:{decoy.server_address[1]}/decoy.html")
+        page.wait_for_load_state("load")
+        victim = next(f for f in page.frames if f != page.main_frame)
+        assert "/ui/jobs/" not in victim.url or victim.evaluate("document.body.innerText") == "", victim.url
+        assert victim.query_selector("#confirm-form") is None
+        page.mouse.click(400, 300)
+        page.wait_for_timeout(500)
+    finally:
+        decoy.shutdown()
+    assert call(base, "GET", f"/jobs/{job}")["status"] == "succeeded"
