@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 import threading
 import time
 from pathlib import Path
@@ -293,3 +294,23 @@ def test_a_cancelled_job_leaves_nothing(tmp_path: Path, rec: Path, monkeypatch: 
         assert list(scratch.glob("slamreplay-external-*")) == []  # removed by the program's supervisor
     finally:
         executor.close()
+
+
+def test_an_interrupted_run_leaves_nothing(tmp_path: Path, rec: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C while the program runs (SIGINT to slamreplay's process): the program and its setsid sleeper are
+    killed before the KeyboardInterrupt leaves run_recording."""
+    mark = unique_mark()
+    declare(tmp_path, monkeypatch, CASES["sigterm-ignored-setsid"][0], mark, timeout_s=120)
+
+    def interrupt() -> None:
+        deadline = time.monotonic() + 60
+        while not any("sleep " + mark in p for p in left_behind(mark)) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    threading.Thread(target=interrupt, daemon=True).start()
+    with pytest.raises(KeyboardInterrupt):
+        run_recording(rec, "hostile", tmp_path / "run")
+    assert left_behind(mark) == []
+    assert json.loads((tmp_path / "run" / "manifest.json").read_text())["status"] != "succeeded"
+    assert not (tmp_path / "run" / "metrics.json").exists()
