@@ -40,6 +40,7 @@ from slamreplay.replay.engine.reader import Envelope
 from slamreplay.replay.engine.trajectory import TrajectoryLog
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.evaluation.evaluate import (
+    ROTATION_TOL,
     Alignment,
     alignment_transform,
     check_quaternion,
@@ -68,16 +69,26 @@ MIN_COVERAGE = 0.5
 MIN_COVERAGE_HELP = ("fail the run when the estimate's times cover less than this fraction of the ground truth's "
                      "time span (first to last estimate time inside it; 0: any overlap; none at all always fails)")
 _INT64 = (-(2**63), 2**63 - 1)
+_MAX_EXPONENT = 2 * MAX_LINE_BYTES  # beyond it a time is 0 or out of range whatever its digits (a line's at most)
 
 
 def seconds_to_ns(text: str) -> int:
     """A decimal time in seconds (``1700000000.123456789``) as int nanoseconds, exactly (no float on the way:
     float64 seconds of a Unix time are only good to ~0.2 us); ValueError when it is not a number."""
-    m = _DECIMAL.match(text.strip())
+    text = text.strip()
+    whole, _, frac = text.partition(".")
+    if len(frac) <= 9 and (whole + frac).isascii() and whole.isdigit() and (frac.isdigit() or not frac):
+        return int(whole) * 1_000_000_000 + int(frac.ljust(9, "0"))  # the common case, exact without rounding
+    m = _DECIMAL.match(text)
     if not m or not (m.group(2) or m.group(3)):
         raise ValueError(f"not a time in seconds: {text!r}")
     sign, whole, frac, exp = m.group(1), m.group(2) or "0", m.group(3) or "", int(m.group(4) or 0)
-    digits, point = whole + frac, len(whole) + exp  # value = 0.digits * 10^point ... as an integer of ns
+    digits = whole + frac
+    if abs(exp) > _MAX_EXPONENT:  # 10**exp would take minutes and gigabytes: decide without it
+        if exp < 0 or int(digits) == 0:
+            return 0
+        raise ValueError(f"time {text} s is out of range (int64 nanoseconds: within 292 years of 1970)")
+    point = len(whole) + exp  # value = 0.digits * 10^point ... as an integer of ns
     shift = point + 9 - len(digits)
     if shift >= 0:
         ns: int = int(digits) * 10**shift
@@ -131,11 +142,10 @@ def _increasing(ns: int, prev: int | None, text: str, here: str, there: str) -> 
 
 def read_tum_ns(text: str | Iterable[str], what: str = "TUM file") -> tuple[I64, F64]:
     """(t_ns (n,), poses (n, 3)) of TUM text or its lines (``timestamp x y z qx qy qz qw``; ``#`` comments), the
-    yaw taken from the quaternion about +z, times exact to the ns; ReplayError naming the line that is malformed,
-    holds a value that is not finite or a quaternion that is not a unit one (:data:`ROTATION_TOL`), or a time that
-    is not after the previous line's."""
-    t, rows = array("q"), array("d")
-    prev: tuple[int, int] | None = None  # (time, line)
+    yaw taken from the quaternion about +z, times exact to the ns; ReplayError naming the first line that is
+    malformed, holds a value that is not finite or a quaternion that is not a unit one (:data:`ROTATION_TOL`), or
+    a time that is not after the previous line's."""
+    t, values, where = array("q"), array("d"), array("q")  # values: x y z qx qy qz qw a line
     for i, line in enumerate(text.splitlines() if isinstance(text, str) else text, 1):
         parts = line.replace(",", " ").split()
         if not parts or parts[0].startswith("#"):
@@ -143,22 +153,33 @@ def read_tum_ns(text: str | Iterable[str], what: str = "TUM file") -> tuple[I64,
         try:
             if len(parts) != 8:
                 raise ValueError(f"expected 8 fields (timestamp x y z qx qy qz qw), got {len(parts)}")
-            x, y, z, qx, qy, qz, qw = map(float, parts[1:])
-            ns = _time_ns(parts[0])
+            values.extend(map(float, parts[1:]))
+            t.append(_time_ns(parts[0]))
         except ValueError as err:
             raise ReplayError(f"{what}, line {i}: {err}") from None
-        if not all(map(math.isfinite, (x, y, z, qx, qy, qz, qw))):
-            raise ReplayError(f"{what}, line {i}: a value is not finite")
-        problem = (_increasing(ns, prev[0] if prev else None, parts[0], f"line {i}", f"line {prev[1]}" if prev else "")
-                   or check_quaternion(qx, qy, qz, qw))
-        if problem:
-            raise ReplayError(f"{what}, line {i}: {problem}")
-        prev = (ns, i)
-        t.append(ns)
-        rows.extend((x, y, quaternion_yaw(qx, qy, qz, qw)))
+        where.append(i)
     if not t:
         raise ReplayError(f"{what} holds no pose")
-    return np.frombuffer(t, np.int64).copy(), np.frombuffer(rows, np.float64).reshape(-1, 3).copy()
+    t_ns, v = np.frombuffer(t, np.int64), np.frombuffer(values, np.float64).reshape(-1, 7)  # no copy
+    # the checks on whole columns, then the first line any of them refuses, with its message
+    bad = {int(k): "a value is not finite" for k in np.flatnonzero(~np.isfinite(v).all(axis=1))[:1]}
+    late = np.flatnonzero(np.diff(t_ns) <= 0)[:1] + 1
+    for k in late.tolist():
+        bad.setdefault(k, str(_increasing(int(t_ns[k]), int(t_ns[k - 1]), _seconds(t_ns[k]), "",
+                                          f"line {where[k - 1]}")))
+    norm = np.sqrt(np.sum(v[:, 3:] ** 2, axis=1))
+    for k in np.flatnonzero(np.abs(norm - 1.0) > ROTATION_TOL)[:1].tolist():
+        bad.setdefault(k, str(check_quaternion(*v[k, 3:].tolist())))
+    if bad:
+        k = min(bad)
+        raise ReplayError(f"{what}, line {where[k]}: {bad[k]}")
+    qx, qy, qz, qw = v[:, 3:].T
+    yaw = np.arctan2(2 * (qw * qz + qx * qy), qw * qw + qx * qx - qy * qy - qz * qz)  # quaternion_yaw, per row
+    return t_ns, np.column_stack([v[:, 0], v[:, 1], yaw])
+
+
+def _seconds(ns: int | np.integer) -> str:
+    return f"{int(ns) / 1e9:.9f}"
 
 
 def read_kitti_ns(text: str | Iterable[str], times_text: str | Iterable[str], what: str = "KITTI file",

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from ros2_fixtures import POSE_STAMPED, _pose, _stamp
 
 from slamreplay.replay.engine.pipeline import config_schema
@@ -27,6 +29,7 @@ from slamreplay.replay.tools.estimates import (
     read_kitti_ns,
     read_pose_topic,
     read_tum_ns,
+    seconds_to_ns,
     text_lines,
 )
 
@@ -38,10 +41,10 @@ def _tum(*rows: str) -> str:
 def test_tum_times_must_increase_strictly() -> None:
     """An unsorted file is refused at the first line out of order (not sorted: evo keeps a file's order), a
     repeated time at its second line; line numbers count the comment."""
-    with pytest.raises(ReplayError, match=r"est.tum, line 4: time 1.05 s is before line 3's \(1.100000000 s\): "
+    with pytest.raises(ReplayError, match=r"est.tum, line 4: time 1.050000000 s is before line 3's \(1.100000000 s\): "
                                           r"times must increase"):
         read_tum_ns(_tum("1.0 0 0 0 0 0 0 1", "1.1 0 0 0 0 0 0 1", "1.05 0 0 0 0 0 0 1"), "est.tum")
-    with pytest.raises(ReplayError, match=r"line 3: time 1.0 s repeats line 2's: two poses share a timestamp"):
+    with pytest.raises(ReplayError, match=r"line 3: time 1.000000000 s repeats line 2's: two poses share a timestamp"):
         read_tum_ns(_tum("1 0 0 0 0 0 0 1", "1.0 1 0 0 0 0 0 1"))
 
 
@@ -71,6 +74,38 @@ def test_tum_values_finite_and_times_in_range() -> None:
         read_tum_ns(_tum("1e10 0 0 0 0 0 0 1"))
     with pytest.raises(ReplayError, match=r"holds no pose"):
         read_tum_ns(_tum())
+
+
+def test_the_first_bad_line_is_named_whatever_is_wrong_with_it() -> None:
+    """Several problems: the error names the earliest line, whichever check refuses it."""
+    rows = ["1 0 0 0 0 0 0 1", "2 0 0 0 0 0 0 1", "3 0 0 0 0 0 0 2", "2.5 0 0 0 0 0 0 1", "4 nan 0 0 0 0 0 1"]
+    with pytest.raises(ReplayError, match=r"line 4: the quaternion's norm is 2"):
+        read_tum_ns(_tum(*rows))
+    rows[2] = "3 0 0 0 0 0 0 1"
+    with pytest.raises(ReplayError, match=r"line 5: time 2.500000000 s is before line 4's"):
+        read_tum_ns(_tum(*rows))
+    rows[3] = "3.5 0 0 0 0 0 0 1"
+    with pytest.raises(ReplayError, match=r"line 6: a value is not finite"):
+        read_tum_ns(_tum(*rows))
+
+
+@given(st.integers(0, 10**12), st.integers(0, 10**12), st.integers(0, 12))
+def test_seconds_exact_on_both_paths(whole: int, frac: int, decimals: int) -> None:
+    """The fast path of plain decimals and the general one (a sign forces it) give the same ns; an exponent too
+    large to expand is out of range (or 0) at once, not after minutes."""
+    text = f"{whole}.{str(frac).zfill(decimals)[:decimals]}" if decimals else str(whole)
+    assert seconds_to_ns(text) == seconds_to_ns("+" + text)
+    if decimals <= 9:
+        assert seconds_to_ns(text) == whole * 10**9 + int((str(frac).zfill(decimals)[:decimals] + "0" * 9)[:9])
+
+
+def test_huge_exponents_are_decided_without_expanding_them() -> None:
+    """``1e999999999`` is out of range and ``1e-999999999`` is 0 ns, at once."""
+    with pytest.raises(ValueError, match=r"time 1e999999999 s is out of range"):
+        seconds_to_ns("1e999999999")
+    assert seconds_to_ns("1e-999999999") == 0 and seconds_to_ns("0e999999999") == 0
+    with pytest.raises(ReplayError, match=r"line 2: time 1e999999999 s is out of range"):
+        read_tum_ns(_tum("1e999999999 0 0 0 0 0 0 1"))
 
 
 def test_kitti_rotations_and_times_checked() -> None:
