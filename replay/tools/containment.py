@@ -132,10 +132,13 @@ def run_contained(argv: Sequence[str], *, cwd: Path, env: Mapping[str, str], std
     # without a subreaper, or without a supervisor to the end, a process of the program may have escaped
     swept = sweep(token) if not report.get("subreaper") else ()
     killed = tuple((int(pid), str(name)) for pid, name in report.get("killed", [])) + swept
-    return Contained(report.get("status"), bool(report.get("timed_out")), float(report.get("wall_s", 0.0)), killed,
+    status = report.get("status")
+    why = report.get("start_error") or (None if status is not None else "it did not end when killed (a process in "
+                                        "uninterruptible sleep?)")
+    return Contained(status, bool(report.get("timed_out")), float(report.get("wall_s", wall_s)), killed,
                      work / "program_stdout.txt", work / "program_stderr.txt",
                      {s: int(report.get(s, {}).get("dropped", 0)) for s in ("stdout", "stderr")},
-                     str(report.get("stderr", {}).get("last_line", "")), report.get("start_error"))
+                     str(report.get("stderr", {}).get("last_line", "")), why)
 
 
 def _stop(shepherd: subprocess.Popen[bytes]) -> bool:

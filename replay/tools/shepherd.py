@@ -194,7 +194,7 @@ def supervise(spec: dict[str, Any]) -> dict[str, Any]:
     for fd in sinks:
         poller.register(fd, select.POLLIN)
     status: list[int] = []
-    wall_s, timed_out = 0.0, False
+    timed_out = False
     while not status and not _stop:
         left = start + spec["timeout_s"] - time.monotonic()
         if left <= 0:
