@@ -223,3 +223,22 @@ def test_evaluate_bounds_what_it_reads(tmp_path: Path) -> None:
     with pytest.raises(ReplayError, match=r"times file .*times.txt is 2,005 bytes, more than the 1,000"):
         evaluate_estimate(kitti, rec, tmp_path / "a", times=times, max_bytes=1000)
     assert not (tmp_path / "a").exists()
+
+
+def test_unreadable_estimates_and_formats_are_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An unknown format, and a file that fails while it is read (TUM or KITTI), are one-line errors."""
+    from slamreplay.replay.runs.evaluate_run import read_estimate
+
+    est = _write_tum(tmp_path / "est.tum", 1.0 + 0.1 * np.arange(3))
+    with pytest.raises(ReplayError, match=r"--format must be one of tum, kitti, topic, got 'csv'"):
+        read_estimate(est, "csv")  # type: ignore[arg-type]
+    (tmp_path / "times.txt").write_text("1\n")
+
+    def refuse(self: Path, *args: object, **kwargs: object) -> None:
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(Path, "open", refuse)
+    with pytest.raises(ReplayError, match=r"estimate .*est.tum cannot be read: Permission denied"):
+        read_estimate(est)
+    with pytest.raises(ReplayError, match=r"estimate .*est.tum cannot be read: Permission denied"):
+        read_estimate(est, "kitti", times=tmp_path / "times.txt")
