@@ -40,9 +40,9 @@ import numpy as np
 from scipy import stats
 
 from slamreplay.recorder.options import did_you_mean
-from slamreplay.replay.runs.diff import describe_origin, determinism_of, direction_verdict, judge_metric, origin_changes
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import LOST, direction_label, optional_reason, target_distance
+from slamreplay.replay.runs.diff import describe_origin, determinism_of, direction_verdict, judge_metric, origin_changes
 from slamreplay.replay.runs.suite_run import add_metrics, read_results, unfinished
 
 ALPHA = 0.05

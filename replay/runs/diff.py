@@ -23,7 +23,7 @@ from typing import Any
 from slamreplay.recorder.options import did_you_mean
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import LOST, direction_label, normalize, optional_reason, target_distance
-from slamreplay.replay.runs.rrd_compare import rerun_cli, rrd_content_equal
+from slamreplay.replay.runs.rrd_compare import rrd_content_equal
 
 MANIFEST_FIELDS = ("pipeline", "recording.sha256", "seed", "config_hash", "slamreplay.version",
                    "slamreplay.git_commit", "window_ns", "status")
@@ -69,7 +69,8 @@ class RunDiff:
 
     def to_json(self) -> dict[str, Any]:
         return {"a": self.a, "b": self.b, "changes": self.changes, "metrics": [asdict(m) for m in self.metrics],
-                "worse": self.worse, "lost": self.lost, "programs": self.programs, "rrd_equal": self.rrd_equal, "rrd_detail": self.rrd_detail, "notes": self.notes}
+                "worse": self.worse, "lost": self.lost, "programs": self.programs, "rrd_equal": self.rrd_equal,
+                "rrd_detail": self.rrd_detail, "notes": self.notes}
 
 
 def load_run(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -127,7 +128,8 @@ def _origin_items(origin: Mapping[str, Any] | None) -> dict[str, Any]:
     return out
 
 
-def origin_changes(oa: Mapping[str, Any] | None, ob: Mapping[str, Any] | None, prefix: str = "") -> list[dict[str, Any]]:
+def origin_changes(oa: Mapping[str, Any] | None, ob: Mapping[str, Any] | None, prefix: str = ""
+                   ) -> list[dict[str, Any]]:
     """Each field of two runs' ``pipeline_origin`` (``ORIGIN_FIELDS``, a file's hash each) that differs, as a
     change ``{"field": "pipeline_origin.executable_sha256", "a": ..., "b": ...}``; none when either run predates
     origins. Two runs of programs with different hashes are never "nothing changed"."""

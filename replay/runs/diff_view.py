@@ -29,9 +29,9 @@ from rerun.chunk import Chunk, RrdReader
 
 from slamreplay.recorder.files import replacing
 from slamreplay.replay.engine import views
-from slamreplay.replay.runs.diff import RunDiff, diff_runs, formatted, verdict_text
+from slamreplay.replay.engine.observer import deterministic_batcher, send_static
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.engine.observer import deterministic_batcher
+from slamreplay.replay.runs.diff import RunDiff, diff_runs, formatted, verdict_text
 
 COLOR_COLUMNS = {"Points2D:colors": rr.Points2D, "LineStrips2D:colors": rr.LineStrips2D,
                  "Arrows2D:colors": rr.Arrows2D}
@@ -104,10 +104,10 @@ def _copy(rec: rr.RecordingStream, run_dir: Path, label: str) -> _RunContent:
         if views.role_color(path) == views.TRUTH:
             continue
         for col in sorted(columns):
-            rec.log(f"/runs/{label}{path}", COLOR_COLUMNS[col].from_fields(colors=color), static=True)
+            send_static(rec, f"/runs/{label}{path}", COLOR_COLUMNS[col].from_fields(colors=color))
     for path in sorted(content.series):
         name = f"{label}: {views.series_label(path)}"
-        rec.log(f"/runs/{label}{path}", rr.SeriesLines(names=name, colors=color, widths=1.5), static=True)
+        send_static(rec, f"/runs/{label}{path}", rr.SeriesLines(names=name, colors=color, widths=1.5))
     return content
 
 
@@ -170,7 +170,7 @@ def write_comparison_rrd(a_dir: str | Path, b_dir: str | Path, out: str | Path, 
         try:
             a = _copy(rec, a_dir, "A")
             b = _copy(rec, b_dir, "B")
-            rec.log("diff/summary", rr.TextDocument(_markdown(diff, a, b), media_type="text/markdown"), static=True)
+            send_static(rec, "diff/summary", rr.TextDocument(_markdown(diff, a, b), media_type="text/markdown"))
             rec.send_blueprint(_blueprint(a, b, a_dir.name, b_dir.name), make_active=True, make_default=True)
         finally:
             rec.disconnect()

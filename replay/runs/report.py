@@ -19,10 +19,17 @@ from typing import Any
 
 import numpy as np
 
-from slamreplay.replay.runs.compare import (REGRESSION_VERDICTS, VERDICT_ORDER, Comparison, MetricResult, fmt, fmt_ms,
-                                             program_lines)
-from slamreplay.replay.runs.run import atomic_write
 from slamreplay.replay.engine.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, paired_with_truth, read_tum
+from slamreplay.replay.runs.compare import (
+    REGRESSION_VERDICTS,
+    VERDICT_ORDER,
+    Comparison,
+    MetricResult,
+    fmt,
+    fmt_ms,
+    program_lines,
+)
+from slamreplay.replay.runs.run import atomic_write
 
 COLOURS = {"regression": "#c62828", "failed": "#c62828", "improvement": "#2e7d32"}
 A_COLOUR, B_COLOUR = "#7f7f7f", "#1f77b4"  # A grey (the baseline), B blue (the estimate under test)

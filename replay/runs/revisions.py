@@ -37,8 +37,8 @@ from typing import Any
 from slamreplay.recorder.version import SOURCE_ROOT
 from slamreplay.replay.engine.declared import DECLARATIONS_ENV, declaration_files
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.tools.child import child_setup
 from slamreplay.replay.runs.suite_run import CellJob
+from slamreplay.replay.tools.child import child_setup
 
 BUILD_TIMEOUT_S = 1800
 

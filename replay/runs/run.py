@@ -32,10 +32,7 @@ import numpy as np
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.files import atomic_write
 from slamreplay.recorder.version import git_commit, version
-from slamreplay.replay.evaluation import metrics as metrics_mod
 from slamreplay.replay.engine.loop import Progress, replay, text_logger
-from slamreplay.replay.evaluation.score import metric_specs, score
-from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.engine.observer import RerunObserver
 from slamreplay.replay.engine.pipeline import (
     Pipeline,
@@ -51,6 +48,9 @@ from slamreplay.replay.engine.pipeline import (
 )
 from slamreplay.replay.engine.reader import RecordingReader
 from slamreplay.replay.engine.recording_file import check_recording
+from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.evaluation import metrics as metrics_mod
+from slamreplay.replay.evaluation.score import metric_specs, score
 
 MANIFEST_FORMAT = 1
 LIBRARIES = ("rerun-sdk", "numpy", "scipy", "opencv-contrib-python-headless", "mcap", "protobuf")
@@ -168,8 +168,8 @@ def prepare_run_dir(out_dir: Path) -> None:
 
     A run never overwrites another: ReplayError when ``out_dir`` holds a succeeded or running run,
     or anything that is not a run. A failed or interrupted run (manifest ``status: failed`` or
-    ``interrupted``) never blocks its retry: its files are removed and the directory reused, so the same ``--out`` works once the
-    cause is fixed.
+    ``interrupted``) never blocks its retry: its files are removed and the directory reused, so the
+    same ``--out`` works once the cause is fixed.
     """
     if out_dir.exists() and not out_dir.is_dir():
         raise ReplayError(f"{out_dir} exists and is not a directory: choose a new --out")

@@ -44,9 +44,9 @@ else:  # Python 3.10: the same parser, as the tomli package
     import tomli as tomllib
 
 from slamreplay.recorder.options import did_you_mean, typed_fields
-from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.engine.declared import use_declarations
 from slamreplay.replay.engine.pipeline import get_pipeline, resolve_config
+from slamreplay.replay.errors import ReplayError
 
 SIMULATORS = ("sim-landmarks", "sim-seabed", "sim-corridor")
 TOP_KEYS = {"seeds", "recordings", "pipelines", "name", "declarations"}

@@ -15,7 +15,8 @@ from slamreplay.api.cli import main
 from slamreplay.replay.metric_registry import LOST, METRICS, optional_reason
 from slamreplay.replay.runs.changepoints import detect_changes
 from slamreplay.replay.runs.compare import Side, compare, format_table
-from slamreplay.replay.runs.diff import diff_runs, format_table as diff_table
+from slamreplay.replay.runs.diff import diff_runs
+from slamreplay.replay.runs.diff import format_table as diff_table
 from slamreplay.replay.runs.history import Commit, history_of_versions
 from slamreplay.replay.runs.report import render_html, render_markdown
 from slamreplay.replay.runs.run import run_recording
@@ -126,7 +127,7 @@ def _noisy_rows(code: str, rng: np.random.Generator, scale: float = 1.0, seeds: 
     """A program that is not deterministic: eight correlated trajectory metrics, 5 % run-to-run noise."""
     base = {f"m{k}": 0.02 * (k + 1) for k in range(8)}
     rows = []
-    for i in range(seeds):
+    for _ in range(seeds):
         shared = rng.normal(0.0, 0.04)
         rows.append({k: v * scale * (1 + shared + rng.normal(0.0, 0.03)) for k, v in base.items()})
     out = _rows(code, rows)

@@ -10,7 +10,8 @@ from conftest import write_tiny_recording
 
 from slamreplay.api.cli import main
 from slamreplay.replay.runs.compare import compare, format_table, load_side
-from slamreplay.replay.runs.diff import describe_origin, diff_runs, format_table as diff_table, origin_changes
+from slamreplay.replay.runs.diff import describe_origin, diff_runs, origin_changes
+from slamreplay.replay.runs.diff import format_table as diff_table
 from slamreplay.replay.runs.report import render_html, render_markdown
 from slamreplay.replay.runs.run import run_recording
 from tests.replay.test_external import DEAD_RECKONING, declare
