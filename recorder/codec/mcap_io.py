@@ -248,6 +248,11 @@ def _count_records(data: bytes, limit: int) -> int:
     return n
 
 
+def zstd_bounded(data: bytes, limit: int, where: str) -> bytes:
+    """zstd frames decompressed as a stream, never past ``limit`` bytes; DamageError naming ``where`` otherwise."""
+    return _zstd(data, limit, where)
+
+
 def _zstd(data: bytes, limit: int, where: str) -> bytes:
     out = bytearray()
     try:

@@ -37,6 +37,7 @@ import numpy as np
 from slamreplay.recorder.codec.ros2 import POSE_TYPES, from_ros2
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.importers.poles import PoleConfig, extract_poles
+from slamreplay.recorder.importers.ros2bag_check import CheckedBag, check_storage, checked_bag, rosbags_error
 from slamreplay.recorder.importers.tf_tree import TfTree
 from slamreplay.recorder.messages import (
     TOPIC_CAMERA_CALIBRATION,
@@ -137,96 +138,90 @@ def is_ros2_bag(path: Path) -> bool:
     return (path.is_dir() and (path / "metadata.yaml").is_file()) or (path.is_file() and path.suffix == ".db3")
 
 
-def _bag_source(path: Path) -> Path:
-    """The path ``rosbags`` opens: a bag folder, or the one storage file of a folder without metadata."""
-    if not path.exists():
-        raise RecorderError(f"{path} does not exist: pass a ROS 2 bag folder, or its .db3 or .mcap file")
-    if path.is_dir() and not (path / "metadata.yaml").is_file():
-        files = sorted([*path.glob("*.db3"), *path.glob("*.mcap")])
-        if len(files) != 1:
-            what = "no .db3 or .mcap file" if not files else f"{len(files)} storage files but no metadata.yaml"
-            raise RecorderError(f"{path} is not a ROS 2 bag: it holds no metadata.yaml and {what}")
-        return files[0]
-    if path.is_file() and path.suffix not in (".db3", ".mcap"):
-        raise RecorderError(f"{path} is not a ROS 2 bag: expected a bag folder, a .db3 or a .mcap file")
-    return path
-
-
 @dataclass
-class _Bag:
+class OpenBag:
+    """A bag open in rosbags (``reader``, an AnyReader), every byte it reads checked first (:mod:`.ros2bag_check`);
+    :meth:`messages` turns whatever rosbags raises into a BagError. Close it (or use ``with``)."""
+
+    path: Path
     reader: Any
     storage: str
+    checked: CheckedBag
+
+    def messages(self, conns: list[Any]) -> Iterator[tuple[Any, int, Any]]:
+        """(connection, bag time, raw CDR) of ``conns``; storage damaged past what the check and the index cover
+        (a sqlite page) raises BagError when it is reached."""
+        items = self.reader.messages(connections=conns)
+        done = 0
+        while True:
+            try:
+                item = next(items)
+            except StopIteration:
+                return
+            except Exception as err:  # rosbags', apsw's, sqlite's, zstd's errors: the storage is damaged
+                raise rosbags_error(err, f"{self.path}: the bag's storage is damaged after message {done}",
+                                    "re-record or copy the bag again") from err
+            done += 1
+            yield item
+
+    def close(self) -> None:
+        try:
+            self.reader.close()
+        except Exception:  # noqa: BLE001 -- closing what failed to read: the error that matters is raised already
+            pass
+        finally:
+            self.checked.cleanup()
+
+    def __enter__(self) -> OpenBag:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
-def _open(path: Path, typestore: str) -> _Bag:
+def open_bag(path: str | Path, typestore: str = "humble") -> OpenBag:
+    """Open the bag at ``path`` (a folder, a .db3 or .mcap file) in rosbags once its bytes are checked; types the
+    bag does not define come from ``typestore`` (humble or jazzy). BagError (a RecorderError) otherwise."""
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
     if typestore not in TYPESTORES:
         raise RecorderError(f"typestore must be one of {', '.join(TYPESTORES)}, got {typestore!r}")
+    path = Path(path)
     store = get_typestore(Stores.ROS2_HUMBLE if typestore == "humble" else Stores.ROS2_JAZZY)
-    src = _bag_source(path)
+    checked = checked_bag(path)
+    src = checked.path
     try:
         try:
             reader = AnyReader([src], default_typestore=store)
             reader.open()
         except Exception:
             # a folder whose metadata.yaml rosbags cannot read (hand-written, another writer's) but whose one
-            # storage file it can: read that file alone
-            files = sorted([*src.glob("*.db3"), *src.glob("*.mcap")]) if src.is_dir() else []
-            if len(files) != 1:
+            # storage file it can: read that file alone, checked as well
+            if checked.fallback is None:
                 raise
-            src = files[0]
+            src = checked.fallback
+            check_storage(src, "sqlite3" if src.suffix == ".db3" else "mcap")
             reader = AnyReader([src], default_typestore=store)
             reader.open()
+        # types the bag does not define come from the chosen store (mixed bags: some topics carry definitions)
+        missing = {c.msgtype for c in reader.connections} - set(reader.typestore.fielddefs)
+        if missing:
+            extra = {k: v for k, v in store.fielddefs.items() if k not in reader.typestore.fielddefs}
+            reader.typestore.register(extra)
     except Exception as err:  # rosbags, sqlite and YAML errors alike: the file is not a readable bag
-        text = " ".join(str(a) for a in getattr(err, "args", ())) or type(err).__name__
-        raise RecorderError(f"{path} cannot be read as a ROS 2 bag ({text.splitlines()[0]}); check that it is a "
-                            f"complete rosbag2 folder, .db3 or .mcap (re-record or copy it again)") from err
-    # types the bag does not define come from the chosen store (mixed bags: some topics carry definitions)
-    missing = {c.msgtype for c in reader.connections} - set(reader.typestore.fielddefs)
-    if missing:
-        extra = {k: v for k, v in store.fielddefs.items() if k not in reader.typestore.fielddefs}
-        reader.typestore.register(extra)
-    files = [src] if src.is_file() else [*src.glob("*.db3"), *src.glob("*.mcap")]
-    storage = "sqlite3" if any(f.suffix == ".db3" for f in files) else "mcap"
-    return _Bag(reader, storage)
-
-
-def _messages(bag: _Bag, path: Path, conns: list[Any]) -> Iterator[tuple[Any, int, Any]]:
-    """(connection, bag time, raw CDR) of ``conns``; storage damaged past the index (a sqlite page, an MCAP
-    chunk) raises RecorderError when it is reached, which opening the bag cannot check."""
-    import sqlite3
-    import struct
-
-    import apsw
-    from rosbags.rosbag2 import ReaderError
-
-    items = bag.reader.messages(connections=conns)
-    done = 0
-    while True:
-        try:
-            item = next(items)
-        except StopIteration:
-            return
-        # UnicodeDecodeError: a damaged sqlite page whose TEXT column (a topic's name) is no longer UTF-8
-        except (apsw.Error, sqlite3.Error, ReaderError, struct.error, UnicodeDecodeError) as err:
-            text = (str(err).splitlines() or [type(err).__name__])[0]
-            raise RecorderError(f"{path}: the bag's storage is damaged after message {done} ({text}); re-record "
-                                f"or copy the bag again") from err
-        done += 1
-        yield item
+        checked.cleanup()
+        raise rosbags_error(err, f"{path} cannot be read as a ROS 2 bag") from err
+    storage = checked.storage if src == checked.path else "sqlite3" if src.suffix == ".db3" else "mcap"
+    return OpenBag(path, reader, storage, checked)
 
 
 def plan_bag(path: str | Path, topic_map: Mapping[str, str] | None = None, *, base_frame: str = "base_link",
              odom_frame: str = "odom", ground_truth_frame: str | None = None, typestore: str = "humble") -> BagPlan:
     """Map each topic of the bag onto a logical topic, or say why it is ignored (the bag stays unread)."""
-    bag = _open(Path(path), typestore)
-    try:
+    with open_bag(path, typestore) as bag:
         plan = _plan(bag, Path(path), dict(topic_map or {}), ground_truth_frame)
-        edges = _tf_edges(bag, Path(path))
-    finally:
-        bag.reader.close()
+        edges = _tf_edges(bag)
     if not edges:
         return plan
     frames = {f for e in edges for f in e}
@@ -244,14 +239,14 @@ def plan_bag(path: str | Path, topic_map: Mapping[str, str] | None = None, *, ba
 TF_SAMPLE = 2000  # /tf messages plan_bag reads for the frame names (all of /tf_static)
 
 
-def _tf_edges(bag: _Bag, path: Path) -> set[tuple[str, str]]:
+def _tf_edges(bag: OpenBag) -> set[tuple[str, str]]:
     """(parent, child) of the transforms in /tf_static and the first TF_SAMPLE messages of /tf."""
     edges: set[tuple[str, str]] = set()
     for topic in TF_TOPICS:
         conns = [c for c in bag.reader.connections if c.topic == topic and c.msgtype == TF_TYPE]
         if not conns:  # rosbags reads every connection when given none
             continue
-        for n, (conn, _, raw) in enumerate(_messages(bag, path, conns)):
+        for n, (conn, _, raw) in enumerate(bag.messages(conns)):
             if topic == "/tf" and n >= TF_SAMPLE:
                 break
             try:
@@ -262,7 +257,7 @@ def _tf_edges(bag: _Bag, path: Path) -> set[tuple[str, str]]:
     return edges
 
 
-def _plan(bag: _Bag, path: Path, topic_map: dict[str, str], ground_truth_frame: str | None) -> BagPlan:
+def _plan(bag: OpenBag, path: Path, topic_map: dict[str, str], ground_truth_frame: str | None) -> BagPlan:
     counts: dict[str, int] = {}
     types: dict[str, str] = {}
     for c in bag.reader.connections:
@@ -345,9 +340,8 @@ def import_ros2_bag(bag_path: str | Path, out: str | Path, *, topic_map: Mapping
     """
     bag_path = Path(bag_path)
     poles = poles or PoleConfig()
-    bag = _open(bag_path, typestore)
-    reader = bag.reader
-    try:
+    with open_bag(bag_path, typestore) as bag:
+        reader = bag.reader
         plan = _plan(bag, bag_path, dict(topic_map or {}), ground_truth_frame)
         by_topic = {p.topic: p for p in plan.topics if p.maps_to}
         conns = [c for c in reader.connections if c.topic in by_topic]
@@ -356,24 +350,20 @@ def import_ros2_bag(bag_path: str | Path, out: str | Path, *, topic_map: Mapping
         scans: list[tuple[int, str, Any]] = []
         total = sum(c.msgcount for c in conns)
         every = max(1, total // 200)
-        for done, (conn, bag_ns, raw) in enumerate(_messages(bag, bag_path, conns) if conns else (), start=1):
+        for done, (conn, bag_ns, raw) in enumerate(bag.messages(conns) if conns else (), start=1):
+            where = f"message {done} on {conn.topic} ({conn.msgtype})"
             try:
                 obj = reader.deserialize(raw, conn.msgtype)
+            except Exception as err:  # rosbags' deserialization errors of damaged CDR, whatever their type
+                raise rosbags_error(err, f"{bag_path}: {where} is damaged", "re-record or copy the bag again") from err
+            try:
                 item = _convert(conn.topic, conn.msgtype, by_topic[conn.topic].maps_to, obj, bag_ns, tree, scans)
-            except (ValueError, AttributeError, TypeError) as err:
-                raise RecorderError(f"{bag_path}: message {done} on {conn.topic} ({conn.msgtype}) cannot be "
-                                    f"read: {err}") from err
-            except Exception as err:  # rosbags' deserialization errors of damaged bytes
-                if isinstance(err, RecorderError):
-                    raise
-                raise RecorderError(f"{bag_path}: message {done} on {conn.topic} ({conn.msgtype}) is damaged: "
-                                    f"{err}") from err
+            except (ValueError, AttributeError, TypeError) as err:  # values a message cannot hold
+                raise RecorderError(f"{bag_path}: {where} cannot be read: {err}") from err
             if item is not None:
                 out_msgs.append((item[1].stamp_ns, len(out_msgs), item[0], item[1]))
             if progress is not None and done % every == 0:
                 progress(done, total)
-    finally:
-        reader.close()
 
     n_poles = 0
     if scans:

@@ -185,8 +185,8 @@ def test_corrupted_db3(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     broken = tmp_path / "broken.db3"
     broken.write_bytes(bytes(data))
     _one_line_exit_2(["record", "ros2", str(broken), "--out", str(tmp_path / "r.mcap")], capsys,
-                     "cannot be read as a ROS 2 bag")
-    _one_line_exit_2(["inspect", str(broken)], capsys, "cannot be read as a ROS 2 bag")
+                     "broken.db3 is not a sqlite3 database")
+    _one_line_exit_2(["inspect", str(broken)], capsys, "broken.db3 is not a sqlite3 database")
     assert not (tmp_path / "r.mcap").exists()
     with sqlite3.connect(db3) as con:  # the intact one still reads: the damage, not the file, was the cause
         assert con.execute("select count(*) from messages").fetchone()[0] > 0
