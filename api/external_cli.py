@@ -24,8 +24,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from slamreplay.replay.runs.evaluate_run import association_from, evaluate_estimate
 
     assoc = association_from(args.t_offset_s, args.t_max_diff_s, args.align)
+    limit = {"max_bytes": args.max_bytes} if args.max_bytes is not None else {}
     result = evaluate_estimate(args.estimate, args.recording, args.out, fmt=args.format, topic=args.topic,
-                               times=args.times, association=assoc)
+                               times=args.times, association=assoc, min_coverage=args.min_coverage, **limit)
     if not args.quiet:
         for name, value in sorted(result.metrics.items()):
             print(f"  {name:<28} {value:.6g}")
@@ -83,6 +84,11 @@ def add_external_parsers(sub: Any, quiet: argparse.ArgumentParser) -> None:
     ev.add_argument("--t-max-diff-s", type=float, default=None, metavar="S",
                     help="leave out estimates further than S seconds from any ground-truth message (evo's "
                          "--t_max_diff; default: keep every one inside the truth's time span)")
+    ev.add_argument("--min-coverage", type=float, default=None, metavar="F",
+                    help="fail when the estimate's times cover less than F of the ground truth's time span "
+                         "(default 0.5; 0: any overlap; no overlap at all is always refused)")
+    ev.add_argument("--max-bytes", type=int, default=None, metavar="N",
+                    help="refuse an estimate file larger than N bytes before reading it (default 256 MiB)")
     ev.set_defaults(func=cmd_evaluate)
 
     ex = sub.add_parser("export", parents=[quiet], help="write a recording's data as files an external program reads",

@@ -10,6 +10,7 @@ into the same directory replaces it (``prepare_run_dir``), a succeeded run is ne
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import json
@@ -246,6 +247,7 @@ def run_recording(recording: str | Path, pipeline: str | type[Pipeline], out_dir
     rrd_tmp, rrd = out_dir / ".run.rrd.partial", out_dir / "run.rrd"
     observer: RerunObserver | None = None
     values: dict[str, float] = {}
+    kept: dict[str, Any] = {}  # artifacts a failed run keeps (an external program's output)
     try:
         tic = time.perf_counter()
         if pipeline_cls.multi_robot:
@@ -304,6 +306,10 @@ def run_recording(recording: str | Path, pipeline: str | type[Pipeline], out_dir
     except (ReplayError, RecorderError) as err:
         manifest.update(status="failed", error=str(err))
         lines.append(f"FAILED: {err}")
+        keep = getattr(err, "artifacts", None)  # files a failed pipeline keeps (an external program's output)
+        if keep:
+            with contextlib.suppress(OSError):  # the error is the run's story; a full disk must not hide it
+                manifest["artifacts"] = kept = write_artifacts(out_dir, keep)
         raise ReplayError(str(err)) from err
     except KeyboardInterrupt:  # the user's Ctrl-C: not a fault of slamreplay's (the CLI exits 130)
         manifest.update(status="interrupted", error="interrupted by the user (Ctrl-C)")
@@ -323,7 +329,8 @@ def run_recording(recording: str | Path, pipeline: str | type[Pipeline], out_dir
             observer.close()
         if manifest["status"] != "succeeded":  # the directory was empty: what is in it is this run's, half done
             for name in (rrd_tmp.name, rrd.name, "metrics.json", *manifest.get("artifacts", {})):
-                (out_dir / name).unlink(missing_ok=True)
+                if name not in kept:
+                    (out_dir / name).unlink(missing_ok=True)
         usage = resource.getrusage(resource.RUSAGE_SELF)
         timings.update(wall_s=time.perf_counter() - t_wall, cpu_s=time.process_time() - t_cpu,
                        max_rss_mib=usage.ru_maxrss / 1024.0)

@@ -11,7 +11,7 @@ import pytest
 
 from slamreplay.algorithms.common.posegraph import PoseGraph, chi2
 from slamreplay.algorithms.common.se2 import between, compose
-from slamreplay.replay.runs.diff import rerun_cli
+from slamreplay.replay.runs.rrd_compare import rerun_cli
 from slamreplay.replay.tools.graph_io import GraphFileError, optimize_file, read_graph, write_graph
 
 KEYS = {"vertices", "edges", "chi2_initial", "chi2_final", "edges_rejected", "iterations", "status", "time_s"}

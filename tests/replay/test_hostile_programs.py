@@ -234,8 +234,6 @@ def test_the_default_memory_limit(tmp_path: Path, rec: Path, monkeypatch: pytest
     assert OUTPUT_CAP_BYTES == 10 * 1024 * 1024
 
 
-# until replay/runs/run.py writes the artifacts a failed pipeline's error carries (ProgramError.artifacts)
-@pytest.mark.xfail(reason="run_recording does not yet keep a failed run's artifacts", strict=False)
 @pytest.mark.parametrize(("script", "keys", "error"), [
     ('print("mapping"); print("bad input", file=sys.stderr)\nopen(os.environ["SLAMREPLAY_OUT"] + "/landmarks.csv", '
      '"w").write("id,x_m,y_m\\n0,1,2\\n")\nsys.exit(3)\n', {}, r"exited with status 3: bad input$"),

@@ -20,7 +20,7 @@ from slamreplay.replay.engine.observer import MemoryObserver
 from slamreplay.replay.engine.pipeline import get_pipeline, ground_truth_is_estimate, resolve_config
 from slamreplay.replay.engine.reader import RecordingReader
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.runs.diff import rerun_cli
+from slamreplay.replay.runs.rrd_compare import rerun_cli
 from slamreplay.replay.runs.run import run_recording
 
 
