@@ -28,8 +28,8 @@ from slamreplay.recorder.files import atomic_write
 from slamreplay.recorder.messages import TOPIC_CAMERA_IMAGE, TOPIC_ODOM, TOPIC_RANGE_BEARING
 from slamreplay.replay.engine.reader import RecordingReader
 from slamreplay.replay.engine.trajectory import to_tum
-from slamreplay.replay.tools.export_names import EXPORT_FILES
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.tools.export_names import EXPORT_FILES
 
 
 def _odometry(reader: RecordingReader) -> tuple[np.ndarray, np.ndarray]:
