@@ -21,6 +21,8 @@ from fastapi import APIRouter, Depends, FastAPI, Path, Query, Request, Response
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 from starlette.concurrency import run_in_threadpool
 
+from slamreplay.api.audit import submitted_text
+from slamreplay.api.auth import record
 from slamreplay.api.datalock import DataDirLock
 from slamreplay.api.deps import ERRORS, JobsDep, RecordingsDep, require_token
 from slamreplay.api.docs_pages import install_docs
@@ -114,14 +116,18 @@ async def upload_recording(request: Request, response: Response, recordings: Rec
         length = request.headers.get("content-length")
         declared = int(length) if length is not None and length.isdigit() else None
         stored = await recordings.upload(request.stream(), filename, declared, recover)
+    await run_in_threadpool(record, request, "upload", stored.recording.id,
+                            f"{stored.recording.filename} ({'new' if stored.created else 'already stored'})")
     response.status_code = 201 if stored.created else 200
     return RecordingOut.of(stored.recording, stored.report, stored.recovered_from)
 
 
 @router.post("/recordings/{recording_id}/recover", status_code=201, tags=["recordings"])
-def recover_recording(recording_id: RecordingId, response: Response, recordings: RecordingsDep) -> RecordingOut:
+def recover_recording(request: Request, recording_id: RecordingId, response: Response,
+                      recordings: RecordingsDep) -> RecordingOut:
     """Salvage the readable messages of a damaged upload into a new recording."""
     stored = recordings.recover(recording_id)
+    record(request, "recover", stored.recording.id, f"from the damaged upload {recording_id[:8]}")
     response.status_code = 201 if stored.created else 200
     return RecordingOut.of(stored.recording, stored.report, stored.recovered_from)
 
@@ -143,9 +149,11 @@ def download_recording(recording_id: RecordingId, recordings: RecordingsDep) -> 
 
 
 @router.delete("/recordings/{recording_id}", status_code=204, tags=["recordings"])
-def delete_recording(recording_id: RecordingId, recordings: RecordingsDep) -> Response:
-    """Delete a recording; 409 while a queued or running job uses it."""
+def delete_recording(request: Request, recording_id: RecordingId, recordings: RecordingsDep) -> Response:
+    """Delete a recording (admins); 409 while a queued or running job uses it."""
+    name = recordings.get(recording_id).filename
     recordings.delete(recording_id)
+    record(request, "delete-recording", recording_id, name)
     return Response(status_code=204)
 
 
@@ -153,9 +161,11 @@ def delete_recording(recording_id: RecordingId, recordings: RecordingsDep) -> Re
 
 
 @router.post("/jobs", status_code=202, tags=["jobs"])
-def submit_job(spec: JobSpec, jobs: JobsDep) -> JobOut:
-    """Queue a job; 422 naming an unknown pipeline or config key, 404 for an unknown recording."""
-    return JobOut.of(jobs.submit(spec.recording_id, spec.pipeline, spec.config, spec.seed, spec.topic_map))
+def submit_job(request: Request, spec: JobSpec, jobs: JobsDep) -> JobOut:
+    """Queue a job (runners); 422 naming an unknown pipeline or config key, 404 for an unknown recording."""
+    job = jobs.submit(spec.recording_id, spec.pipeline, spec.config, spec.seed, spec.topic_map)
+    record(request, "submit", job.id, submitted_text(job))
+    return JobOut.of(job)
 
 
 @router.get("/jobs", tags=["jobs"])
@@ -174,9 +184,11 @@ def get_job(job_id: JobId, jobs: JobsDep) -> JobOut:
 
 
 @router.delete("/jobs/{job_id}", tags=["jobs"])
-def cancel_job(job_id: JobId, jobs: JobsDep) -> JobOut:
-    """Cancel a queued or running job; 409 when it has already ended."""
-    return JobOut.of(jobs.cancel(job_id))
+def cancel_job(request: Request, job_id: JobId, jobs: JobsDep) -> JobOut:
+    """Cancel a queued or running job (runners); 409 when it has already ended."""
+    job = jobs.cancel(job_id)
+    record(request, "cancel", job_id, submitted_text(job))
+    return JobOut.of(job)
 
 
 @router.get("/jobs/{job_id}/rrd", tags=["jobs"], response_class=FileResponse)

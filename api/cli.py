@@ -24,6 +24,7 @@ from slamreplay.api.history_cli import add_history_parsers
 from slamreplay.api.pipelines_cli import add_pipelines_parser
 from slamreplay.api.progress import progress_bar
 from slamreplay.api.suite_cli import add_suite_parsers
+from slamreplay.api.users_cli import add_users_parser
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.replay.errors import ReplayError
 
@@ -301,6 +302,20 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(Path(args.out), Path(args.data) if args.data else None, quiet=args.quiet)
 
 
+def _auth_text(settings: Any) -> str:
+    """What the server asks of its clients: people's tokens, the shared token, or nothing (api/auth.py)."""
+    from slamreplay.api.store import Store
+
+    users = Store(settings.db_path).users()
+    if users:
+        active = sum(u.active for u in users)
+        ignored = "; SLAMREPLAY_TOKEN is not used" if settings.token else ""
+        return f"people: {active} active of {len(users)}, each with their own token and role{ignored}"
+    if settings.token:
+        return "single user: one shared bearer token required"
+    return "single user: no token (set SLAMREPLAY_TOKEN, or add people with `slamreplay users add`)"
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     """Take the data directory's lock, then the port, and only then announce and build the app: a second
     server on a directory or a port in use exits 2 on one line without touching the first one's jobs."""
@@ -335,7 +350,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         raise CliError(f"--data-dir {settings.data_dir}: cannot lock it: {err.strerror or err}") from None
     base = f"http://{url_host(args.host)}:{sock.getsockname()[1]}"
     lock.set_address(base)
-    auth = "bearer token required" if settings.token else "no token (set SLAMREPLAY_TOKEN to require one)"
+    auth = _auth_text(settings)
     names = [h for h in settings.allowed_hosts if h not in LOOPBACK_HOSTS]
     hosts = "" if args.host == "127.0.0.1" else (
         f"; host names served: loopback, {', '.join(names)}" if names else
@@ -558,6 +573,7 @@ def build_parser(command: str | None = None) -> SuggestingParser:
     add_suite_parsers(sub, quiet)
     add_history_parsers(sub, quiet)
     add_external_parsers(sub, quiet)
+    add_users_parser(sub)
     return p
 
 

@@ -255,5 +255,6 @@ def unpaired_reason(side_a: Any, side_b: Any) -> str:
 
 
 def job_ids_of(side: Any, most: int = MAX_RUNS) -> list[str]:
-    """The job ids of a side's rows (a suite's cells), at most ``most``."""
-    return list(dict.fromkeys(str(r["job_id"]) for r in side.rows if r.get("job_id")))[:most]
+    """The job ids of a side's rows (a suite's cells; not those deleted since), at most ``most``."""
+    return list(dict.fromkeys(str(r["job_id"]) for r in side.rows
+                              if r.get("job_id") and r.get("status") != "deleted"))[:most]

@@ -9,12 +9,14 @@ suites. The comparisons themselves are built in `slamreplay.api.compare_runs`.
 
 from __future__ import annotations
 
+import html
 from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import HTMLResponse
 
+from slamreplay.api.auth import link_secret
 from slamreplay.api.compare_runs import (
     job_ids_of,
     many_runs,
@@ -26,7 +28,7 @@ from slamreplay.api.compare_runs import (
 )
 from slamreplay.api.deps import get_jobs
 from slamreplay.api.models import JOB_ID
-from slamreplay.api.pages import HERE, PAGE_ERRORS, templates, web_session
+from slamreplay.api.pages import HERE, PAGE_ERRORS, people_ctx, templates, web_session
 from slamreplay.api.pages import error_response as _error
 from slamreplay.api.pages import page_response as _page
 from slamreplay.api.suites_routes import SuitesDep, service_links
@@ -47,18 +49,28 @@ def runs_ctx(request: Request, ids: list[str], tolerances: dict[str, str] | None
     return {"mode": "many", **many_runs(jobs, ids)}
 
 
-def _report(request: Request, c: Any) -> HTMLResponse:
+def deleted_cells(side: Any, name: str) -> list[str]:
+    """``A: corridor/odometry/default seed 1, run 1a2b3c4d deleted by alice at ...`` for each deleted run of a side."""
+    return [f"{name}: {r.get('recording')}/{r.get('pipeline')}/{r.get('variant')} seed {r.get('seed')}, run "
+            f"{str(r.get('job_id'))[:8]} {r.get('error')}" for r in side.rows if r.get("status") == "deleted"]
+
+
+def _report(request: Request, c: Any, deleted: list[str] | None = None) -> HTMLResponse:
     """The comparison report of ``GET /compare?format=html``, under the page's header."""
     from slamreplay.replay.runs.report import render_html
 
-    report = render_html(c, Path("/"), service_links(str(request.base_url), request.app.state.settings.token))
-    nav = templates.get_template("_nav.html").render(guarded=request.app.state.settings.token is not None)
+    report = render_html(c, Path("/"), service_links(str(request.base_url), link_secret(request)))
+    nav = templates.get_template("_nav.html").render(**people_ctx(request))
     head, _, body = report.partition("<body>")
     style = "<style>" + (HERE / "static" / "web.css").read_text() + "</style>"
     viewport = ('<meta name="viewport" content="width=device-width, initial-scale=1">'
                 '<link rel="icon" href="/static/favicon.svg" type="image/svg+xml">')  # as base.html's head
     head = head.replace("<html>", '<html lang="en">', 1)  # the report has none: screen readers guess the language
     body = body.replace("</body>", "</main></body>")
+    if deleted:  # runs deleted since: said where the report begins, by whom and when (never silently absent)
+        items = "".join(f"<li>{html.escape(d)}</li>" for d in deleted)
+        body = (f'<section id="deleted-runs"><h2>Deleted runs</h2><p>These cells ran, but their runs were deleted: '
+                f"the comparison counts them as not succeeded.</p><ul>{items}</ul></section>") + body
     return HTMLResponse(head.replace("</head>", viewport + style + "</head>") + "<body>" + nav + "<main>" + body)
 
 
@@ -73,8 +85,9 @@ def _paired(request: Request, suites: Any, a: str, b: str, tolerance: list[str])
             raise
         c = None
     if c is not None and (c.results or c.failures):
-        return _report(request, c)
-    ctx: dict[str, Any] = {"reason": unpaired_reason(side_a, side_b), "mode": "none", "a_ref": a, "b_ref": b}
+        return _report(request, c, deleted_cells(side_a, "A") + deleted_cells(side_b, "B"))
+    ctx: dict[str, Any] = {"reason": unpaired_reason(side_a, side_b), "mode": "none", "a_ref": a, "b_ref": b,
+                           "deleted": deleted_cells(side_a, "A") + deleted_cells(side_b, "B")}
     ids = list(dict.fromkeys(job_ids_of(side_a) + job_ids_of(side_b)))
     if side_a.kind == "run" and side_b.kind == "run" and len(ids) == 2:
         ctx |= runs_ctx(request, ids, tolerances)

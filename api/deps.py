@@ -1,4 +1,5 @@
-"""What the service's routes share: the settings, job and recording services, the bearer token check, the
+"""What the service's routes share: the settings, job and recording services, the bearer token check (who asks and
+whether their role may: ``slamreplay.api.auth``), the
 documented error responses, and the keyed links the Rerun web viewer opens a run's ``.rrd`` through.
 
 Its own module so that the routes (api/app.py, api/suites_routes.py, api/web.py) import it and not each other.
@@ -14,7 +15,7 @@ from urllib.parse import quote
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from slamreplay.api.errors import UnauthorizedError
+from slamreplay.api.auth import Principal, api_principal
 from slamreplay.api.jobs import JobService
 from slamreplay.api.models import ErrorOut
 from slamreplay.api.recordings import RecordingService
@@ -24,7 +25,7 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 # Errors are JSON on every route, file downloads included (FastAPI would document them with the route's media type).
 ERRORS: dict[int | str, dict[str, Any]] = {
     code: {"model": ErrorOut, "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}}}
-    for code in (400, 401, 404, 409, 413, 415, 422, 507)}
+    for code in (400, 401, 403, 404, 409, 413, 415, 422, 507)}
 _bearer = HTTPBearer(auto_error=False, description="SLAMREPLAY_TOKEN, when the server has one")
 
 
@@ -42,15 +43,14 @@ JobsDep = Annotated[JobService, Depends(get_jobs)]
 RecordingsDep = Annotated[RecordingService, Depends(get_recordings)]
 
 
-def require_token(settings: SettingsDep,
-                  credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
-    """401 unless the request carries the server's bearer token (when it has one)."""
-    if settings.token is None:
-        return
-    if credentials is None:
-        raise UnauthorizedError("this server needs a token: send the header `Authorization: Bearer <SLAMREPLAY_TOKEN>`")
-    if not hmac.compare_digest(credentials.credentials.encode(), settings.token.encode()):
-        raise UnauthorizedError("wrong bearer token")
+def require_token(request: Request,
+                  credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> Principal:
+    """401 unless the request carries a good bearer token (a person's, or the shared one; none on an open server),
+    403 when that person's role may not use the route (``slamreplay.api.auth``)."""
+    return api_principal(request)
+
+
+PrincipalDep = Annotated[Principal, Depends(require_token)]
 
 
 def rrd_key(token: str | None, rrd_path: str) -> str:

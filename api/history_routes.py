@@ -25,6 +25,7 @@ from markupsafe import Markup
 from pydantic import BaseModel, Field
 from starlette.concurrency import run_in_threadpool
 
+from slamreplay.api.audit import record_suite
 from slamreplay.api.deps import ERRORS, require_token
 from slamreplay.api.errors import ConflictError, NotFoundError
 from slamreplay.api.pages import PAGE_ERRORS, web_session
@@ -170,11 +171,12 @@ def history_page(request: Request, name: SuiteName, suites: SuitesDep) -> HTMLRe
         link = f"/ui/compare?a={prev[-1]}&b={mine[-1]}" if prev and mine else None
         versions.append({"k": k, "version": c.sha, "short": c.sha[:10], "date": c.date, "subject": c.subject,
                          "suites": mine, "compare": link})
-    shown = [{**ch.to_json(), "short": ch.commit[:10], "before": fmt(ch.mean_before), "after": "missing" if ch.mean_after is None else fmt(ch.mean_after),
+    shown = [{**ch.to_json(), "short": ch.commit[:10], "before": fmt(ch.mean_before),
+              "after": "missing" if ch.mean_after is None else fmt(ch.mean_after),
               "delta": fmt(ch.delta, signed=True), "rel": f"{ch.relative:+.1%}" if ch.relative is not None else "",
               "k": ch.index} for ch in changes]
     return _page(request, "suite_history.html", suite_name=name, groups=groups, versions=versions, changes=shown,
-                 can_run=service_repo() is not None)
+                 can_run_rev=service_repo() is not None)
 
 
 class RevIn(BaseModel):
@@ -182,10 +184,11 @@ class RevIn(BaseModel):
 
 
 @router.post("/history/suites/{name:path}/runs", status_code=202)
-def run_suite_on_revision(name: SuiteName, body: RevIn, suites: SuitesDep) -> SuiteOut:
+def run_suite_on_revision(request: Request, name: SuiteName, body: RevIn, suites: SuitesDep) -> SuiteOut:
     """Send the latest suite named ``name`` again with its cells run by the code of commit ``rev`` (the service
     must run from a git checkout: else 409; an unknown revision is a 422); the new suite, as ``POST /suites``."""
     row = run_on_revision(suites, name, body.rev)
+    record_suite(request, suites, row, rev=body.rev)
     return SuiteOut.of(suites, row, suites.get(row.id)[2])
 
 
@@ -193,7 +196,9 @@ def run_suite_on_revision(name: SuiteName, body: RevIn, suites: SuitesDep) -> Su
 async def run_suite_form(request: Request, name: SuiteName, suites: SuitesDep) -> Response:
     form = await request.form()
     try:
-        row = await run_in_threadpool(run_on_revision, suites, name, str(form.get("rev", ""))[:256])
+        rev = str(form.get("rev", ""))[:256]
+        row = await run_in_threadpool(run_on_revision, suites, name, rev)
     except PAGE_ERRORS as err:
         return _error(request, err)
+    await run_in_threadpool(record_suite, request, suites, row, rev)
     return RedirectResponse(f"/ui/suites/{row.id}", 303)

@@ -12,7 +12,6 @@ request passes through unchanged and gets the routes' usual 401.
 
 from __future__ import annotations
 
-import hmac
 import re
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
@@ -50,18 +49,12 @@ QUERIES: dict[str, dict[str, tuple[str, ...]]] = {
 
 
 def _authorized(scope: Scope) -> bool:
-    """Whether the request carries the server's token (bearer or the page's session cookie), or none is needed."""
-    from slamreplay.api.pages import COOKIE, session_value
+    """Whether the request carries a good token (bearer, or the page's session cookie), or none is needed; a
+    person's bearer token costs a slow hash: call it from a worker thread."""
+    from slamreplay.api.auth import bearer_principal, page_principal
 
-    token = scope["app"].state.settings.token
-    if token is None:
-        return True
     request = Request(scope)
-    auth = request.headers.get("authorization", "")
-    if auth.startswith("Bearer ") and hmac.compare_digest(auth[7:].encode(), token.encode()):
-        return True
-    cookie = request.cookies.get(COOKIE, "")
-    return bool(cookie) and hmac.compare_digest(cookie, session_value(token))
+    return page_principal(request) is not None or bearer_principal(request) is not None
 
 
 def rewrite(scope: Scope, store: Store) -> bool:
@@ -130,7 +123,7 @@ class IdPrefixes:
                 await run_in_threadpool(rewrite, scope, store)  # SQLite off the event loop
             except ApiError as err:
                 scope["path"], scope["raw_path"], scope["query_string"] = original
-                if _authorized(scope):
+                if await run_in_threadpool(_authorized, scope):
                     await _error(scope, err)(scope, receive, send)
                     return
         await self.app(scope, receive, send)

@@ -17,6 +17,8 @@ from fastapi import APIRouter, Depends, Request
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse
 
+from slamreplay.api.audit import job_people
+from slamreplay.api.auth import link_secret
 from slamreplay.api.deps import JobsDep, viewer_href
 from slamreplay.api.errors import NotFoundError
 from slamreplay.api.jobs import JobService
@@ -142,12 +144,12 @@ def job_ctx(request: Request, jobs: JobService, job_id: str) -> dict[str, Any]:
         ctx["manifest"] = json.loads((run_dir / "manifest.json").read_text())
     if job.status == "succeeded":
         ctx["metrics"] = metric_rows(run_dir, job.pipeline)
-        ctx["rerun"] = viewer_href(str(request.base_url), request.app.state.settings.token,
-                                   f"/jobs/{job_id}/run.rrd")
+        ctx["rerun"] = viewer_href(str(request.base_url), link_secret(request), f"/jobs/{job_id}/run.rrd")
         ctx["plots"] = plots(run_dir)
     ctx["config"] = config_rows(ctx["manifest"], job.config)
     ctx["files"] = run_files(run_dir)
     ctx["log"] = log_tail(run_dir)
+    ctx["people"] = job_people(jobs.store, job_id)
     return ctx
 
 

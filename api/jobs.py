@@ -241,16 +241,22 @@ class JobService:
         return job
 
     def get(self, job_id: str) -> JobRow:
+        """The job; NotFoundError when unknown, saying who deleted it and when if it was deleted."""
         job = self.store.get_job(job_id)
         if job is None:
-            raise NotFoundError(f"job {job_id} not found")
+            raise self.missing(job_id)
         return job
+
+    def missing(self, job_id: str) -> NotFoundError:
+        """The 404 of a job id the store does not hold: a deleted job's says who deleted it and when."""
+        stone = self.store.tombstone(job_id)
+        return NotFoundError(f"job {job_id} not found" if stone is None else f"job {job_id} was {stone.text}")
 
     def cancel(self, job_id: str) -> JobRow:
         """Cancel a queued or running job; ConflictError when it has already ended."""
         job, before = self.store.cancel_job(job_id)
         if job is None:
-            raise NotFoundError(f"job {job_id} not found")
+            raise self.missing(job_id)
         if before == "running":
             self.executor.cancel(job_id)
         elif before != "queued":

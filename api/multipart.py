@@ -2,8 +2,9 @@
 
 The body is parsed as it arrives (python-multipart's push parser), so the file is never whole
 in memory and the upload size limit holds as for a raw body. Parts before the file part are
-read and dropped (their bytes count against the limit); the body after the file part is not
-read. A form without a ``file`` part is refused with the name of the field to use.
+read (their bytes count against the limit) and dropped, but for the first KiB of each text field,
+which the caller may ask for (the page's form sends its CSRF token first); the body after the file
+part is not read. A form without a ``file`` part is refused with the name of the field to use.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from python_multipart.multipart import MAX_BOUNDARY_LENGTH, MultipartParser, par
 from slamreplay.api.errors import ApiError, TooLargeError
 
 FILE_FIELD = "file"
+FIELD_BYTES = 1024
 USAGE = f"curl -F {FILE_FIELD}=@run.mcap URL/recordings (or the raw file: curl --data-binary @run.mcap URL/recordings)"
 
 
@@ -44,6 +46,8 @@ class _Parts:
         self.other_fields: list[str] = []
         self.other_files: list[str] = []
         self.pending: list[bytes] = []
+        self.fields: dict[str, bytes] = {}  # text fields before the file part: their first FIELD_BYTES bytes
+        self.field: str | None = None
 
     def callbacks(self) -> dict[str, object]:
         return {"on_part_begin": self.on_part_begin, "on_header_field": self.on_header_field,
@@ -76,12 +80,18 @@ class _Parts:
             self.other_files.append(name)
         else:
             self.other_fields.append(name)
+            if not self.file_started:
+                self.field = name
+                self.fields.setdefault(name, b"")
 
     def on_part_data(self, data: bytes, start: int, end: int) -> None:
         if self.in_file:
             self.pending.append(bytes(data[start:end]))
+        elif self.field is not None and len(self.fields[self.field]) < FIELD_BYTES:
+            self.fields[self.field] = (self.fields[self.field] + bytes(data[start:end]))[:FIELD_BYTES]
 
     def on_part_end(self) -> None:
+        self.field = None
         if self.in_file:
             self.in_file, self.file_ended = False, True
 
@@ -93,12 +103,13 @@ class _Parts:
         return FormError(f"the form has no field {FILE_FIELD!r}{fields}: {USAGE}", field=FILE_FIELD)
 
 
-async def form_file(stream: AsyncIterator[bytes], content_type: str,
-                    limit: int) -> tuple[str | None, AsyncIterator[bytes]]:
+async def form_file(stream: AsyncIterator[bytes], content_type: str, limit: int,
+                    fields: dict[str, str] | None = None) -> tuple[str | None, AsyncIterator[bytes]]:
     """(file name, chunks of the ``file`` part) of a multipart/form-data body.
 
     Reads until the file part's headers; FormError when there is none (naming the field to use)
-    or the body is malformed, TooLargeError past ``limit`` bytes before it.
+    or the body is malformed, TooLargeError past ``limit`` bytes before it. ``fields``, when given,
+    receives the text fields sent before the file part (their first KiB each).
     """
     _, params = parse_options_header(content_type)
     boundary = params.get(b"boundary")
@@ -127,6 +138,8 @@ async def form_file(stream: AsyncIterator[bytes], content_type: str,
         if read > limit:
             raise TooLargeError(f"upload is over the limit of {limit} bytes (SLAMREPLAY_MAX_UPLOAD_BYTES)")
         feed(chunk)
+    if fields is not None:
+        fields.update({k: v.decode("utf-8", "replace") for k, v in parts.fields.items()})
 
     async def chunks() -> AsyncIterator[bytes]:
         while True:

@@ -6,8 +6,6 @@ and not each other.
 
 from __future__ import annotations
 
-import hashlib
-import hmac
 import math
 from pathlib import Path
 from typing import Any
@@ -16,35 +14,26 @@ from fastapi import Request
 from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 
-from slamreplay.api.deps import SettingsDep, get_jobs
+from slamreplay.api.auth import COOKIE as COOKIE  # the page's names for these, as before they moved to api/auth.py
+from slamreplay.api.auth import LoginRequiredError as LoginRequiredError
+from slamreplay.api.auth import PageForbiddenError as PageForbiddenError
+from slamreplay.api.auth import Principal, page_check, principal_of, server_mode
+from slamreplay.api.auth import session_value as session_value
+from slamreplay.api.deps import get_jobs
 from slamreplay.api.errors import ApiError
-from slamreplay.api.settings import Settings
 from slamreplay.api.suites import ENDED, SuiteService
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.replay.errors import ReplayError
 
 HERE = Path(__file__).parent
-COOKIE = "slamreplay_session"
 templates = Jinja2Templates(directory=HERE / "templates")
 PAGE_ERRORS = (ApiError, ReplayError, RecorderError)
 
 
-class LoginRequiredError(Exception):
-    """A page request without a valid session while the server has a token."""
-
-
-def session_value(token: str) -> str:
-    """The session cookie's value: a MAC of a fixed text under the token (the token itself never leaves)."""
-    return hmac.new(token.encode(), b"slamreplay web session v1", hashlib.sha256).hexdigest()
-
-
-def web_session(request: Request, settings: SettingsDep) -> None:
-    """Pages need the session cookie when the server has a token."""
-    if settings.token is None:
-        return
-    got = request.cookies.get(COOKIE, "")
-    if not got or not hmac.compare_digest(got, session_value(settings.token)):
-        raise LoginRequiredError
+async def web_session(request: Request) -> Principal:
+    """Pages need a session (a person's, or the shared token's cookie) unless the server is open; the route's
+    role; and, for a form posted with a session cookie, its CSRF token (``slamreplay.api.auth``)."""
+    return await page_check(request)
 
 
 def _num(v: Any) -> str:
@@ -57,10 +46,19 @@ templates.env.filters["num"] = _num
 templates.env.filters["short"] = lambda s: str(s)[:8]
 
 
+def people_ctx(request: Request) -> dict[str, Any]:
+    """What every page's header and forms need: the mode, who is signed in (``me``), what they may do and the
+    CSRF token their forms carry."""
+    mode = server_mode(request)
+    me = principal_of(request)
+    return {"mode": mode, "me": me, "guarded": mode != "open", "csrf": me.csrf if me is not None else None,
+            "can_run": me is not None and me.can("runner"), "can_admin": me is not None and me.can("admin")}
+
+
 def page_response(request: Request, name: str, status_code: int = 200, **ctx: Any) -> HTMLResponse:
-    """Template ``name`` rendered with ``ctx`` (and whether the server asks for a token, for the nav bar)."""
-    settings: Settings = request.app.state.settings
-    ctx.setdefault("guarded", settings.token is not None)
+    """Template ``name`` rendered with ``ctx`` and `people_ctx` (the nav bar, which buttons to show, CSRF)."""
+    for key, value in people_ctx(request).items():
+        ctx.setdefault(key, value)
     return templates.TemplateResponse(request, name, ctx, status_code=status_code)
 
 

@@ -21,10 +21,11 @@ import tempfile
 from pathlib import Path
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, FastAPI, Response
+from fastapi import APIRouter, Depends, FastAPI, Request, Response
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, StrictStr, create_model
 from starlette.concurrency import run_in_threadpool
 
+from slamreplay.api.auth import record as audit_record
 from slamreplay.api.deps import ERRORS, RecordingsDep, require_token
 from slamreplay.api.models import RecordingOut
 from slamreplay.recorder.errors import RecorderError
@@ -149,13 +150,17 @@ def _record(importer: Importer, body: BaseModel, recordings: Any) -> Any:
 def _route(name: str, importer: Importer) -> Any:
     Body = _body_model(importer)
 
-    async def record(body: Any, response: Response, recordings: RecordingsDep) -> RecordingOut:
+    async def record(request: Request, body: Any, response: Response, recordings: RecordingsDep) -> RecordingOut:
         stored = await run_in_threadpool(_record, get_importer(name), body, recordings)
+        state = "new" if stored.created else "already stored"
+        await run_in_threadpool(audit_record, request, "record", stored.recording.id,
+                                f"{name}: {stored.recording.filename} ({state})")
         response.status_code = 201 if stored.created else 200
         return RecordingOut.of(stored.recording)
 
     # the body's model is made here, per importer: give FastAPI the objects, not the module's string annotations
-    record.__annotations__.update(body=Body, response=Response, recordings=RecordingsDep,RecordingOut=RecordingOut)
+    record.__annotations__.update(request=Request, body=Body, response=Response, recordings=RecordingsDep,
+                                  RecordingOut=RecordingOut)
     record.__annotations__["return"] = RecordingOut
 
     record.__doc__ = (f"`slamreplay record {name}` on the server: {importer.help}. The body holds its options "

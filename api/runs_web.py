@@ -23,8 +23,10 @@ from fastapi import Path as PathParam
 from fastapi.responses import HTMLResponse, RedirectResponse, Response, StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
+from slamreplay.api.audit import submitted_text
+from slamreplay.api.auth import client_address, record
 from slamreplay.api.deps import JobsDep, get_jobs
-from slamreplay.api.errors import ConflictError, NotFoundError
+from slamreplay.api.errors import ConflictError
 from slamreplay.api.jobs import JobService
 from slamreplay.api.models import JOB_ID
 from slamreplay.api.pages import PAGE_ERRORS, duration_text, suite_key, web_session
@@ -268,7 +270,9 @@ async def edit_job(request: Request, job_id: JobPath, jobs: JobsDep) -> Response
     except ValueError as err:
         return _error(request, ReplayError(f"cannot save job {job_id[:8]}: {err}"))
     if await run_in_threadpool(jobs.store.set_labels, job_id, name or None, tags, note or None) is None:
-        return _error(request, NotFoundError(f"job {job_id} not found"))
+        return _error(request, jobs.missing(job_id))
+    await run_in_threadpool(record, request, "label", job_id,
+                            f"name {name!r}, tags {' '.join(tags) or '-'}, note {first_line(note, 80)!r}")
     return RedirectResponse(_next(form.get("next")), 303)
 
 
@@ -299,9 +303,10 @@ async def cancel_job(request: Request, job_id: JobPath, jobs: JobsDep) -> Respon
     """Cancel a queued or running job (409 when it has ended), then go back."""
     form = await request.form()
     try:
-        await run_in_threadpool(jobs.cancel, job_id)
+        job = await run_in_threadpool(jobs.cancel, job_id)
     except PAGE_ERRORS as err:
         return _error(request, err)
+    await run_in_threadpool(record, request, "cancel", job_id, submitted_text(job))
     return RedirectResponse(_next(form.get("next")), 303)
 
 
@@ -309,15 +314,19 @@ async def cancel_job(request: Request, job_id: JobPath, jobs: JobsDep) -> Respon
 async def delete_job(request: Request, job_id: JobPath, jobs: JobsDep) -> Response:
     """Forget an ended job and delete its run directory (and comparison files made from it)."""
     form = await request.form()
-    outcome = await run_in_threadpool(jobs.store.delete_job, job_id)
-    if outcome == "missing":
-        return _error(request, NotFoundError(f"job {job_id} not found"))
+    me, address = request.state.principal, client_address(request)
+    job = await run_in_threadpool(jobs.store.get_job, job_id)
+    outcome = await run_in_threadpool(jobs.store.delete_job, job_id, me.name, address)
+    if outcome == "missing" or job is None:
+        return _error(request, jobs.missing(job_id))
     if outcome == "active":
         return _error(request, ConflictError(f"job {job_id} is queued or running: cancel it before deleting it"))
     shutil.rmtree(jobs.run_dir(job_id), ignore_errors=True)
     for pair in (jobs.settings.runs_dir / "diffs").glob(f"*{job_id}*.rrd"):
         pair.unlink(missing_ok=True)
     shutil.rmtree(jobs.settings.runs_dir / "diffs" / ".labels" / job_id, ignore_errors=True)  # its named link
+    await run_in_threadpool(record, request, "delete", job_id, submitted_text(job) + (f"; {job.name}" if job.name
+                                                                                      else ""))
     return RedirectResponse(_next(form.get("next")), 303)
 
 

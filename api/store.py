@@ -26,6 +26,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+from slamreplay.api.people import SCHEMA as PEOPLE_SCHEMA
+from slamreplay.api.people import PeopleMixin, TokenCache
+
 # JobRow and the job statuses live with the runs-table queries; imported from here as they always were.
 from slamreplay.api.store_runs import ACTIVE as ACTIVE
 from slamreplay.api.store_runs import JOB_COLUMNS, RunsTableMixin
@@ -152,7 +155,7 @@ def set_progress(db_path: str | Path, job_id: str, fraction: float) -> None:
         pass
 
 
-class Store(RunsTableMixin):
+class Store(RunsTableMixin, PeopleMixin):
     """Recordings and jobs in one SQLite file (created, in WAL mode, when missing).
 
     Each thread keeps one connection for the life of the store: opening one per call cost
@@ -162,12 +165,14 @@ class Store(RunsTableMixin):
     """
 
     def __init__(self, path: Path) -> None:
-        self.path = path  # its runs-table queries are in RunsTableMixin (api/store_runs.py)
+        self.path = path  # its runs-table queries are in RunsTableMixin (api/store_runs.py), people in PeopleMixin
         self._local = threading.local()
+        self.token_cache = TokenCache()
         with self._read() as conn:
             conn.execute("PRAGMA journal_mode = WAL")
             conn.executescript(SCHEMA)
             _migrate(conn)
+            conn.executescript(PEOPLE_SCHEMA)
 
     def _conn(self) -> sqlite3.Connection:
         conn: sqlite3.Connection | None = getattr(self._local, "conn", None)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import sqlite3
+import time
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -96,14 +97,20 @@ class RunsTableMixin:
             conn.executemany("INSERT OR IGNORE INTO job_tags (job_id, tag) VALUES (?, ?)", [(job_id, t) for t in tags])
         return self.get_job(job_id)
 
-    def delete_job(self, job_id: str) -> Literal["deleted", "missing", "active"]:
-        """Forget an ended job and its tags (its run directory is the caller's); a queued or running one is refused."""
+    def delete_job(self, job_id: str, who: str = "anonymous",
+                   address: str = "unknown") -> Literal["deleted", "missing", "active"]:
+        """Forget an ended job and its tags (its run directory is the caller's), leaving a tombstone saying who
+        deleted it, when and from where (``tombstones``: api/people.py); a queued or running one is refused."""
         with self._tx() as conn:
-            row = conn.execute("SELECT status FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            row = conn.execute("SELECT status, pipeline, recording_id, seed, name FROM jobs WHERE id = ?",
+                               (job_id,)).fetchone()
             if row is None:
                 return "missing"
             if row["status"] in ACTIVE:
                 return "active"
+            conn.execute("INSERT OR REPLACE INTO tombstones (job_id, who, at, address, pipeline, recording_id, seed, "
+                         "name) VALUES (?, ?, ?, ?, ?, ?, ?, ?)", (job_id, who, time.time(), address, row["pipeline"],
+                                                                   row["recording_id"], row["seed"], row["name"]))
             conn.execute("DELETE FROM job_tags WHERE job_id = ?", (job_id,))
             conn.execute("DELETE FROM jobs WHERE id = ?", (job_id,))
         return "deleted"

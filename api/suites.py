@@ -22,6 +22,7 @@ from typing import Any
 
 from slamreplay.api.errors import ConflictError, NotFoundError
 from slamreplay.api.jobs import JobService
+from slamreplay.api.people import Tombstone
 from slamreplay.api.store import JobRow
 from slamreplay.recorder.version import git_commit
 from slamreplay.replay.errors import ReplayError
@@ -48,7 +49,7 @@ CREATE TABLE IF NOT EXISTS suite_cells (
 );
 CREATE INDEX IF NOT EXISTS suite_cells_job ON suite_cells (job_id);
 """
-ENDED = ("succeeded", "failed", "cancelled", "interrupted")
+ENDED = ("succeeded", "failed", "cancelled", "interrupted", "deleted")
 
 
 @dataclass(frozen=True, slots=True)
@@ -61,9 +62,23 @@ class SuiteRow:
 
 @dataclass(frozen=True, slots=True)
 class SuiteCell:
+    """A cell and its job; a job deleted since is a stand-in row of the cell's inputs, with its tombstone."""
+
     cell: dict[str, Any]
     job: JobRow
     reused: bool
+    deleted: Tombstone | None = None
+
+    @property
+    def status(self) -> str:
+        """The job's status, or ``deleted``: a suite shows a deleted run as deleted, never leaves it out."""
+        return "deleted" if self.deleted is not None else self.job.status
+
+
+def _stand_in(job_id: str, cell: dict[str, Any], stone: Tombstone) -> JobRow:
+    """The row a deleted job of a suite cell is shown as: its inputs, ended when it was deleted."""
+    return JobRow(job_id, stone.recording_id, stone.pipeline, dict(cell.get("config") or {}), stone.seed, "cancelled",
+                  0.0, stone.text, None, 0, stone.at, None, stone.at, stone.name)
 
 
 def _take_topic_maps(text: str, fmt: str) -> tuple[dict[str, dict[str, str]], dict[str, Any]]:
@@ -224,9 +239,11 @@ class SuiteService:
                                  (suite_id,)).fetchall()
         out = []
         for c in cells:
-            job = self.jobs.store.get_job(c["job_id"])
+            cell, job = json.loads(c["cell"]), self.jobs.store.get_job(c["job_id"])
             if job is not None:
-                out.append(SuiteCell(json.loads(c["cell"]), job, bool(c["reused"])))
+                out.append(SuiteCell(cell, job, bool(c["reused"])))
+            elif (stone := self.jobs.store.tombstone(c["job_id"])) is not None:
+                out.append(SuiteCell(cell, _stand_in(c["job_id"], cell, stone), bool(c["reused"]), stone))
         return SuiteRow(r["id"], r["name"], r["format"], r["created"]), r["text"], out
 
     def exists(self, suite_id: str) -> bool:
@@ -237,8 +254,9 @@ class SuiteService:
         """A cell as a ``results.jsonl`` row (what ``slamreplay.replay.runs.compare`` reads), with its job id."""
         run_dir = self.jobs.run_dir(c.job.id)
         row: dict[str, Any] = {**c.cell, "job_id": c.job.id, "reused": c.reused, "run_dir": str(run_dir),
-                               "recording_sha256": c.job.recording_id, "status": c.job.status,
-                               "error": c.job.error, "progress": c.job.progress, "code_version": None,
+                               "recording_sha256": c.job.recording_id, "status": c.status,
+                               "error": c.deleted.text if c.deleted is not None else c.job.error,
+                               "progress": c.job.progress, "code_version": None,
                                "metrics": {}, "better": {}, "tolerance": {}, "rel_tolerance": {}, "units": {}}
         try:
             manifest = json.loads((run_dir / "manifest.json").read_text())
@@ -248,7 +266,7 @@ class SuiteService:
                 row["deterministic"] = deterministic
         except (OSError, json.JSONDecodeError):
             pass
-        if c.job.status == "succeeded":
+        if c.status == "succeeded":
             try:
                 add_metrics(row, json.loads((run_dir / "metrics.json").read_text())["metrics"])
             except (OSError, json.JSONDecodeError, KeyError) as err:
@@ -260,8 +278,8 @@ class SuiteService:
         counts: dict[str, int] = {}
         done = 0.0
         for c in cells:
-            counts[c.job.status] = counts.get(c.job.status, 0) + 1
-            done += 1.0 if c.job.status in ENDED else c.job.progress
+            counts[c.status] = counts.get(c.status, 0) + 1
+            done += 1.0 if c.status in ENDED else c.job.progress
         ended = sum(n for s, n in counts.items() if s in ENDED)
         status = "running" if ended < len(cells) else ("succeeded" if counts.get("succeeded", 0) == len(cells)
                                                         else "finished with failures")
@@ -280,6 +298,8 @@ class SuiteService:
                                     f"compare it when GET /suites/{ref} says it has ended")
             return side_of_rows(f"suite {row.name} ({ref[:8]})", [self.result_row(c) for c in cells], "results")
         if self.jobs.store.get_job(ref) is None:
+            if self.jobs.store.tombstone(ref) is not None:
+                raise self.jobs.missing(ref)
             raise NotFoundError(f"{ref} is neither a suite nor a job id")
         run = run_row(self.jobs.finished_run(ref))
         job = self.jobs.get(ref)

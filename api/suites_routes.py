@@ -26,7 +26,10 @@ from urllib.parse import urlencode
 from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
 from pydantic import BaseModel, Field
+from starlette.concurrency import run_in_threadpool
 
+from slamreplay.api.audit import record_suite
+from slamreplay.api.auth import link_secret
 from slamreplay.api.deps import ERRORS, require_token, viewer_href
 from slamreplay.api.errors import ApiError
 from slamreplay.api.models import JOB_ID
@@ -121,7 +124,8 @@ async def submit_suite(request: Request, suites: SuitesDep) -> SuiteOut:
     except UnicodeDecodeError:
         raise ApiError("the suite is not UTF-8 text: send the TOML file (or JSON) as it is") from None
     fmt = "json" if "json" in request.headers.get("content-type", "") else "toml"
-    row = suites.submit(text, fmt)
+    row = await run_in_threadpool(suites.submit, text, fmt)
+    await run_in_threadpool(record_suite, request, suites, row)
     _, _, cells = suites.get(row.id)
     return SuiteOut.of(suites, row, cells)
 
@@ -183,8 +187,7 @@ def compare_route(request: Request, suites: SuitesDep, a: OptRef = None, b: OptR
     c = comparison(suites, a, b, tolerance)
     if wants_html:
         from pathlib import Path as FsPath
-        return HTMLResponse(render_html(c, FsPath("/"), service_links(str(request.base_url),
-                                                                          request.app.state.settings.token)))
+        return HTMLResponse(render_html(c, FsPath("/"), service_links(str(request.base_url), link_secret(request))))
     return JSONResponse(_finite(c.to_json() | {"a_id": a, "b_id": b}))
 
 

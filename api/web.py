@@ -26,6 +26,19 @@ from fastapi.middleware import Middleware
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, Response
 from starlette.concurrency import run_in_threadpool
 
+from slamreplay.api.audit import install_audit, record_suite, submitted_text
+from slamreplay.api.auth import (
+    CSRF_FIELD,
+    LoginRequiredError,
+    PageForbiddenError,
+    check_csrf,
+    client_address,
+    link_secret,
+    page_principal,
+    record,
+    server_mode,
+    session_value,
+)
 from slamreplay.api.compare_web import router as compare_router
 from slamreplay.api.deps import JobsDep, RecordingsDep, SettingsDep, rrd_key
 from slamreplay.api.errors import ApiError, UnauthorizedError
@@ -36,12 +49,12 @@ from slamreplay.api.job_web import install_job_files
 from slamreplay.api.job_web import job_ctx as _job_ctx  # the job page's parts (api/job_web.py)
 from slamreplay.api.models import JOB_ID
 from slamreplay.api.multipart import form_file, is_form
-from slamreplay.api.pages import COOKIE, HERE, PAGE_ERRORS, LoginRequiredError, session_value, web_session
+from slamreplay.api.pages import COOKIE, HERE, PAGE_ERRORS, web_session
 from slamreplay.api.pages import error_response as _error
 from slamreplay.api.pages import page_lists as _lists
 from slamreplay.api.pages import page_response as _page
+from slamreplay.api.people import SESSION_TTL_S
 from slamreplay.api.runs_web import router as runs_router  # the runs table at / and /runs
-from slamreplay.api.settings import Settings
 from slamreplay.api.submit_checks import parse_topic_map
 from slamreplay.api.suites import SuiteService
 from slamreplay.api.suites_routes import SuitesDep
@@ -55,7 +68,16 @@ async def login_required(request: Request, exc: Exception) -> Response:
     if request.method == "GET" and not request.url.path.endswith(".rrd"):
         return RedirectResponse("/login?" + urlencode({"next": request.url.path + (
             f"?{request.url.query}" if request.url.query else "")}), 303)
-    return JSONResponse({"detail": "log in at /login with the server's token first"}, 401)
+    return JSONResponse({"detail": "sign in at /login first"}, 401)
+
+
+async def page_forbidden(request: Request, exc: Exception) -> Response:
+    """The 403 page: who is signed in, what they may not do and who can change it."""
+    message = str(exc)
+    if request.url.path.endswith(".rrd") or request.url.path.startswith("/ui/part/"):
+        return JSONResponse({"detail": message}, 403)
+    return await run_in_threadpool(_page, request, "error.html", 403, message=message, status=403,
+                                   me=getattr(exc, "principal", None))
 
 
 def _suite_ctx(suites: SuiteService, suite_id: str) -> dict[str, Any]:
@@ -74,22 +96,41 @@ page = APIRouter(dependencies=[Depends(web_session)], include_in_schema=False)
 public = APIRouter(include_in_schema=False)
 
 
+def _safe_next(raw: Any) -> str:
+    nxt = str(raw or "/")
+    return nxt if nxt.startswith("/") and not nxt.startswith("//") and "\\" not in nxt else "/"
+
+
 @public.get("/login")
 def login_form(request: Request, next: str = "/") -> HTMLResponse:
-    return _page(request, "login.html", next=next, wrong=False)
+    return _page(request, "login.html", next=_safe_next(next), wrong=False)
 
 
 @public.post("/login")
 async def login(request: Request, settings: SettingsDep) -> Response:
+    """Sign in: a person's token opens a session (its id in an HttpOnly cookie, only its hash stored); the shared
+    token sets the cookie derived from it; an open server needs nothing."""
     form = await request.form()
-    token, nxt = str(form.get("token", "")), str(form.get("next", "/"))
-    if not nxt.startswith("/") or nxt.startswith("//"):
-        nxt = "/"
-    if settings.token is not None and not hmac.compare_digest(token.encode(), settings.token.encode()):
-        return _page(request, "login.html", 401, next=nxt, wrong=True)
+    token, nxt = str(form.get("token", "")).strip(), _safe_next(form.get("next"))
+    mode = await run_in_threadpool(server_mode, request)
     resp = RedirectResponse(nxt, 303)
-    if settings.token is not None:
-        resp.set_cookie(COOKIE, session_value(settings.token), httponly=True, samesite="strict", path="/")
+    secure = request.url.scheme == "https"
+    if mode == "people":
+        store = request.app.state.jobs.store
+        user = await run_in_threadpool(store.user_of_token, token)
+        if user is None:
+            await run_in_threadpool(store.add_audit, "(unknown)", client_address(request), "sign-in-failed", None,
+                                    "a token that is unknown, replaced or disabled")
+            return _page(request, "login.html", 401, next=nxt, wrong=True)
+        session = await run_in_threadpool(store.open_session, user.name, client_address(request))
+        resp.set_cookie(COOKIE, session, max_age=int(SESSION_TTL_S), httponly=True, samesite="lax", secure=secure,
+                        path="/")
+        await run_in_threadpool(store.add_audit, user.name, client_address(request), "sign-in", user.name, user.role)
+    elif mode == "token":
+        if not hmac.compare_digest(token.encode(), settings.token.encode()):  # type: ignore[union-attr]
+            return _page(request, "login.html", 401, next=nxt, wrong=True)
+        resp.set_cookie(COOKIE, session_value(settings.token), httponly=True,  # type: ignore[arg-type]
+                        samesite="strict", secure=secure, path="/")
     return resp
 
 
@@ -101,7 +142,27 @@ def favicon() -> FileResponse:
 
 
 @public.get("/logout")
-def logout() -> Response:
+def logout_page(request: Request) -> Response:
+    """With a person's session: a page with the sign-out button (a form with its CSRF token, so no other site can
+    sign anyone out); else the cookie is dropped at once, as before there were people."""
+    me = page_principal(request)
+    if me is not None and me.via == "session":
+        return _page(request, "login.html", signout=True, me=me, next="/")
+    resp = RedirectResponse("/login", 303)
+    resp.delete_cookie(COOKIE, path="/")
+    return resp
+
+
+@public.post("/logout")
+async def logout(request: Request) -> Response:
+    """Sign out: the session ends on the server (its row is deleted) and the cookie is dropped."""
+    me = await run_in_threadpool(page_principal, request)
+    if me is not None and me.via == "session" and me.cookie is not None:
+        form = await request.form()
+        check_csrf(me, form.get(CSRF_FIELD))
+        store = request.app.state.jobs.store
+        await run_in_threadpool(store.close_session, me.cookie)
+        await run_in_threadpool(store.add_audit, me.name, client_address(request), "sign-out", me.name, None)
     resp = RedirectResponse("/login", 303)
     resp.delete_cookie(COOKIE, path="/")
     return resp
@@ -117,11 +178,15 @@ async def upload_form(request: Request, recordings: RecordingsDep) -> Response:
     content_type = request.headers.get("content-type", "")
     if not is_form(content_type):
         return _error(request, ApiError("send the upload form (multipart/form-data with a field `file`)"))
+    fields: dict[str, str] = {}
     try:
-        name, chunks = await form_file(request.stream(), content_type, recordings.settings.max_upload_bytes)
+        name, chunks = await form_file(request.stream(), content_type, recordings.settings.max_upload_bytes, fields)
+        check_csrf(request.state.principal, fields.get(CSRF_FIELD))  # sent before the file: checked before storing
         stored = await recordings.upload(chunks, name, None, False)
     except PAGE_ERRORS as err:
         return _error(request, err)
+    await run_in_threadpool(record, request, "upload", stored.recording.id,
+                            f"{stored.recording.filename} ({'new' if stored.created else 'already stored'})")
     return RedirectResponse(f"/?uploaded={stored.recording.id}#recordings", 303)
 
 
@@ -141,6 +206,7 @@ async def job_form(request: Request, jobs: JobsDep) -> Response:
         return _error(request, ReplayError(f"bad job form: {err}"))
     except PAGE_ERRORS as err:
         return _error(request, err)
+    await run_in_threadpool(record, request, "submit", job.id, submitted_text(job))
     return RedirectResponse(f"/ui/jobs/{job.id}", 303)
 
 
@@ -151,6 +217,7 @@ async def suite_form(request: Request, suites: SuitesDep) -> Response:
         row = await run_in_threadpool(suites.submit, str(form.get("suite", "")), "toml")
     except PAGE_ERRORS as err:
         return _error(request, err)
+    await run_in_threadpool(record_suite, request, suites, row)
     return RedirectResponse(f"/ui/suites/{row.id}", 303)
 
 
@@ -184,8 +251,9 @@ def suite_part(request: Request, suite_id: JobPath, suites: SuitesDep) -> HTMLRe
 Key = Annotated[str, PathParam(pattern=r"^[0-9a-f]{32}$")]
 
 
-def _check_key(settings: Settings, key: str, rrd_path: str) -> None:
-    if settings.token is not None and not hmac.compare_digest(key, rrd_key(settings.token, rrd_path)):
+def _check_key(request: Request, key: str, rrd_path: str) -> None:
+    secret = link_secret(request)
+    if secret is not None and not hmac.compare_digest(key, rrd_key(secret, rrd_path)):
         raise UnauthorizedError("wrong key in the .rrd URL: open the run from the web page")
 
 
@@ -195,15 +263,15 @@ def job_rrd(job_id: JobPath, jobs: JobsDep) -> FileResponse:
 
 
 @public.get("/ui/shared/{key}/jobs/{job_id}/run.rrd")
-def shared_job_rrd(key: Key, job_id: JobPath, jobs: JobsDep, settings: SettingsDep) -> FileResponse:
-    _check_key(settings, key, f"/jobs/{job_id}/run.rrd")
+def shared_job_rrd(request: Request, key: Key, job_id: JobPath, jobs: JobsDep) -> FileResponse:
+    _check_key(request, key, f"/jobs/{job_id}/run.rrd")
     return FileResponse(jobs.artifact(job_id, "run.rrd"), media_type="application/octet-stream")
 
 
 @public.get("/ui/shared/{key}/diff/{a}-{b}.rrd")
-def shared_diff_rrd(key: Key, a: JobPath, b: JobPath, jobs: JobsDep, settings: SettingsDep) -> FileResponse:
+def shared_diff_rrd(request: Request, key: Key, a: JobPath, b: JobPath, jobs: JobsDep) -> FileResponse:
     """One .rrd with job A under runs/A and job B under runs/B (made on the first request)."""
-    _check_key(settings, key, f"/diff/{a}-{b}.rrd")
+    _check_key(request, key, f"/diff/{a}-{b}.rrd")
     return FileResponse(jobs.comparison_rrd(a, b), media_type="application/octet-stream")
 
 
@@ -246,6 +314,7 @@ def install_web(app: FastAPI) -> None:
 
     app.state.suites = SuiteService(app.state.jobs)
     app.add_exception_handler(LoginRequiredError, login_required)
+    app.add_exception_handler(PageForbiddenError, page_forbidden)
     app.include_router(suites_router)
     app.include_router(history_router)  # GET /history/suites/{name}, /ui/history/{name} (api/history_routes.py)
     app.include_router(history_page_router)
@@ -254,6 +323,7 @@ def install_web(app: FastAPI) -> None:
     app.include_router(install_job_files([web_session]))  # a run's files, for its page
     app.include_router(compare_router)  # /ui/compare: any runs, or suites paired (api/compare_web.py)
     app.include_router(page)
+    install_audit(app)  # GET /audit, /ui/audit: the trail, for admins (api/audit.py)
     # Id prefixes become whole ids before routing; innermost of the middleware, so the site guard stays outermost.
     app.user_middleware.append(Middleware(IdPrefixes))
     app.mount("/static", StaticFiles(directory=HERE / "static"), name="static")
