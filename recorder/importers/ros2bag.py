@@ -442,8 +442,10 @@ def _convert(topic: str, msgtype: str, target: str | None, obj: Any, bag_ns: int
 
 def _poles_scan(stamp: int, scan: Any, cfg: PoleConfig, mount: tuple[float, float, float]) -> RangeBearingScan:
     """A LaserScan's poles as a range-bearing scan in the base frame (``mount``: the laser's pose there)."""
-    p = extract_poles(np.asarray(scan.ranges, dtype=np.float64), float(scan.angle_min), float(scan.angle_increment),
-                      cfg, float(scan.range_min), float(scan.range_max))
+    with np.errstate(invalid="ignore"):  # a signalling NaN (damaged bytes) widened: a NaN, a range not read
+        ranges = np.asarray(scan.ranges, dtype=np.float64)
+    p = extract_poles(ranges, float(scan.angle_min), float(scan.angle_increment), cfg, float(scan.range_min),
+                      float(scan.range_max))
     r, b = p.ranges_m, p.bearings_rad
     if mount != (0.0, 0.0, 0.0):
         mx, my, myaw = mount

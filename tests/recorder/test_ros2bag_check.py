@@ -354,3 +354,23 @@ def test_any_rosbags_error_is_one_line(bags: dict[str, Path], err: Exception) ->
             list(bag.messages([]))
         assert info.value.__cause__ is err
     real.close()
+
+
+def test_signalling_nan_range_is_no_reading() -> None:
+    """A LaserScan range whose damaged bytes are a signalling NaN: read as no reading, no RuntimeWarning on stderr
+    (found by harness_ros2bag.py's file-compressed mode)."""
+    import warnings
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from slamreplay.recorder.importers.poles import PoleConfig
+    from slamreplay.recorder.importers.ros2bag import _poles_scan
+
+    ranges = np.full(90, 5.0, dtype=np.float32)
+    ranges[10:20] = np.frombuffer(struct.pack("<I", 0x7FA00000) * 10, dtype=np.float32)  # signalling NaNs
+    scan = SimpleNamespace(ranges=ranges, angle_min=-1.0, angle_increment=0.02, range_min=0.1, range_max=30.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = _poles_scan(1, scan, PoleConfig(), (0.0, 0.0, 0.0))
+    assert np.all(np.isfinite(got.ranges_m))
