@@ -1,6 +1,6 @@
-"""What the service's routes share: the settings, job and recording services, the bearer token check (who asks and
-whether their role may: ``slamreplay.api.auth``), the
-documented error responses, and the keyed links the Rerun web viewer opens a run's ``.rrd`` through.
+"""What the service's routes share: the settings, job and recording services, the bearer token check (who asks,
+and whether their role may: ``slamreplay.api.auth``), the documented error responses, and the keyed links the
+Rerun web viewer opens a run's ``.rrd`` through.
 
 Its own module so that the routes (api/app.py, api/suites_routes.py, api/web.py) import it and not each other.
 """
@@ -26,7 +26,8 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 ERRORS: dict[int | str, dict[str, Any]] = {
     code: {"model": ErrorOut, "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}}}
     for code in (400, 401, 403, 404, 409, 413, 415, 422, 507)}
-_bearer = HTTPBearer(auto_error=False, description="SLAMREPLAY_TOKEN, when the server has one")
+_bearer = HTTPBearer(auto_error=False, description="your own token (`slamreplay users add`) on a server with people, "
+                                                   "else SLAMREPLAY_TOKEN when the server has one")
 
 
 def get_jobs(request: Request) -> JobService:

@@ -5,6 +5,7 @@
 | ``SLAMREPLAY_DATA_DIR`` | ``.`` | holds ``recordings/`` (uploads, by sha256) and ``runs/`` (a directory per job, |
 | | | the job database ``runs/jobs.sqlite``, comparison recordings in ``runs/diffs/``) |
 | ``SLAMREPLAY_TOKEN`` | unset | when set, every route but ``/healthz`` needs ``Authorization: Bearer <token>`` |
+| | | (not used once the data directory has people: ``slamreplay users``, api/auth.py) |
 | ``SLAMREPLAY_WORKERS`` | ``2`` | worker processes, i.e. jobs running at once |
 | ``SLAMREPLAY_MAX_UPLOAD_BYTES`` | 2 GiB | larger uploads are refused with 413 |
 | ``SLAMREPLAY_EXECUTOR`` | ``local`` | where jobs run: ``local`` (spawned worker processes) or ``ray`` |

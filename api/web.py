@@ -8,9 +8,10 @@ The runs table (``/``, ``/runs``) is in ``api/runs_web.py``, a job's page in ``a
 (``/ui/compare``) in ``api/compare_web.py``, and what every page shares (templates, session, error page)
 in ``api/pages.py``. Ids in every route may be the 8-digit prefixes the page shows (``api/idprefix.py``).
 
-With ``SLAMREPLAY_TOKEN`` set the page asks for the token once (``/login``) and keeps a session
-cookie derived from it (HttpOnly, SameSite=Strict, so another site cannot post forms with it);
-the API routes keep requiring the bearer token and do not accept the cookie.
+With people (``slamreplay users``) the page signs each in with their token (``/login``) into a session kept
+on the server (``slamreplay.api.auth``); with only ``SLAMREPLAY_TOKEN`` set it asks for that token once and
+keeps a session cookie derived from it (HttpOnly, SameSite=Strict). Forms posted with either cookie carry a
+CSRF token; the API routes keep requiring the bearer token and do not accept the cookie.
 """
 
 from __future__ import annotations
