@@ -107,20 +107,21 @@ def checked_bag(path: Path) -> CheckedBag:
             what = "no .db3 or .mcap file" if not files else f"{len(files)} storage files but no metadata.yaml"
             raise BagError(f"{path} is not a ROS 2 bag: it holds no metadata.yaml and {what}")
         return _alone(lone)
+    paths: list[Path] = []
     try:
         info = read_metadata(meta)
         paths = [path / PurePath(p).name for p in info["relative_file_paths"]]  # as rosbags joins them
         for p in paths:
             _regular(p, f"{meta} names storage file {p.name}, which")
+        storage, mode = info["storage_identifier"], info["compression_mode"]
+        if mode == "file":
+            return _decompressed(info, paths)
+        for p in paths:
+            check_storage(p, storage, message_compressed=mode == "message")
     except BagError:
-        if lone is None:
+        if lone is None or lone in paths:  # nothing else to read, or the one storage file is what failed
             raise
         return _alone(lone)  # a metadata.yaml of another writer (or hand-written): its one storage file alone
-    storage, mode = info["storage_identifier"], info["compression_mode"]
-    if mode == "file":
-        return _decompressed(meta, info, paths)
-    for p in paths:
-        check_storage(p, storage, message_compressed=mode == "message")
     return CheckedBag(path, storage, lone)
 
 
@@ -179,16 +180,19 @@ def _sqlite_messages(path: Path) -> None:
         raise rosbags_error(err, f"{path} is a damaged sqlite3 database", _DAMAGED) from err
 
 
-def _decompressed(meta: Path, info: dict[str, Any], paths: list[Path]) -> CheckedBag:
+def _decompressed(info: dict[str, Any], paths: list[Path]) -> CheckedBag:
     """A file-compressed bag decompressed into a temporary folder, as a stream and within the space free there,
     with a metadata.yaml that says it is not compressed; its storage files checked."""
     temp = tempfile.TemporaryDirectory(prefix="slamreplay-bag-")
     try:
-        folder = Path(temp.name) / meta.parent.name
+        folder = Path(temp.name) / "bag"
         folder.mkdir()
         names = []
         for p in paths:
             out = folder / p.stem  # rosbags' name: bag_0.mcap.zstd -> bag_0.mcap
+            if out.exists():
+                raise BagError(f"{p.parent / 'metadata.yaml'} lists storage files that decompress to one name "
+                               f"({out.name}) twice: it is damaged")
             _unzstd(p, out)
             check_storage(out, info["storage_identifier"])
             names.append(out.name)
@@ -217,6 +221,9 @@ def _unzstd(src: Path, out: Path) -> None:
                 w.write(piece)
     except zstandard.ZstdError as err:
         raise BagError(f"{src} does not decompress (zstd: {err}); {_DAMAGED}") from err
+    except OSError as err:  # the temporary folder: no space left, or not writable
+        raise BagError(f"{src} cannot be decompressed into {out.parent} ({err.strerror}); free space there or set "
+                       f"TMPDIR") from err
 
 
 # ------------------------------------------------------------------------------------------------
