@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import textwrap
 from pathlib import Path
 
@@ -25,6 +26,20 @@ def _no_declared_pipelines(monkeypatch: pytest.MonkeyPatch) -> None:
     the same worker. setenv records the variable's absence; its undo, last, removes whatever a test set."""
     monkeypatch.setenv("SLAMREPLAY_PIPELINES", "")
     monkeypatch.delenv("SLAMREPLAY_PIPELINES")
+
+
+@pytest.fixture(scope="session")
+def _session_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("slamreplay-cache")
+
+
+@pytest.fixture(autouse=True)
+def _own_cache(monkeypatch: pytest.MonkeyPatch, _session_cache: Path) -> None:
+    """Tests never read or write the user's ~/.cache/slamreplay (one cache per test process, so simulated
+    recordings are still made once), and each test starts knowing no program's determinism (a verdict another
+    test left would change how many times a program runs)."""
+    monkeypatch.setenv("SLAMREPLAY_CACHE", str(_session_cache))
+    shutil.rmtree(_session_cache / "determinism", ignore_errors=True)
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:

@@ -3,7 +3,8 @@
 A declaration (``[pipelines.NAME]`` of a file ``slamreplay.replay.engine.declared`` finds) names a command
 with placeholders for the recording, the exports slamreplay writes for it, and the folder the program
 writes its estimate into. The replay reads the recording's ground truth (drawn as it goes); at the end the
-exports are written to a temporary folder, the program is run once (twice with ``check_determinism``),
+exports are written to a temporary folder, the program is run once (twice with ``check_determinism``, and on
+the first run of each program: ``slamreplay.replay.tools.determinism``),
 contained (``slamreplay.replay.tools.containment``: every process it starts is killed at its exit, its limit or
 a cancel; its output is capped; a wall-time limit and an address-space limit, 4096 MiB unless declared), its TUM
 trajectory is read, moved to the true start pose (``frame = "start"``) and scored as any pipeline's trajectory
@@ -45,13 +46,15 @@ from slamreplay.replay.tools.containment import (
     read_result,
     run_contained,
 )
-from slamreplay.replay.tools.estimates import F64, I64, EstimateReplay, anchor_at, read_tum_ns
+from slamreplay.replay.tools import determinism
+from slamreplay.replay.tools.estimates import F64, I64, CoverageConfig, EstimateReplay, anchor_at, read_tum_ns
 from slamreplay.replay.tools.export import EXPORTS, export_recording, export_topics
 
 PLACEHOLDERS = ("recording", "exports", "out", "seed", "config", "here", "python")
 KEYS = {"command", "summary", "exports", "stdin", "output", "version_command", "timeout_s", "memory_mib", "frame",
         "topics", "config", "env", "adapter", "build", "landmarks"}
 BUILD_TIMEOUT_S = 600.0
+OWN_KEYS = frozenset({"check_determinism", "min_coverage"})  # config keys slamreplay reads, never the program
 VERSION_TIMEOUT_S = 10.0
 LOG_LINES = 200  # lines of each stream copied into the run's log; the whole stream is an artifact
 
@@ -132,8 +135,8 @@ def parse_declaration(name: str, table: Mapping[str, Any], path: Path) -> Declar
     config = table.get("config", {})
     if not isinstance(config, dict) or not all(isinstance(v, (bool, int, float, str)) for v in config.values()):
         raise ReplayError(f"{where}: config must be a table of key = default (bool, int, float or string)")
-    if "check_determinism" in config:
-        raise ReplayError(f"{where}: config key check_determinism is slamreplay's own: choose another name")
+    for own in OWN_KEYS & set(config):
+        raise ReplayError(f"{where}: config key {own} is slamreplay's own: choose another name")
     env = table.get("env", {})
     if not isinstance(env, dict):
         raise ReplayError(f"{where}: env must be a table of NAME = value")
@@ -224,7 +227,7 @@ def origin_of(decl: Declaration) -> dict[str, Any]:
     return {"distribution": "external", "version": program_version(decl), "entry_point": f"{decl.path}:{decl.name}",
             "command": list(decl.command), "executable": str(exe) if exe else argv[0],
             "executable_sha256": _sha256(exe) if exe else None, "files_sha256": files,
-            "declaration_sha256": _sha256(decl.path)}
+            "declaration_sha256": _sha256(decl.path), "build": list(decl.build)}
 
 
 @dataclass(frozen=True, slots=True)
@@ -386,13 +389,19 @@ class ExternalPipeline(EstimateReplay):
         decl = self.declaration
         topic_map = {t.file_topic: t.logical_topic for t in self.ctx.info.topics
                      if t.logical_topic and t.logical_topic != t.file_topic}
-        config = {k: v for k, v in dataclasses.asdict(self.config).items() if k != "check_determinism"}
+        config = {k: v for k, v in dataclasses.asdict(self.config).items() if k not in OWN_KEYS}
         # a program may leave files it made unremovable: they must not turn its run into an internal error
         with tempfile.TemporaryDirectory(prefix="slamreplay-external-", ignore_cleanup_errors=True) as tmp:
             root = Path(tmp)
             export_recording(self.ctx.info.path, root / "exports", decl.exports, topic_map)
             (root / "config.json").write_text(json.dumps(config, sort_keys=True))
-            times = 2 if self.config.check_determinism else 1
+            remembered = None if self.config.check_determinism else determinism.known(self.declared_origin)
+            times = 1 if remembered is not None else 2
+            if remembered is not None:
+                self.deterministic, self.max_difference_m = remembered["deterministic"], remembered["max_difference_m"]
+            elif not self.config.check_determinism:
+                self.ctx.log("determinism check: the first run of this program (its hashes): run twice on the same "
+                             "input, the verdict kept for its later runs")
             for k in range(times):
                 values = {"recording": str(self.ctx.info.path.resolve()), "exports": str(root / "exports"),
                           "out": str(root / f"out{k}"), "seed": str(self.ctx.seed), "config": str(root / "config.json"),
@@ -413,6 +422,7 @@ class ExternalPipeline(EstimateReplay):
             raise ReplayError(f"external pipeline {decl.name}: {err}") from None
         if len(self.runs) == 2:
             self._compare_runs(t_ns, poses)
+            determinism.remember(self.declared_origin, bool(self.deterministic), self.max_difference_m)
         world = anchor_at(t_ns, poses, self.ctx.T_world_start) if decl.frame == "start" else poses
         if decl.landmarks:
             if first.landmarks is None:
@@ -495,9 +505,9 @@ class ExternalPipeline(EstimateReplay):
         out: dict[str, Any] = {"runs": [{"argv": r.argv, "exit_status": r.status, "wall_s": round(r.wall_s, 6),
                                          "memory_limit_mib": r.memory_mib, "killed": [n for _, n in r.killed]}
                                         for r in self.runs]}
-        if self.deterministic is not None:
-            out["determinism"] = {"checked": True, "deterministic": self.deterministic,
-                                  "max_difference_m": self.max_difference_m}
+        if self.deterministic is not None:  # checked: by this run (True), or a run of the same program before
+            out["determinism"] = {"checked": True if len(self.runs) == 2 else "cached",
+                                  "deterministic": self.deterministic, "max_difference_m": self.max_difference_m}
         return out
 
     def artifacts(self) -> dict[str, bytes]:
@@ -516,8 +526,9 @@ def _config_class(decl: Declaration) -> type:
     fields = [(k, type(v), dataclasses.field(default=v, metadata={"help": "passed to the program in {config}"}))
               for k, v in decl.config.items()]
     fields.append(("check_determinism", bool, dataclasses.field(default=False, metadata={
-        "help": "run the program twice and compare its outputs (manifest pipeline_run.determinism)"})))
-    return dataclasses.make_dataclass(f"{decl.name}_config", fields, frozen=True)
+        "help": "run the program twice and compare its outputs (manifest pipeline_run.determinism), even when a "
+                "run of the same program (same hashes) checked it before; the first run always checks"})))
+    return dataclasses.make_dataclass(f"{decl.name}_config", fields, bases=(CoverageConfig,), frozen=True)
 
 
 def pipeline_from_declaration(name: str, table: Mapping[str, Any], path: Path) -> type[ExternalPipeline]:

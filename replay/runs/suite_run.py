@@ -38,6 +38,7 @@ from slamreplay.replay.metric_registry import normalize
 from slamreplay.replay.runs.diff import determinism_of
 from slamreplay.replay.runs.run import sha256_file
 from slamreplay.replay.runs.suite import Cell, RecordingSpec, Suite, canonical, sim_config_class, sim_kwargs
+from slamreplay.replay.tools.cache import cache_dir
 
 RESULTS_FORMAT = 1
 SIM_MODULES = {sim: tuple(f"slamreplay.recorder.sim.{m}" for m in modules) for sim, modules in {
@@ -46,12 +47,6 @@ SIM_MODULES = {sim: tuple(f"slamreplay.recorder.sim.{m}" for m in modules) for s
     "sim-corridor": ("corridor", "corridor_config", "corridor_plan", "corridor_render", "unicycle", "wheel_odometry"),
 }.items()}
 WRITER_MODULES = tuple(f"slamreplay.recorder.{m}" for m in ("writer", "messages", "codec.protobuf", "codec.schemas"))
-
-
-def cache_dir() -> Path:
-    """``$SLAMREPLAY_CACHE``, else ``~/.cache/slamreplay``."""
-    env = os.environ.get("SLAMREPLAY_CACHE")
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "slamreplay"
 
 
 def code_version() -> str:

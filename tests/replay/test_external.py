@@ -74,7 +74,7 @@ def test_external_program_scored_like_a_builtin(tmp_path: Path, rec: Path, monke
     assert list(origin["files_sha256"]) == ["prog.py"]
     assert ext.manifest["pipeline_run"]["runs"][0]["exit_status"] == 0
     log = (tmp_path / "ext" / "log.txt").read_text()
-    assert "stdout: poses written" in log and "stderr: dead reckoning done" in log
+    assert "stdout (run 1 of 2): poses written" in log and "stderr (run 1 of 2): dead reckoning done" in log
     assert (tmp_path / "ext" / "program_stdout.txt").read_text() == "poses written\n"
     assert (tmp_path / "ext" / "trajectory.tum").is_file() and (tmp_path / "ext" / "run.rrd").is_file()
     assert get_pipeline("ext").blueprint() is not None and "ext" in pipeline_plugins()
@@ -140,7 +140,7 @@ def test_frame_world_and_config(tmp_path: Path, rec: Path, monkeypatch: pytest.M
 
     _, est = read_tum((tmp_path / "run" / "trajectory.tum").read_text())
     assert est[0, 0] == pytest.approx(5.0) and est[-1, 0] == pytest.approx(14.9)
-    assert run.manifest["config"] == {"x": 5.0, "check_determinism": False}
+    assert run.manifest["config"] == {"x": 5.0, "check_determinism": False, "min_coverage": 0.5}
 
 
 def test_determinism_check(tmp_path: Path, rec: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -160,6 +160,29 @@ def test_determinism_check(tmp_path: Path, rec: Path, monkeypatch: pytest.Monkey
     assert "NOT deterministic" in (tmp_path / "noisy" / "log.txt").read_text()
 
 
+def test_determinism_checked_once_per_program(tmp_path: Path, rec: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without asking: the first run of a program runs it twice and keeps the verdict; later runs of the same
+    program (same hashes) run once and record the verdict as cached; an edited program is checked again; a
+    program that is not deterministic is recorded so on every later run, which compare reads."""
+    declare(tmp_path, monkeypatch, DEAD_RECKONING)
+    first = run_recording(rec, "ext", tmp_path / "first")
+    assert len(first.manifest["pipeline_run"]["runs"]) == 2
+    assert first.manifest["pipeline_run"]["determinism"]["checked"] is True
+    assert "the first run of this program" in (tmp_path / "first" / "log.txt").read_text()
+    later = run_recording(rec, "ext", tmp_path / "later", seed=3)
+    assert len(later.manifest["pipeline_run"]["runs"]) == 1
+    assert later.manifest["pipeline_run"]["determinism"] == {"checked": "cached", "deterministic": True,
+                                                            "max_difference_m": 0.0}
+    forced = run_recording(rec, "ext", tmp_path / "forced", config={"check_determinism": "true"})
+    assert len(forced.manifest["pipeline_run"]["runs"]) == 2
+    noisy = DEAD_RECKONING.replace("x = y = th = 0.0", "import os\nx = y = th = 0.0").replace(
+        "th = th + oth - pth", "th = th + oth - pth\n        x += int.from_bytes(os.urandom(2), 'big') * 1e-9")
+    declare(tmp_path, monkeypatch, noisy)
+    runs = [run_recording(rec, "ext", tmp_path / f"noisy{k}") for k in range(2)]
+    assert [len(r.manifest["pipeline_run"]["runs"]) for r in runs] == [2, 1]
+    assert [r.manifest["pipeline_run"]["determinism"]["deterministic"] for r in runs] == [False, False]
+
+
 def test_views_summary_first(tmp_path: Path, rec: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The program's replay draws the estimate against the truth, the position error over time and the
     program's output in the log; its blueprint opens on the summary tab."""
@@ -177,7 +200,7 @@ def test_views_summary_first(tmp_path: Path, rec: Path, monkeypatch: pytest.Monk
                    log=lambda text: (lines.append(text), observer.log("log", Text(text))))
     assert {"world/trajectory/estimate", "world/trajectory/truth", "metrics/robot_position_error_m",
             "world/robot", "world/robot_truth", "log"} <= observer.paths()
-    assert "stderr: dead reckoning done" in lines
+    assert "stderr (run 1 of 2): dead reckoning done" in lines  # the first run of a program checks determinism
     assert stats.trajectory is not None and len(stats.trajectory[0]) == 100
     run_recording(rec, "ext", tmp_path / "run")
     entities = rrd_entities(tmp_path / "run" / "run.rrd")

@@ -157,7 +157,7 @@ def test_a_helper_left_running_is_killed_and_named(tmp_path: Path, rec: Path, mo
     result = run_recording(rec, "hostile", tmp_path / "run")
     assert time.monotonic() - tic < 8 and result.metrics["poses_scored"] > 0
     log = (tmp_path / "run" / "log.txt").read_text()
-    assert re.search(r"left `sleep` \(pid \d+\) running: killed", log), log
+    assert re.search(r"left `sleep` \(pid \d+\) running \(run 1 of 2\): killed", log), log
     assert (tmp_path / "run" / "program_stdout.txt").read_bytes() == b"done\n"
     assert result.manifest["pipeline_run"]["runs"][0]["killed"] == ["sleep"]
     assert left_behind(mark) == []
@@ -170,7 +170,7 @@ def test_escapes_are_shown_as_text_and_kept_as_bytes(tmp_path: Path, rec: Path,
     declare(tmp_path, monkeypatch, script, unique_mark())
     run_recording(rec, "hostile", tmp_path / "run")
     log = (tmp_path / "run" / "log.txt").read_text()
-    assert "stdout: \ufffd\ufffd \\x1b[2J\\x1b]0;pwned\\x07 ok" in log
+    assert "stdout (run 1 of 2): \ufffd\ufffd \\x1b[2J\\x1b]0;pwned\\x07 ok" in log
     assert (tmp_path / "run" / "program_stdout.txt").read_bytes() == b"\xff\xfe \x1b[2J\x1b]0;pwned\x07 ok\n"
 
 
@@ -214,7 +214,7 @@ def test_a_flood_on_stderr_is_capped(tmp_path: Path, rec: Path, monkeypatch: pyt
     print(f"500 MB on stderr: returned in {elapsed:.2f} s, RSS +{growth_mib:.1f} MiB")
     assert growth_mib < 50
     log = (tmp_path / "run" / "log.txt").read_text()
-    assert "stderr: 513,802,267 bytes past the first 10 MiB were not kept" in log
+    assert "stderr (run 1 of 2): 513,802,267 bytes past the first 10 MiB were not kept" in log
 
 
 def test_the_default_memory_limit(tmp_path: Path, rec: Path, monkeypatch: pytest.MonkeyPatch) -> None:
