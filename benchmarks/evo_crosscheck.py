@@ -3,9 +3,9 @@
 For each run directory given (a finished run with ``trajectory.tum`` and ``truth.tum``), computes APE
 (translation, each alignment; rotation) and RPE (per step; per metre of path) with slamreplay
 (``slamreplay.replay.runs.trajectory_eval``) and with evo's own Python API on the same two TUM files (RPE pairs
-from the reference's path: evo's ``--pairs_from_reference``, slamreplay's only rule), and prints
-both side by side with their ratio. evo is a peer, not a dependency: install it beside slamreplay
-(``pip install evo``, or into another virtualenv and pass ``--evo-python``).
+as evo_rpe makes them: along the estimate's path), and prints both side by side with their ratio. evo is in
+the dev extra (``tests/replay/test_evo_parity.py`` checks the same figures to 6 digits); another evo may be
+used from another virtualenv with ``--evo-python``.
 
 Run: ``.venv/bin/python benchmarks/evo_crosscheck.py RUN_DIR [RUN_DIR ...] [--json PATH]``
 """
@@ -51,8 +51,8 @@ for label, align in (("ape_none", None), ("ape_origin", "origin"), ("ape_se2", "
     r = metrics.APE(metrics.PoseRelation.rotation_angle_deg); r.process_data((ref, est))
     out[label] = [stat(t), stat(r)]
 for label, delta, unit in (("rpe_step", 1, metrics.Unit.frames), ("rpe_1m", 1.0, metrics.Unit.meters)):
-    t = metrics.RPE(metrics.PoseRelation.translation_part, delta, unit, all_pairs=False, pairs_from_reference=True)
-    r = metrics.RPE(metrics.PoseRelation.rotation_angle_deg, delta, unit, all_pairs=False, pairs_from_reference=True)
+    t = metrics.RPE(metrics.PoseRelation.translation_part, delta, unit, all_pairs=False)
+    r = metrics.RPE(metrics.PoseRelation.rotation_angle_deg, delta, unit, all_pairs=False)
     t.process_data((ref0, est0)); r.process_data((ref0, est0))
     out[label] = [stat(t), stat(r)]
 print(json.dumps(out))

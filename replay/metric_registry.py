@@ -90,7 +90,8 @@ def _nees(description: str, dof: int) -> MetricSpec:
 
 
 _NO_EDGE_IN_TRUTH = "undefined when no accepted edge joins two images inside the ground truth's time span"
-RPE_METRE_DELTA_M = 1.0  # the per-distance RPE of every run: segments of 1 m of true path
+RPE_METRE_DELTA_M = 1.0  # the per-distance RPE of every run: segments of 1 m of the estimate's path (evo_rpe
+# --delta 1 --delta_unit m)
 
 METRICS: dict[str, MetricSpec] = {
     # trajectory (every pipeline with an estimated trajectory in metres and ground truth; replay.evaluate)
@@ -100,10 +101,10 @@ METRICS: dict[str, MetricSpec] = {
     "ape_rot_rmse_deg": _m("lower", "deg", "absolute heading error RMSE, no alignment"),
     "rpe_step_trans_rmse_m": _m("lower", "m", "relative pose error between consecutive poses, translation RMSE"),
     "rpe_step_rot_rmse_deg": _m("lower", "deg", "relative pose error between consecutive poses, rotation RMSE"),
-    "rpe_m_trans_rmse_m": _m("lower", "m", f"relative pose error over {RPE_METRE_DELTA_M:g} m of true path, "
-                                           "translation RMSE"),
-    "rpe_m_rot_rmse_deg": _m("lower", "deg", f"relative pose error over {RPE_METRE_DELTA_M:g} m of true path, "
-                                             "rotation RMSE"),
+    "rpe_m_trans_rmse_m": _m("lower", "m", f"relative pose error over each {RPE_METRE_DELTA_M:g} m of the "
+                                           "estimate's path (evo_rpe --delta_unit m), translation RMSE"),
+    "rpe_m_rot_rmse_deg": _m("lower", "deg", f"relative pose error over each {RPE_METRE_DELTA_M:g} m of the "
+                                             "estimate's path (evo_rpe --delta_unit m), rotation angle RMSE"),
     "robot_final_error_m": _m("lower", "m", "robot position error at the last scored estimate"),
     "robot_max_error_m": _m("lower", "m", "largest robot position error"),
     "path_length_m": _m("none", "m", "length of the estimated path"),
