@@ -4,13 +4,23 @@ Replay sets the time (`set_time`) before each message; algorithms only ``log``. 
 observer turns observations into archetypes under the entity conventions of `slamreplay.replay.engine.views`
 (which owns frames, colours and timelines) and, at the end, mirrors the final state of the
 map into the static ``summary/`` subtree that a run's first tab shows.
+
+Why every row leaves as an explicit chunk (`send_columns`), never through ``log``: `rerun rrd compare`
+puts each file's chunks in the order of their chunk ids, and a chunk id is minted from the wall clock
+by the thread that cuts the chunk. Rows given to ``log`` are cut into chunks by the stream's batcher
+thread: when a row-count threshold is hit there, at a moment set by thread scheduling (machine load),
+its chunk's place among the chunks this thread sends moves; and at a flush, the rows an entity has
+pending are split per set of timelines (static or not) and of datatypes in an order drawn from a hash
+seeded at random per process, so two runs may emit an entity's static and temporal chunks in
+either order. Chunks built here get their ids in this thread, in the order of the calls, so the
+same inputs give the same chunks in the same order on any machine, at any load.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +28,7 @@ import numpy as np
 import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
+from rerun.chunk import Chunk
 
 from slamreplay.algorithms.observe import (
     Bars,
@@ -36,11 +47,59 @@ from slamreplay.algorithms.observe import (
 from slamreplay.replay.engine import views
 from slamreplay.replay.engine.views import role_color
 
+GEOMETRY = (Scalar, Pose, Points, LineStrips, Segments, CovarianceEllipses)  # kinds `to_columns` builds in bulk
+
 
 def deterministic_batcher() -> rr.ChunkBatcherConfig:
-    """Chunks cut by row count only, never by the batcher's wall-clock tick: the same run gives
-    the same chunks, so `rerun rrd compare` can tell two runs apart by content."""
-    return rr.ChunkBatcherConfig(flush_tick=timedelta(hours=1), flush_num_bytes=1 << 40, flush_num_rows=4096)
+    """A batcher that never cuts chunks on its own (no timer, no size or row threshold): the project sends
+    its data as explicit chunks (module docstring), and whatever still reaches the batcher (the recording
+    name) is flushed only where this thread waits for it (``flush``, ``disconnect``)."""
+    return rr.ChunkBatcherConfig.NEVER()
+
+
+class _Arrow:
+    """A ready Arrow array as a component batch (what `rr.ComponentColumn` partitions)."""
+
+    __slots__ = ("array",)
+
+    def __init__(self, array: pa.Array) -> None:
+        self.array = array
+
+    def as_arrow_array(self) -> pa.Array:
+        return self.array
+
+
+def row_components(archetypes: Iterable[Any]) -> dict[Any, pa.Array]:
+    """One row's component arrays by descriptor, as ``log`` would send them (the first of a repeated one)."""
+    out: dict[Any, pa.Array] = {}
+    for arch in archetypes:
+        for batch in arch.as_component_batches():
+            array = batch.as_arrow_array()
+            if array is not None:
+                out.setdefault(batch.component_descriptor(), array)
+    return out
+
+
+def row_groups(rows: Sequence[dict[Any, pa.Array]]) -> list[tuple[int, int, list[rr.ComponentColumn]]]:
+    """Runs ``[i, j)`` of consecutive rows holding the same components, each as one column per component."""
+    groups = []
+    i = 0
+    while i < len(rows):
+        keys = list(rows[i])
+        j = i + 1
+        while j < len(rows) and list(rows[j]) == keys:
+            j += 1
+        cols = [rr.ComponentColumn(k, _Arrow(pa.concat_arrays([r[k] for r in rows[i:j]])),
+                                   lengths=[len(r[k]) for r in rows[i:j]]) for k in keys]
+        groups.append((i, j, cols))
+        i = j
+    return groups
+
+
+def send_static(stream: rr.RecordingStream, path: str, *archetypes: Any) -> None:
+    """What ``stream.log(path, *archetypes, static=True)`` logs, as one explicit chunk made in this thread."""
+    for _, _, cols in row_groups([row_components(archetypes)]):
+        stream.send_columns(path, indexes=[], columns=cols)
 
 
 def ellipse_points(mean: np.ndarray, cov: np.ndarray, n_sigma: float = 2.0, n: int = 32) -> np.ndarray:
@@ -55,12 +114,13 @@ class RerunObserver:
     """Logs observations to one explicit ``rr.RecordingStream`` saved to a ``.rrd`` file.
 
     The wall-clock ``log_time`` timeline is off; timelines are ``step`` (message index in
-    replay order) and ``sensor_time`` (the message's log_time). Geometry and scalars are
-    buffered per entity and sent as columns every ``flush_rows`` rows (a Python ``rr.log``
-    call costs ~0.3 ms, a column row ~0.02 ms); text and images are logged at once. The
-    content is the same as logging row by row, and flushing depends on row counts only. 256 rows
-    measured 8-10 % less CPU than 1024 on the replay benchmark: fewer buffered rows survive into the
-    garbage collector's older generations, and a column of 256 rows still costs little per row.
+    replay order) and ``sensor_time`` (the message's log_time). Every row is buffered per entity and
+    kind and sent as columns every ``flush_rows`` rows (a Python ``rr.log`` call costs ~0.3 ms, a
+    column row ~0.02 ms), images one by one (a chunk per image, as Rerun advises for large rows), static
+    data at once; each as an explicit chunk, never through the batcher (module docstring). The content
+    is the same as logging row by row, and the chunks depend on the rows only. 256 rows measured 8-10 %
+    less CPU than 1024 on the replay benchmark: fewer buffered rows survive into the garbage collector's
+    older generations, and a column of 256 rows still costs little per row.
     """
 
     def __init__(self, path: Path, recording_id: str, recording_name: str | None = None, flush_rows: int = 256,
@@ -70,7 +130,6 @@ class RerunObserver:
         self.stream.set_log_time_enabled(False)
         self.stream.save(path)
         self.step, self.sensor_time_ns = 0, 0
-        self._stream_time: tuple[int, int] | None = None  # the (step, sensor time) last set on the stream
         self.time_origin_ns = time_origin_ns
         self.flush_rows = flush_rows
         self._buffers: dict[tuple[str, type], list[tuple[int, int, Observation]]] = {}
@@ -78,46 +137,34 @@ class RerunObserver:
         self._series: set[str] = set()
         self._states: dict[str, set[str]] = {}  # state-timeline entity -> the states it entered
         if recording_name:
+            # The SDK sends the name only as a row through the batcher: flushed here, while nothing else is pending.
             self.stream.send_recording_name(recording_name)
+            self.stream.flush()
         for root in views.MAP_ROOTS:
-            self.stream.log(root, views.MAP_FLIP, static=True)
+            send_static(self.stream, root, views.MAP_FLIP)
 
     def set_time(self, step: int, sensor_time_ns: int) -> None:
-        # The stream's own time is only needed by the rows logged at once (text, images...): it is set there,
-        # when it changed, instead of with two SDK calls for every replayed message.
+        # Only stored: every row is sent with its own time columns, none with the stream's time.
         self.step, self.sensor_time_ns = step, sensor_time_ns
-
-    def _sync_time(self) -> None:
-        now = (self.step, self.sensor_time_ns)
-        if now != self._stream_time:
-            self._stream_time = now
-            self.stream.set_time(views.STEP, sequence=self.step)
-            self.stream.set_time(views.SENSOR_TIME,
-                                 duration=np.timedelta64(self.sensor_time_ns - self.time_origin_ns, "ns"))
 
     def log(self, path: str, item: Observation) -> None:
         if path.startswith("world/"):
             self._last[path] = item
-        if isinstance(item, State):
-            self._states.setdefault(path, set()).add(item.state)
-        if isinstance(item, (Text, Image, Bars, Markdown, State)):
-            self._sync_time()
-            self.stream.log(path, *to_archetypes(path, item))
-            return
-        key = (path, type(item))
+        kind = type(item)
+        key = (path, kind)
         rows = self._buffers.get(key)
         if rows is None:
-            if isinstance(item, Scalar):
+            if kind is Scalar:
                 self._style_series(path)
             rows = self._buffers[key] = []
         rows.append((self.step, self.sensor_time_ns, item))
-        if len(rows) >= self.flush_rows:
-            self._flush(path, type(item))
+        if len(rows) >= self.flush_rows or kind is Image:
+            self._flush(path, kind)
 
     def log_static(self, path: str, item: Observation) -> None:
         if path.startswith("world/"):
             self._last[path] = item
-        self.stream.log(path, *to_archetypes(path, item), static=True)
+        send_static(self.stream, path, *to_archetypes(path, item))
 
     def send_series(self, path: str, steps: np.ndarray, times_ns: np.ndarray, values: np.ndarray) -> None:
         """A whole scalar time series in one call (computed after the replay)."""
@@ -133,10 +180,9 @@ class RerunObserver:
         for path, item in sorted(self._last.items()):
             if any(s in path for s in skip) or _empty(item):
                 continue
-            self.stream.log(f"summary/{path}", *to_archetypes(path, item), static=True)
+            send_static(self.stream, f"summary/{path}", *to_archetypes(path, item))
             bounds = views.extend_bounds(bounds, _points_of(item))
-        self.stream.log(views.SUMMARY_METRICS, rr.TextDocument(metrics_markdown, media_type="text/markdown"),
-                        static=True)
+        send_static(self.stream, views.SUMMARY_METRICS, rr.TextDocument(metrics_markdown, media_type="text/markdown"))
         return bounds
 
     def send_layout(self, blueprint: rrb.Blueprint) -> None:
@@ -146,11 +192,12 @@ class RerunObserver:
     def _style_series(self, path: str) -> None:
         if path not in self._series:
             self._series.add(path)
-            self.stream.log(path, rr.SeriesLines(names=views.series_label(path), colors=views.series_color(path),
-                                                 widths=1.5), static=True)
+            send_static(self.stream, path, rr.SeriesLines(names=views.series_label(path),
+                                                          colors=views.series_color(path), widths=1.5))
 
     def send_property(self, name: str, values: dict[str, Any]) -> None:
-        self.stream.send_property(name, rr.AnyValues(**values))
+        # Chunk.from_property: the chunk ``send_property`` would log, but made here, not by the batcher
+        self.stream.send_chunks(Chunk.from_property(name, rr.AnyValues(**values)))
 
     def close(self) -> None:
         """Flush and write the footer; the file is complete after this."""
@@ -158,8 +205,9 @@ class RerunObserver:
             self._flush(path, kind)
         for path, states in sorted(self._states.items()):
             values = sorted(states)
-            self.stream.log(path, rr.StateConfiguration(values=values, labels=[v.replace("_", " ") for v in values],
-                                                        colors=[views.state_color(v) for v in values]), static=True)
+            send_static(self.stream, path, rr.StateConfiguration(values=values,
+                                                                 labels=[v.replace("_", " ") for v in values],
+                                                                 colors=[views.state_color(v) for v in values]))
         self.stream.disconnect()
 
     def _send(self, path: str, steps: np.ndarray, times_ns: np.ndarray, columns: list[Any]) -> None:
@@ -171,10 +219,19 @@ class RerunObserver:
 
     def _flush(self, path: str, kind: type) -> None:
         rows = self._buffers.pop((path, kind), [])
-        if rows:
-            steps = np.array([r[0] for r in rows])
-            times = np.array([r[1] for r in rows])
-            self._send(path, steps, times, to_columns(path, [r[2] for r in rows]))
+        if not rows:
+            return
+        steps = np.array([r[0] for r in rows])
+        times = np.array([r[1] for r in rows])
+        items = [r[2] for r in rows]
+        if kind in GEOMETRY:
+            self._send(path, steps, times, to_columns(path, items))
+            return
+        if kind is State:
+            self._states.setdefault(path, set()).update(i.state for i in items if isinstance(i, State))
+        # Text, images, bar charts, documents, states: the archetypes ``log`` would send, as columns
+        for i, j, cols in row_groups([row_components(to_archetypes(path, it)) for it in items]):
+            self._send(path, steps[i:j], times[i:j], [cols])
 
 
 def to_columns(path: str, items: list[Any]) -> list[Any]:

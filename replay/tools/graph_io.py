@@ -350,7 +350,7 @@ def _log_rrd(path: Path, source: Path, before: PoseGraph, after: PoseGraph, resu
     import rerun.blueprint as rrb
 
     from slamreplay.replay.engine import views
-    from slamreplay.replay.engine.observer import deterministic_batcher
+    from slamreplay.replay.engine.observer import deterministic_batcher, send_static
 
     digest = hashlib.sha256(source.read_bytes()).hexdigest()
     rec_id = uuid.uuid5(uuid.NAMESPACE_URL, f"slamreplay/graph-optimize/{digest}/{config}")
@@ -369,11 +369,10 @@ def _log_rrd(path: Path, source: Path, before: PoseGraph, after: PoseGraph, resu
             loop = np.abs(before.i - before.j) != 1
             colors = np.where(loop[:, None], [views.ACCEPTED], [views.TRUTH]).astype(np.uint8)
             for name, g in (("initial", before), ("optimized", after)):
-                rec.log(f"world/graph/{name}", views.MAP_FLIP, static=True)
-                rec.log(f"world/graph/{name}/edges", rr.LineStrips2D(_segments(g), colors=colors, radii=-0.5),
-                        static=True)
-                vertices = rr.Points2D(g.poses[:, :2].astype(np.float32), radii=-1.5)
-                rec.log(f"world/graph/{name}/vertices", vertices, static=True)
+                send_static(rec, f"world/graph/{name}", views.MAP_FLIP)
+                send_static(rec, f"world/graph/{name}/edges", rr.LineStrips2D(_segments(g), colors=colors, radii=-0.5))
+                send_static(rec, f"world/graph/{name}/vertices",
+                            rr.Points2D(g.poses[:, :2].astype(np.float32), radii=-1.5))
             k = np.arange(result.chi2_history.size, dtype=np.int64)
             rec.send_columns("metrics/chi2", indexes=[rr.TimeColumn("iteration", sequence=k)],
                              columns=rr.Scalars.columns(scalars=result.chi2_history))
