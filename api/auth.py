@@ -56,6 +56,9 @@ RULES: dict[tuple[str, str], tuple[Role, str]] = {
     ("POST", "/ui/jobs/{job_id}/delete"): ("admin", "delete runs"),
     ("POST", "/ui/history/{name:path}/runs"): ("runner", "run suites on a commit"),
     ("GET", "/audit"): ("admin", "read the audit trail"),
+    ("GET", "/ui/people"): ("admin", "manage people"),
+    ("POST", "/ui/people"): ("admin", "manage people"),
+    ("POST", "/ui/people/{name}"): ("admin", "manage people"),
     ("GET", "/ui/audit"): ("admin", "read the audit trail"),
 }
 RECORD_PREFIX = "/recordings/record/"  # one route per importer (api/record_routes.py): recordings made here

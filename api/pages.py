@@ -7,6 +7,7 @@ and not each other.
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +45,7 @@ def _num(v: Any) -> str:
 
 templates.env.filters["num"] = _num
 templates.env.filters["short"] = lambda s: str(s)[:8]
+templates.env.filters["utc"] = lambda t: time.strftime("%Y-%m-%d %H:%M", time.gmtime(t)) if t is not None else ""
 
 
 def people_ctx(request: Request) -> dict[str, Any]:

@@ -55,6 +55,7 @@ from slamreplay.api.pages import error_response as _error
 from slamreplay.api.pages import page_lists as _lists
 from slamreplay.api.pages import page_response as _page
 from slamreplay.api.people import SESSION_TTL_S
+from slamreplay.api.people_web import page as people_page
 from slamreplay.api.runs_web import router as runs_router  # the runs table at / and /runs
 from slamreplay.api.submit_checks import parse_topic_map
 from slamreplay.api.suites import SuiteService
@@ -325,6 +326,7 @@ def install_web(app: FastAPI) -> None:
     app.include_router(compare_router)  # /ui/compare: any runs, or suites paired (api/compare_web.py)
     app.include_router(page)
     install_audit(app)  # GET /audit, /ui/audit: the trail, for admins (api/audit.py)
+    app.include_router(people_page)  # /ui/people: an admin's page of people (api/people_web.py)
     # Id prefixes become whole ids before routing; innermost of the middleware, so the site guard stays outermost.
     app.user_middleware.append(Middleware(IdPrefixes))
     app.mount("/static", StaticFiles(directory=HERE / "static"), name="static")

@@ -4,6 +4,7 @@ the single-user modes kept, and `slamreplay users` (issue 40, items 1 and 3's CS
 from __future__ import annotations
 
 import hashlib
+import re
 import sqlite3
 import time
 from collections.abc import Iterator
@@ -263,6 +264,48 @@ def test_every_state_changing_route_has_a_rule(team: Team) -> None:
     unnamed = [(m, p) for m, p in found if (m, p) not in RULES and not p.startswith(RECORD_PREFIX)
                and p not in ("/login", "/logout")]
     assert found and unnamed == []
+
+
+# -- the people page ---------------------------------------------------------------------------------
+
+
+def test_an_admin_manages_people_on_the_page(tmp_path: Path, recording: Path) -> None:
+    """Add someone (their token shown once, not cached), change a role, disable, enable, a new token; each in the
+    trail by the admin; the last active admin cannot be demoted or disabled."""
+    t, _ = make_team(tmp_path, recording)
+    admin, csrf = t.page("admin")
+    r = admin.post("/ui/people", data={"name": "eve", "role": "runner", "csrf": csrf})
+    token = re.search(r'id="token-value">(slr_[^<]+)<', r.text)
+    assert r.status_code == 200 and token and r.headers["cache-control"] == "no-store"
+    eve = TestClient(t.app, headers={"Authorization": f"Bearer {token.group(1)}"})
+    assert eve.get("/jobs").status_code == 200 and "eve" in admin.get("/ui/people").text
+    assert admin.post("/ui/people", data={"name": "eve", "role": "viewer", "csrf": csrf}).status_code == 422
+    assert admin.post("/ui/people/eve", data={"do": "role", "role": "viewer", "csrf": csrf}).status_code == 200
+    assert eve.post("/jobs", json={"recording_id": "0" * 64, "pipeline": "odometry"}).status_code == 403
+    assert admin.post("/ui/people/eve", data={"do": "disable", "csrf": csrf}).status_code == 200
+    assert eve.get("/jobs").status_code == 401
+    assert admin.post("/ui/people/eve", data={"do": "enable", "csrf": csrf}).status_code == 200
+    r = admin.post("/ui/people/eve", data={"do": "token", "csrf": csrf})
+    assert eve.get("/jobs").status_code == 401 and 'id="token-value">slr_' in r.text
+    last = admin.post("/ui/people/ada", data={"do": "role", "role": "runner", "csrf": csrf})
+    assert last.status_code == 422 and "ada is the last active admin" in last.text
+    assert admin.post("/ui/people/ada", data={"do": "disable", "csrf": csrf}).status_code == 422
+    assert t.store.user("ada").role == "admin"  # type: ignore[union-attr]
+    assert admin.post("/ui/people/eve", data={"do": "role", "role": "admin"}).status_code == 403  # no CSRF token
+    trail = [(e.who, e.action, e.target) for e in reversed(t.store.audit_entries(who="ada"))
+             if e.action.startswith("user-")]
+    assert trail == [("ada", "user-add", "eve"), ("ada", "user-role", "eve"), ("ada", "user-disable", "eve"),
+                     ("ada", "user-enable", "eve"), ("ada", "user-token", "eve")]
+    text = "".join(p.read_bytes().decode("latin-1") for p in (tmp_path / "runs").glob("jobs.sqlite*"))
+    assert token.group(1) not in text
+
+
+def test_a_server_without_people_says_how_to_get_them(tmp_path: Path) -> None:
+    client = TestClient(create_app(Settings(allowed_hosts=("testserver",), data_dir=tmp_path),
+                                   executor=InlineExecutor()))
+    assert 'id="no-people"' in client.get("/ui/people").text
+    assert client.post("/ui/people", data={"name": "ada", "role": "admin"}).status_code == 409
+    assert not Store(tmp_path / "runs" / "jobs.sqlite").has_people()
 
 
 # -- slamreplay users -----------------------------------------------------------------------------------

@@ -85,6 +85,9 @@ def page_actions(t: Team, job: str) -> list[tuple[str, str, str, str, dict[str, 
         ("run on commit", "runner", "POST", "/ui/history/nightly/runs", {"rev": "no-such-rev"}),
         ("delete form", "admin", "GET", f"/ui/jobs/{job}/delete", {}),
         ("audit trail", "admin", "GET", "/ui/audit", {}),
+        ("people page", "admin", "GET", "/ui/people", {}),
+        ("add a person", "admin", "POST", "/ui/people", {"name": "bad name", "role": "viewer"}),
+        ("change a person", "admin", "POST", "/ui/people/vic", {"do": "nothing"}),
     ]
 
 
@@ -107,11 +110,12 @@ def test_page_role_by_action(team: Team, role: str) -> None:
     shown = {"upload": 'id="upload-form"' in home, "job form": 'id="job-form"' in home,
              "suite form": 'id="suite-form"' in home, "edit": 'id="edit-job"' in page,
              "delete": 'id="delete-job"' in page, "row delete": f"/ui/jobs/{job}/delete?next" in home,
-             "row edit": f"/ui/jobs/{job}/edit?next" in home, "audit link": 'id="nav-audit"' in home}
+             "row edit": f"/ui/jobs/{job}/edit?next" in home, "audit link": 'id="nav-audit"' in home,
+             "people link": 'id="nav-people"' in home}
     want_run, want_admin = allowed(role, "runner"), role == "admin"
     assert shown == {"upload": want_run, "job form": want_run, "suite form": want_run, "edit": want_run,
                      "delete": want_admin, "row delete": want_admin, "row edit": want_run,
-                     "audit link": want_admin}, role
+                     "audit link": want_admin, "people link": want_admin}, role
     assert page_csrf(home) == (csrf if want_run else page_csrf(home))  # a viewer's page may have no form at all
     if not want_run:
         assert "read what is here" in home

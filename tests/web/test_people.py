@@ -172,3 +172,23 @@ def test_an_admin_sees_who_cancelled_what(browser: Any, team: dict[str, Any]) ->
     assert re.search(r"Cancelled by rui at .* UTC", admin.inner_text("#job-people"))
     assert admin.problems == [], admin.problems
     admin.context.close()
+
+
+def test_the_people_page(browser: Any, team: dict[str, Any]) -> None:
+    """ada adds someone on the people page: the new token is shown once; the page fits a phone and passes axe."""
+    base = team["base"]
+    admin = new_page(browser)
+    sign_in(admin, base, team["tokens"]["ada"], "/ui/people")
+    admin.fill("#add-person input[name=name]", "eve")
+    admin.select_option("#add-person select[name=role]", "runner")
+    admin.click("#add-person button[type=submit]")
+    assert admin.inner_text("#token-value").startswith("slr_")
+    assert "eve" in admin.inner_text("#people-table")
+    for size, tag in ((LAPTOP, "laptop"), (PHONE, "phone")):
+        admin.set_viewport_size(size)
+        admin.wait_for_timeout(50)
+        assert admin.evaluate("document.documentElement.scrollWidth") <= size["width"], tag
+        shot(admin, f"people-{tag}")
+    axe_clean(admin)
+    assert admin.problems == [], admin.problems
+    admin.context.close()
