@@ -124,6 +124,8 @@ async def login(request: Request, settings: SettingsDep) -> Response:
             await run_in_threadpool(store.add_audit, "(unknown)", client_address(request), "sign-in-failed", None,
                                     "a token that is unknown, replaced or disabled")
             return _page(request, "login.html", 401, next=nxt, wrong=True)
+        if (old := request.cookies.get(COOKIE)) is not None:  # signing in over a session ends that one
+            await run_in_threadpool(store.close_session, old)
         session = await run_in_threadpool(store.open_session, user.name, client_address(request))
         resp.set_cookie(COOKIE, session, max_age=int(SESSION_TTL_S), httponly=True, samesite="lax", secure=secure,
                         path="/")

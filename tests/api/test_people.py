@@ -111,6 +111,10 @@ def test_sign_in_sets_an_http_only_session_cookie_stored_hashed(team: Team) -> N
                            (hashlib.sha256(cookie.encode()).hexdigest(),)).fetchone()
         assert conn.execute("SELECT COUNT(*) FROM sessions WHERE id_hash = ?", (cookie,)).fetchone()[0] == 0
     assert row == ("rui", 7 * 86400)
+    again = TestClient(team.app)
+    again.cookies.set(COOKIE, cookie)
+    assert again.post("/login", data={"token": team.tokens["admin"]}, follow_redirects=False).status_code == 303
+    assert team.store.user_of_session(cookie) is None  # signing in over a session ends the old one
     https = TestClient(team.app, base_url="https://testserver")
     r = https.post("/login", data={"token": team.tokens["viewer"]}, follow_redirects=False)
     assert "secure" in r.headers["set-cookie"].lower()
