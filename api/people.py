@@ -24,7 +24,7 @@ import threading
 import time
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
-from typing import Literal, cast, get_args
+from typing import Literal, get_args
 
 Role = Literal["viewer", "runner", "admin"]
 ROLES: tuple[Role, ...] = get_args(Role)
@@ -146,7 +146,7 @@ def check_role(role: str) -> Role:
     if role not in ROLES:
         raise PeopleError(f"{role!r} is not a role: choose viewer (reads), runner (uploads, submits, cancels, labels) "
                           "or admin (also deletes and manages people)")
-    return cast(Role, role)
+    return role
 
 
 def new_token() -> tuple[str, str]:
