@@ -215,3 +215,18 @@ def test_deleted_runs_show_as_deleted_on_suite_and_compare_pages(team: Team, tmp
     assert runs.status_code == 404 and f"job {victim} was deleted by ada at" in runs.text
     paired = admin.get("/ui/compare", params={"a": other, "b": victim})
     assert paired.status_code == 404 and "was deleted by ada" in paired.text
+
+
+def test_a_run_on_a_commit_is_in_the_trail(team: Team, monkeypatch: pytest.MonkeyPatch) -> None:
+    """POST /history/suites/NAME/runs: the suite sent again is recorded as run-on-commit, by whom, with the commit
+    (the commit's build is stood in for by the suite sent as it is: tests/api/test_history_rev.py builds one)."""
+    from slamreplay.api import history_routes
+
+    api = team.api("runner")
+    api.post("/suites", content=SUITE.format(rid=team.rid).encode())
+    monkeypatch.setattr(history_routes, "run_on_revision",
+                        lambda suites, name, rev: suites.submit(SUITE.format(rid=team.rid), "toml"))
+    r = api.post("/history/suites/nightly/runs", json={"rev": "0123456789abcdef"})
+    assert r.status_code == 202, r.text
+    entry = team.store.audit_entries(action="run-on-commit", limit=1)[0]
+    assert (entry.who, entry.target) == ("rui", r.json()["id"]) and "commit 0123456789" in (entry.detail or "")
