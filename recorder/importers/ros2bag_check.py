@@ -107,7 +107,7 @@ def checked_bag(path: Path) -> CheckedBag:
             what = "no .db3 or .mcap file" if not files else f"{len(files)} storage files but no metadata.yaml"
             raise BagError(f"{path} is not a ROS 2 bag: it holds no metadata.yaml and {what}")
         return _alone(lone)
-    paths: list[Path] = []
+    failed_as_itself = False  # the one storage file failed its check as the storage its name says
     try:
         info = read_metadata(meta)
         paths = [path / PurePath(p).name for p in info["relative_file_paths"]]  # as rosbags joins them
@@ -117,9 +117,13 @@ def checked_bag(path: Path) -> CheckedBag:
         if mode == "file":
             return _decompressed(info, paths)
         for p in paths:
-            check_storage(p, storage, message_compressed=mode == "message")
+            try:
+                check_storage(p, storage, message_compressed=mode == "message")
+            except BagError:
+                failed_as_itself = p == lone and p.suffix == STORAGES[storage]
+                raise
     except BagError:
-        if lone is None or lone in paths:  # nothing else to read, or the one storage file is what failed
+        if lone is None or failed_as_itself:
             raise
         return _alone(lone)  # a metadata.yaml of another writer (or hand-written): its one storage file alone
     return CheckedBag(path, storage, lone)

@@ -374,3 +374,18 @@ def test_signalling_nan_range_is_no_reading() -> None:
         warnings.simplefilter("error")
         got = _poles_scan(1, scan, PoleConfig(), (0.0, 0.0, 0.0))
     assert np.all(np.isfinite(got.ranges_m))
+
+
+@pytest.mark.parametrize(("old", "new"), [
+    ("storage_identifier: mcap", "storage_identifier: sqlite3"),
+    ("compression_format: ''\n  compression_mode: ''", "compression_format: zstd\n  compression_mode: file"),
+])
+def test_metadata_wrong_about_its_storage(bags: dict[str, Path], tmp_path: Path, old: str, new: str) -> None:
+    """A metadata.yaml wrong about its one storage file (its storage, a compression it does not have): the file is
+    read alone, as it is, as for a metadata.yaml rosbags cannot read; a damaged file read as itself is refused."""
+    bag, store = _copy(bags["mcap"], tmp_path)
+    _meta(bag, old, new)
+    assert plan_bag(bag).storage == "mcap"
+    store.write_bytes(store.read_bytes()[:-100])
+    with pytest.raises(BagError, match=r"mcap\.mcap is damaged: the file does not end with the MCAP magic"):
+        plan_bag(bag)
