@@ -259,7 +259,7 @@ def test_revision_that_does_not_build(tmp_path: Path, capsys: pytest.CaptureFixt
     repo = tmp_path / "repo"
     repo.mkdir()
     git(repo, "init", "-q")
-    (repo / "pyproject.toml").write_text("[project\nname = broken\n")
+    (repo / "pyproject.toml").write_text("[project\nname = \"slamreplay\"\n")  # slamreplay's, broken
     git(repo, "add", "pyproject.toml")
     git(repo, "commit", "-qm", "broken")
     monkeypatch.chdir(repo)
