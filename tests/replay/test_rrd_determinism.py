@@ -112,14 +112,14 @@ def _replays_under_load(recordings: dict[str, Path], out: Path) -> list[dict[str
     busy loops; the run directories of each replay."""
     jobs = [{p: (str(rec), str(out / f"{k}" / p)) for p, rec in recordings.items()} for k in range(REPLAYS)]
     busy = [_start(BUSY) for _ in range(PARALLEL)]
+    replays = _start(REPLAY_ALL, json.dumps(jobs), str(PARALLEL))
     try:
-        proc = _start(REPLAY_ALL, json.dumps(jobs), str(PARALLEL))
-        _, err = proc.communicate(timeout=600)
-        assert proc.returncode == 0, f"replays failed:\n{err}"
+        _, err = replays.communicate(timeout=600)
+        assert replays.returncode == 0, f"replays failed:\n{err}"
     finally:
-        for b in busy:
-            b.kill()
-            b.wait()
+        for proc in [*busy, replays]:
+            proc.kill()
+            proc.wait()
     return [{p: Path(run_dir) for p, (_, run_dir) in job.items()} for job in jobs]
 
 
