@@ -11,6 +11,11 @@ from typing import Final
 
 PAPER_AREA_M: Final = 40.0
 GRID_BORDER_M: Final = 0.5  # 14 columns 3 m apart span 39 m: centred in the paper's 40 m square
+# What one simulation may ask for, so that a request (the service's POST /recordings/record/sim-landmarks)
+# cannot take the machine's memory: 6x the 16,000 features of the scaling benchmarks, and a 2-day drive at 10 Hz
+# (the paper's is 30 minutes, 18,000 samples; a sample costs about 1 kB in the simulator's arrays).
+MAX_LANDMARKS: Final = 100_000
+MAX_SAMPLES: Final = 2_000_000
 
 
 @dataclass(frozen=True, slots=True)
@@ -62,8 +67,8 @@ class LandmarkSimConfig:
     def __post_init__(self) -> None:
         if isinstance(self.landmarks, bool) or not isinstance(self.landmarks, numbers.Integral):
             raise ValueError(f"landmarks must be an integer, got {self.landmarks!r}")
-        if self.landmarks < 1:
-            raise ValueError(f"landmarks must be >= 1, got {self.landmarks}")
+        if not 1 <= self.landmarks <= MAX_LANDMARKS:
+            raise ValueError(f"landmarks must be in [1, {MAX_LANDMARKS:,}], got {self.landmarks}")
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             if f.name != "landmarks" and value is not None and not math.isfinite(value):
@@ -83,6 +88,11 @@ class LandmarkSimConfig:
             raise ValueError(f"odom_speed_bias is a scale error and must be in (-0.5, 0.5), got {self.odom_speed_bias}")
         if self.duration_s * self.odom_rate_hz < 1:
             msg = f"duration_s must last at least one odometry period (1/odom_rate_hz), got {self.duration_s}"
+            raise ValueError(msg)
+        samples = self.duration_s * max(self.odom_rate_hz, self.scan_rate_hz)
+        if samples > MAX_SAMPLES:
+            msg = (f"duration_s {self.duration_s:g} at {max(self.odom_rate_hz, self.scan_rate_hz):g} Hz is "
+                   f"{samples:,.0f} samples, more than {MAX_SAMPLES:,}: record a shorter drive (or several)")
             raise ValueError(msg)
         need = self.grid_extent_m + 2 * GRID_BORDER_M
         if self.area_m is not None and self.area_m < need:

@@ -248,6 +248,9 @@ def test_area_rule() -> None:
     ({"stationary_s": -1.0}, "stationary_s"),
     ({"odom_rate_hz": 0.0}, "odom_rate_hz"),
     ({"scan_rate_hz": -5.0}, "scan_rate_hz"),
+    ({"landmarks": 8_371_841}, r"landmarks must be in \[1, 100,000\]"),  # the fuzzer's: 24 GB in the service
+    ({"duration_s": 1e7}, r"100,000,000 samples, more than 2,000,000"),
+    ({"scan_rate_hz": 1e6, "duration_s": 10.0}, "10,000,000 samples"),
 ])
 def test_config_validation(overrides: dict[str, Any], match: str) -> None:
     """Each bad parameter raises ValueError naming it."""
