@@ -22,13 +22,22 @@ def resolve_mcap_path(path: Path) -> Path:
     if path.is_dir():
         mcaps = sorted(path.glob("*.mcap"))
         if len(mcaps) == 1:
-            return mcaps[0]
+            return _regular(mcaps[0])
         if not mcaps and list(path.glob("*.db3")):
             raise ReplayError(f"{path} is a ROS 2 bag in sqlite3 storage; import it first: "
                               f"`slamreplay record ros2 {path} --out FILE.mcap`, then run FILE.mcap")
         what = "no .mcap file" if not mcaps else f"{len(mcaps)} .mcap files (split bag)"
         raise ReplayError(f"{path} is a directory with {what}; give one .mcap file, or import the bag with "
                           f"`slamreplay record ros2 {path} --out FILE.mcap`")
+    return _regular(path)
+
+
+def _regular(path: Path) -> Path:
+    """``path`` when it is a regular file (a link to one included); a folder named ``x.mcap``, a FIFO or a device
+    is refused here, before anything opens it (a FIFO would block the reader)."""
+    if not path.is_file():
+        kind = "a directory" if path.is_dir() else "not a regular file (a pipe, socket or device)"
+        raise ReplayError(f"{path} is {kind}: give an .mcap recording file")
     return path
 
 

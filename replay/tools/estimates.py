@@ -217,35 +217,30 @@ def read_kitti_ns(text: str | Iterable[str], times_text: str | Iterable[str], wh
 def read_pose_topic(path: Path, topic: str) -> tuple[I64, F64]:
     """Poses of ``topic`` in a ROS 2 bag (folder, ``.db3`` or ``.mcap``): ``geometry_msgs/PoseStamped``,
     ``PoseWithCovarianceStamped`` or ``nav_msgs/Odometry``, at their header stamps."""
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
+    from slamreplay.recorder.errors import RecorderError
+    from slamreplay.recorder.importers.ros2bag import open_bag
 
-    store = get_typestore(Stores.ROS2_HUMBLE)  # for types a bag does not define
-    try:
-        try:
-            reader = AnyReader([path], default_typestore=store)
-            reader.open()
-        except Exception:  # a metadata.yaml rosbags cannot read: read its one storage file alone
-            files = sorted([*path.glob("*.db3"), *path.glob("*.mcap")]) if path.is_dir() else []
-            if len(files) != 1:
-                raise
-            reader = AnyReader([files[0]], default_typestore=store)
-            reader.open()
-        try:
-            conns = [c for c in reader.connections if c.topic == topic]
+    t: list[int] = []
+    rows: list[tuple[float, float, float]] = []
+    try:  # every byte rosbags reads is checked first; what it raises is one BagError line (recorder/importers)
+        with open_bag(path) as bag:
+            conns = [c for c in bag.reader.connections if c.topic == topic]
             if not conns:
-                have = ", ".join(sorted({c.topic for c in reader.connections}))
+                have = ", ".join(sorted({c.topic for c in bag.reader.connections}))
                 raise ReplayError(f"{path} has no topic {topic} (its topics: {have})")
-            t: list[int] = []
-            rows: list[tuple[float, float, float]] = []
-            for conn, _, raw in reader.messages(connections=conns):
-                msg: Any = reader.deserialize(raw, conn.msgtype)
+            for conn, _, raw in bag.messages(conns):
+                k = len(t) + 1
+                try:
+                    msg: Any = bag.reader.deserialize(raw, conn.msgtype)
+                except Exception as err:  # noqa: BLE001 -- a damaged message: rosbags' CDR errors vary
+                    raise ReplayError(f"{path} {topic}, message {k}: not a readable {conn.msgtype} "
+                                      f"({type(err).__name__})") from None
                 pose = getattr(msg, "pose", None)
                 pose = getattr(pose, "pose", pose)  # PoseWithCovarianceStamped and Odometry nest one more level
                 if pose is None or not hasattr(pose, "orientation"):
                     raise ReplayError(f"{path}: topic {topic} is {conn.msgtype}, not a pose (PoseStamped, "
                                       f"PoseWithCovarianceStamped or Odometry)")
-                q, k = pose.orientation, len(t) + 1
+                q = pose.orientation
                 values = (pose.position.x, pose.position.y, pose.position.z, q.x, q.y, q.z, q.w)
                 ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
                 problem = ("a value is not finite" if not all(map(math.isfinite, values)) else
@@ -255,12 +250,8 @@ def read_pose_topic(path: Path, topic: str) -> tuple[I64, F64]:
                     raise ReplayError(f"{path} {topic}, message {k} (stamp {ns / 1e9:.9f} s): {problem}")
                 t.append(ns)
                 rows.append((pose.position.x, pose.position.y, quaternion_yaw(q.x, q.y, q.z, q.w)))
-        finally:
-            reader.close()
-    except ReplayError:
-        raise
-    except Exception as err:  # noqa: BLE001 -- rosbags raises its own errors for what is not a bag
-        raise ReplayError(f"{path} is not a readable ROS 2 bag: {type(err).__name__}: {err}") from None
+    except RecorderError as err:
+        raise ReplayError(str(err)) from None
     if not rows:
         raise ReplayError(f"{path}: topic {topic} has no messages")
     return np.asarray(t, np.int64), np.asarray(rows, np.float64)

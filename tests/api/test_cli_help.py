@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -79,6 +80,8 @@ def test_did_you_mean(tmp_path: Path, capsys: pytest.CaptureFixture[str], args: 
     (lambda d: (d / "notes.mcap").write_text("not a recording") and d / "notes.mcap", r"is not an MCAP file"),
     (lambda d: (d / "empty.mcap").touch() or d / "empty.mcap", r"is empty"),
     (lambda d: d, r"is a directory with no \.mcap file"),
+    (lambda d: (d / "bag" / "x.mcap").mkdir(parents=True) or d / "bag", r"x\.mcap is a directory: give an \.mcap"),
+    (lambda d: os.mkfifo(d / "fifo.mcap") or d / "fifo.mcap", r"not a regular file \(a pipe, socket or device\)"),
 ])
 def test_a_bad_input_leaves_no_run_directory(tmp_path: Path, capsys: pytest.CaptureFixture[str], make: object,
                                              pattern: str) -> None:
