@@ -5,10 +5,13 @@ command line reads its options (``record sim-corridor --help``) without importin
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Final
+
+from slamreplay.recorder.sim.bounds import MAX_IMAGE_SIDE_PX, MAX_IMAGES, MAX_SAMPLES, too_many
 
 if TYPE_CHECKING:
     import numpy as np
@@ -78,9 +81,9 @@ class CorridorConfig:
                 raise ValueError(f"{f.name} must be an integer, got {value!r}")
             if isinstance(value, float | int) and not math.isfinite(value):
                 raise ValueError(f"{f.name} must be finite, got {value}")
-        if self.image_width < 32 or self.image_height < 24:
-            raise ValueError(f"image_width and image_height must be >= 32 x 24, got {self.image_width} x "
-                             f"{self.image_height}")
+        if not (32 <= self.image_width <= MAX_IMAGE_SIDE_PX and 24 <= self.image_height <= MAX_IMAGE_SIDE_PX):
+            raise ValueError(f"image_width and image_height must be from 32 x 24 to {MAX_IMAGE_SIDE_PX} x "
+                             f"{MAX_IMAGE_SIDE_PX}, got {self.image_width} x {self.image_height}")
         if not 10.0 <= self.hfov_deg <= 150.0:
             raise ValueError(f"hfov_deg must be in [10, 150] (a pinhole camera), got {self.hfov_deg}")
         if not 0.0 < self.camera_height_m < self.wall_height_m:
@@ -115,6 +118,17 @@ class CorridorConfig:
             raise ValueError(f"brightness_jitter must be <= 0.3, got {self.brightness_jitter}")
         if self.compression not in ("jpeg", "png", "raw"):
             raise ValueError(f"compression must be jpeg, png or raw, got {self.compression!r}")
+        if self.twins > 100:
+            raise ValueError(f"twins must be at most 100, got {self.twins}")
+        legs = [TOURS[tour.strip()] for tour in self.route.split(",")]
+        drive_s = self.laps * sum(math.dist(a, b) for pts in legs for a, b in itertools.pairwise(pts)
+                                  ) / self.speed_mps
+        for problem in (too_many("images (route length x laps / speed_mps x camera_rate_hz)",
+                                 drive_s * self.camera_rate_hz, MAX_IMAGES, "drive fewer laps or lower the rate"),
+                        too_many("odometry samples (route length x laps / speed_mps x odom_rate_hz)",
+                                 drive_s * self.odom_rate_hz, MAX_SAMPLES, "drive fewer laps or lower the rate")):
+            if problem:
+                raise ValueError(problem)
 
     @property
     def focal_px(self) -> float:

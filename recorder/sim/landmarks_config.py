@@ -9,13 +9,10 @@ import numbers
 from dataclasses import dataclass, field
 from typing import Final
 
+from slamreplay.recorder.sim.bounds import MAX_LANDMARKS, MAX_SAMPLES
+
 PAPER_AREA_M: Final = 40.0
 GRID_BORDER_M: Final = 0.5  # 14 columns 3 m apart span 39 m: centred in the paper's 40 m square
-# What one simulation may ask for, so that a request (the service's POST /recordings/record/sim-landmarks)
-# cannot take the machine's memory: 6x the 16,000 features of the scaling benchmarks, and a 2-day drive at 10 Hz
-# (the paper's is 30 minutes, 18,000 samples; a sample costs about 1 kB in the simulator's arrays).
-MAX_LANDMARKS: Final = 100_000
-MAX_SAMPLES: Final = 2_000_000
 
 
 @dataclass(frozen=True, slots=True)

@@ -7,6 +7,8 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
+from slamreplay.recorder.sim.bounds import MAX_IMAGE_SIDE_PX, MAX_IMAGES, MAX_SEABED_PX, too_many
+
 
 @dataclass(frozen=True, slots=True)
 class SeabedSimConfig:
@@ -43,8 +45,9 @@ class SeabedSimConfig:
             value = getattr(self, f.name)
             if f.name != "texture" and not math.isfinite(value):
                 raise ValueError(f"{f.name} must be finite, got {value}")
-        if isinstance(self.image_px, bool) or not isinstance(self.image_px, int) or self.image_px < 32:
-            raise ValueError(f"image_px must be an integer >= 32, got {self.image_px!r}")
+        if (isinstance(self.image_px, bool) or not isinstance(self.image_px, int)
+                or not 32 <= self.image_px <= MAX_IMAGE_SIDE_PX):
+            raise ValueError(f"image_px must be an integer from 32 to {MAX_IMAGE_SIDE_PX}, got {self.image_px!r}")
         if isinstance(self.legs, bool) or not isinstance(self.legs, int) or self.legs < 1:
             raise ValueError(f"legs must be an integer >= 1, got {self.legs!r}")
         for name in ("metres_per_pixel", "leg_length_m", "frame_rate_hz"):
@@ -60,6 +63,15 @@ class SeabedSimConfig:
         for name in ("heading_wobble_deg", "noise_sigma", "odom_sigma"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        images = self.legs * (self.leg_length_m / (self.image_spacing * self.footprint_m) + 1)
+        width_m = (self.legs - 1) * self.leg_spacing * self.footprint_m + 2 * self.footprint_m
+        seabed_px = width_m * (self.leg_length_m + 2 * self.footprint_m) / self.metres_per_pixel ** 2
+        for problem in (too_many("images (legs x leg_length_m / image spacing)", images, MAX_IMAGES,
+                                 "survey fewer or shorter legs"),
+                        too_many("seabed pixels to render (survey area / metres_per_pixel^2)", seabed_px,
+                                 MAX_SEABED_PX, "survey a smaller area or use a larger metres_per_pixel")):
+            if problem:
+                raise ValueError(problem)
 
     @property
     def footprint_m(self) -> float:

@@ -249,6 +249,7 @@ def test_area_rule() -> None:
     ({"odom_rate_hz": 0.0}, "odom_rate_hz"),
     ({"scan_rate_hz": -5.0}, "scan_rate_hz"),
     ({"landmarks": 8_371_841}, r"landmarks must be in \[1, 100,000\]"),  # the fuzzer's: 24 GB in the service
+    # (recorder/sim/bounds.py; the corridor's and the seabed's in test_sim_bounds below)
     ({"duration_s": 1e7}, r"100,000,000 samples, more than 2,000,000"),
     ({"scan_rate_hz": 1e6, "duration_s": 10.0}, "10,000,000 samples"),
 ])
@@ -270,3 +271,21 @@ def test_scales_to_100k_landmarks(tmp_path: Path) -> None:
     scans = by_topic(msgs, TOPIC_RANGE_BEARING, RangeBearingScan)
     assert len(scans) == 151 and summary.observations == sum(len(s) for s in scans) > 0
     assert summary.area_m == (317 - 1) * 3.0 + 1.0
+
+
+@pytest.mark.parametrize(("sim", "overrides", "match"), [
+    ("corridor", {"image_height": 127058998962946049}, r"from 32 x 24 to 4096 x 4096"),  # the fuzzer's: 24 GB
+    ("corridor", {"laps": 100_000}, r"images .*: 192,750,000, more than 100,000"),
+    ("corridor", {"twins": 10**6}, r"twins must be at most 100"),
+    ("seabed", {"image_px": 100_000}, r"image_px must be an integer from 32 to 4096"),
+    ("seabed", {"legs": 10**6}, r"images .*more than 100,000"),
+    ("seabed", {"leg_spacing": 1.0, "legs": 2000, "image_spacing": 1.0, "metres_per_pixel": 0.001},
+     r"seabed pixels to render .*more than 256,000,000"),
+])
+def test_sim_bounds(sim: str, overrides: dict[str, Any], match: str) -> None:
+    """What one simulation may ask for is bounded (recorder/sim/bounds.py), each error naming what to do."""
+    from slamreplay.recorder.sim.corridor_config import CorridorConfig
+    from slamreplay.recorder.sim.seabed_config import SeabedSimConfig
+
+    with pytest.raises(ValueError, match=match):
+        (CorridorConfig if sim == "corridor" else SeabedSimConfig)(**overrides)
