@@ -73,8 +73,9 @@ class RunDiff:
                 "rrd_detail": self.rrd_detail, "notes": self.notes}
 
 
-def load_run(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
-    """(manifest, metrics document) of a finished run; ReplayError saying what is missing."""
+def load_run(run_dir: Path, failed_ok: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(manifest, metrics document) of a finished run; ReplayError saying what is missing. ``failed_ok``: a
+    run that ended (failed, interrupted) has an empty metrics document instead of an error."""
     if not run_dir.is_dir():
         raise ReplayError(f"{run_dir} is not a run directory (it does not exist)")
     try:
@@ -83,6 +84,8 @@ def load_run(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
         raise ReplayError(f"{run_dir} has no manifest.json: it is not a finished run") from None
     except json.JSONDecodeError as err:
         raise ReplayError(f"{run_dir}/manifest.json is not valid JSON: {err}") from err
+    if failed_ok and manifest.get("status") in ("failed", "interrupted"):
+        return manifest, {"metrics": {}}
     if manifest.get("status") != "succeeded":
         raise ReplayError(f"{run_dir} did not succeed (status {manifest.get('status')!r}: {manifest.get('error')}); "
                           f"only successful runs can be compared")
@@ -234,7 +237,7 @@ def diff_runs(a_dir: str | Path, b_dir: str | Path, tolerances: Mapping[str, str
               compare_rrd: bool = True) -> RunDiff:
     """Compare run B against run A (the baseline)."""
     a_dir, b_dir = Path(a_dir), Path(b_dir)
-    (ma, xa), (mb, xb) = load_run(a_dir), load_run(b_dir)
+    (ma, xa), (mb, xb) = load_run(a_dir), load_run(b_dir, failed_ok=True)  # B failing is its worst regression
     tolerances = dict(tolerances or {})
     known = set(xa.get("metrics", {})) | set(xb.get("metrics", {}))
     unknown = set(tolerances) - known - {"*"}
@@ -248,6 +251,8 @@ def diff_runs(a_dir: str | Path, b_dir: str | Path, tolerances: Mapping[str, str
             out.notes.append(f"run {side} is not deterministic (--check-determinism: two runs of its program on the "
                              f"same input differed): a metric change within the tolerances is noise, and the run.rrd "
                              f"content is not expected to match; compare over seeds (`slamreplay compare`)")
+    if mb.get("status") != "succeeded":
+        out.notes.append(f"run B {mb.get('status')}: {mb.get('error')}; every metric of A is missing in B")
     for key in MANIFEST_FIELDS:
         va, vb = _get(ma, key), _get(mb, key)
         if va != vb:
@@ -269,15 +274,18 @@ def diff_runs(a_dir: str | Path, b_dir: str | Path, tolerances: Mapping[str, str
             continue
         if eb is None:
             why = optional_reason(name, ea)
+            failed = mb.get("status") != "succeeded"  # a run that failed lost even its optional metrics
             out.metrics.append(MetricDelta(name, ea["value"], None, None, spec["better"], 0.0,
-                                           "removed" if why else LOST, spec.get("target"),
-                                           f"optional: {why}" if why else "missing in B"))
+                                           "removed" if why and not failed else LOST, spec.get("target"),
+                                           f"optional: {why}" if why and not failed else "missing in B"))
             continue
         tol = metric_tolerance(spec, ea["value"], tolerances.get(name, tolerances.get("*")))
         delta, verdict = _verdict(ea["value"], eb["value"], spec["better"], tol, spec.get("target"))
         out.metrics.append(MetricDelta(name, ea["value"], eb["value"], delta, spec["better"], tol, verdict,
                                        spec.get("target")))
-    if compare_rrd:
+    if compare_rrd and mb.get("status") != "succeeded":
+        out.rrd_detail = "run B has no run.rrd (it did not succeed)"
+    elif compare_rrd:
         out.rrd_equal, out.rrd_detail = rrd_content_equal(a_dir / "run.rrd", b_dir / "run.rrd")
     return out
 

@@ -77,7 +77,8 @@ def test_comparison_rrd(two_runs: tuple[Path, Path, Path], tmp_path: Path) -> No
 
 
 def test_bad_run_dirs(two_runs: tuple[Path, Path, Path], tmp_path: Path) -> None:
-    """A missing directory, a directory without a manifest, and a failed run are refused."""
+    """A missing directory, a directory without a manifest, and a failed baseline are refused; a failed B is a
+    regression (every metric of A lost, tests/replay/test_lost_metrics.py)."""
     a, _, _ = two_runs
     with pytest.raises(ReplayError, match="does not exist"):
         diff_runs(a, tmp_path / "nope")
@@ -88,4 +89,5 @@ def test_bad_run_dirs(two_runs: tuple[Path, Path, Path], tmp_path: Path) -> None
     failed.mkdir()
     (failed / "manifest.json").write_text(json.dumps({"status": "failed", "error": "boom"}))
     with pytest.raises(ReplayError, match="did not succeed"):
-        diff_runs(a, failed)
+        diff_runs(failed, a)
+    assert diff_runs(a, failed, compare_rrd=False).lost

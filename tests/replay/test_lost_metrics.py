@@ -151,3 +151,36 @@ def test_a_program_that_is_not_deterministic_is_judged_by_its_spread() -> None:
                   Side("B", _noisy_rows("b", rng, 3.0, seeds=1), "results", ["b"]))
     assert not one.regressions and {r.verdict for r in one.results} == {"noise"}
     assert "no spread" in one.results[0].test and "not deterministic" in one.notes[0]
+
+
+def test_a_run_that_lost_its_time_overlap_fails_and_diff_names_what_it_lost(
+        good_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The reported case end to end: an estimate whose clock is 1000 s off fails its run (min_coverage), and
+    diff GOOD BAD exits 1 naming every metric of A as missing in B, with B's one-line error."""
+    from slamreplay.replay.errors import ReplayError
+    from slamreplay.replay.runs.evaluate_run import evaluate_estimate
+
+    rec = tmp_path / "r.mcap"
+    write_tiny_recording(rec)
+    good = run_recording(rec, "odometry", tmp_path / "odo").run_dir
+    lines = []
+    body = [ln for ln in (good / "trajectory.tum").read_text().splitlines() if not ln.startswith("#")]
+    for line in body:
+        t, *rest = line.split()
+        lines.append(" ".join([f"{float(t) + 1000.0:.9f}", *rest]))
+    (tmp_path / "late.tum").write_text("\n".join(lines) + "\n")
+    with pytest.raises(ReplayError, match="time span"):
+        evaluate_estimate(tmp_path / "late.tum", rec, tmp_path / "late")
+    early = "\n".join(" ".join([f"{float(ln.split()[0]) + 2.0:.9f}", *ln.split()[1:]])
+                      for ln in body) + "\n"
+    (tmp_path / "early.tum").write_text(early)
+    with pytest.raises(ReplayError, match=r"the estimate covers .* min_coverage"):
+        evaluate_estimate(tmp_path / "early.tum", rec, tmp_path / "bad", min_coverage=0.99)
+    d = diff_runs(good, tmp_path / "bad", compare_rrd=True)
+    assert "ape_rmse_m" in d.lost and set(d.lost) == set(d.worse)
+    assert d.rrd_equal is None and "did not succeed" in d.rrd_detail
+    assert main(["diff", str(good), str(tmp_path / "bad")]) == 1
+    out = capsys.readouterr().out
+    assert "note: run B failed: " in out and "WORSE (missing in B)" in out
+    with pytest.raises(ReplayError, match="did not succeed"):  # a baseline that failed is still bad input
+        diff_runs(tmp_path / "bad", good)
