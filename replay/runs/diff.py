@@ -24,6 +24,7 @@ from slamreplay.recorder.options import did_you_mean
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import LOST, direction_label, normalize, optional_reason, target_distance
 from slamreplay.replay.runs.rrd_compare import rrd_content_equal
+from slamreplay.replay.tools.determinism import PROGRAM_FIELDS
 
 MANIFEST_FIELDS = ("pipeline", "recording.sha256", "seed", "config_hash", "slamreplay.version",
                    "slamreplay.git_commit", "window_ns", "status")
@@ -116,8 +117,7 @@ def parse_tolerances(items: list[str]) -> dict[str, str]:
 # distribution and version; an external program's version string, command, build command and the sha256 of its
 # executable, its declaration and each file its command names (docs/external.md); an evaluated estimate file's
 # sha256. Paths are left out: the same program on another machine is the same program.
-ORIGIN_FIELDS = ("distribution", "version", "command", "build", "executable_sha256", "declaration_sha256",
-                 "files_sha256", "sha256")
+ORIGIN_FIELDS = ("distribution", *PROGRAM_FIELDS, "sha256")
 
 
 def _origin_items(origin: Mapping[str, Any] | None) -> dict[str, Any]:
@@ -258,8 +258,8 @@ def diff_runs(a_dir: str | Path, b_dir: str | Path, tolerances: Mapping[str, str
         if va != vb:
             out.changes.append({"field": key, "a": va, "b": vb})
     out.changes += origin_changes(ma.get("pipeline_origin"), mb.get("pipeline_origin"))
-    out.programs = {side: describe_origin(m.get("pipeline_origin")) for side, m in (("A", ma), ("B", mb))
-                    if describe_origin(m.get("pipeline_origin"))}
+    shown = {side: describe_origin(m.get("pipeline_origin")) for side, m in (("A", ma), ("B", mb))}
+    out.programs = {side: text for side, text in shown.items() if text}
     for section in ("config", "libraries"):
         ca, cb = ma.get(section, {}), mb.get(section, {})
         for key in sorted(set(ca) | set(cb)):

@@ -39,6 +39,7 @@ from slamreplay.replay.runs.diff import determinism_of
 from slamreplay.replay.runs.run import sha256_file
 from slamreplay.replay.runs.suite import Cell, RecordingSpec, Suite, canonical, sim_config_class, sim_kwargs
 from slamreplay.replay.tools.cache import cache_dir
+from slamreplay.replay.tools.determinism import PROGRAM_FIELDS
 
 RESULTS_FORMAT = 1
 SIM_MODULES = {sim: tuple(f"slamreplay.recorder.sim.{m}" for m in modules) for sim, modules in {
@@ -185,7 +186,7 @@ def cell_key(cell: Cell, recording: Recording, code: str) -> str:
 
 
 def _external_program(pipeline: str) -> dict[str, Any]:
-    """An external pipeline's version, executable, files and declaration hashes; {} for any other pipeline."""
+    """An external pipeline's identity (``determinism.PROGRAM_FIELDS``); {} for any other pipeline."""
     from slamreplay.replay.engine.declared import DeclaredPlugin
     from slamreplay.replay.engine.pipeline import pipeline_origin, pipeline_plugins
 
@@ -195,7 +196,7 @@ def _external_program(pipeline: str) -> dict[str, Any]:
         origin = pipeline_origin(pipeline)
     except (KeyError, ReplayError):
         return {}
-    return {k: origin.get(k) for k in ("version", "executable_sha256", "files_sha256", "declaration_sha256")}
+    return {k: origin.get(k) for k in PROGRAM_FIELDS}  # what makes a program that program, said once
 
 
 def plan(suite: Suite, recordings: dict[tuple[str, int | None], Recording], out: Path, code: str
