@@ -21,8 +21,8 @@ from fastapi import APIRouter, Depends, FastAPI, Path, Query, Request, Response
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 from starlette.concurrency import run_in_threadpool
 
-from slamreplay.api.audit import submitted_text
-from slamreplay.api.auth import record
+from slamreplay.api.audit import label_job, submitted_text
+from slamreplay.api.auth import record, who
 from slamreplay.api.datalock import DataDirLock
 from slamreplay.api.deps import ERRORS, JobsDep, RecordingsDep, require_token
 from slamreplay.api.docs_pages import install_docs
@@ -37,6 +37,7 @@ from slamreplay.api.models import (
     JobOut,
     JobSpec,
     JobStatusName,
+    LabelsPatch,
     RecordingOut,
 )
 from slamreplay.api.monitoring import CONTENT_TYPE, prometheus_text
@@ -162,19 +163,56 @@ def delete_recording(request: Request, recording_id: RecordingId, recordings: Re
 
 @router.post("/jobs", status_code=202, tags=["jobs"])
 def submit_job(request: Request, spec: JobSpec, jobs: JobsDep) -> JobOut:
-    """Queue a job (runners); 422 naming an unknown pipeline or config key, 404 for an unknown recording."""
-    job = jobs.submit(spec.recording_id, spec.pipeline, spec.config, spec.seed, spec.topic_map)
+    """Queue a job (runners), with its name, tags and note if given; 422 naming an unknown pipeline or config key,
+    404 for an unknown recording."""
+    job = jobs.submit(spec.recording_id, spec.pipeline, spec.config, spec.seed, spec.topic_map,
+                      made_by=who(request), labels=spec.labels())
     record(request, "submit", job.id, submitted_text(job))
     return JobOut.of(job)
 
 
-@router.get("/jobs", tags=["jobs"])
-def list_jobs(jobs: JobsDep, recording: Annotated[str | None, Query(pattern=SHA256)] = None,
+@router.get("/jobs", tags=["jobs"], responses={200: {"headers": {
+    "X-Total-Count": {"description": "how many jobs match the filters in all", "schema": {"type": "integer"}},
+    "Link": {"description": 'the next page: <URL>; rel="next" (absent on the last page)',
+             "schema": {"type": "string"}}}}})
+def list_jobs(request: Request, response: Response, jobs: JobsDep,
+              recording: Annotated[str | None, Query(max_length=200, description=(
+                  "a recording's id, its first 4+ digits, or its file name"))] = None,
               pipeline: Annotated[str | None, Query(max_length=100)] = None, status: JobStatusName | None = None,
-              limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> list[JobOut]:
-    """Jobs, newest first, filtered by recording, pipeline and status."""
-    rows = jobs.store.list_jobs(recording_id=recording, pipeline=pipeline, status=status, limit=limit)
+              tag: Annotated[str | None, Query(max_length=40)] = None,
+              q: Annotated[str | None, Query(max_length=500, description=(
+                  "words found anywhere in a run: id, name, note, tags, pipeline, recording, error, config"))] = None,
+              where: Annotated[str | None, Query(max_length=500, description=(
+                  "a metric condition, as the runs table's: e.g. `ape_rmse_m < 0.1 and landmark_nees_mean <= 3`"))]
+              = None,
+              limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+              cursor: Annotated[str | None, Query(pattern=r"^[0-9]{1,19}$", description=(
+                  "where the next page starts: the cursor of the previous page's Link header"))] = None,
+              ) -> list[JobOut]:
+    """Jobs, newest first, filtered as the runs table filters (recording, pipeline, status, tag, words, metric
+    condition), a page at a time: ``X-Total-Count`` says how many match, ``Link: <...>; rel="next"`` where the next
+    page is (a cursor that stays valid while jobs are added or deleted)."""
+    from slamreplay.api.runs_query import strict_view, where_sql
+
+    view = strict_view({k: [v] for k, v in (("recording", recording), ("pipeline", pipeline), ("status", status),
+                                            ("tag", tag), ("q", q), ("where", where)) if v})
+    sql, args = where_sql(view)
+    rows, total, nxt = jobs.store.jobs_page(sql, args, limit, None if cursor is None else int(cursor))
+    response.headers["X-Total-Count"] = str(total)
+    if nxt is not None:
+        url = request.url.include_query_params(cursor=str(nxt))
+        response.headers["Link"] = f'<{url.path}?{url.query}>; rel="next"'
     return [JobOut.of(j) for j in rows]
+
+
+@router.patch("/jobs/{job_id}", tags=["jobs"])
+def label_job_route(request: Request, job_id: JobId, patch: LabelsPatch, jobs: JobsDep) -> JobOut:
+    """Name, tag and annotate a job (runners): the fields given replace the job's; null or "" clears one."""
+    labels = patch.applied_to(jobs.get(job_id))
+    job = label_job(request, jobs.store, job_id, labels)
+    if job is None:
+        raise jobs.missing(job_id)
+    return JobOut.of(job)
 
 
 @router.get("/jobs/{job_id}", tags=["jobs"])

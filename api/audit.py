@@ -23,6 +23,7 @@ from slamreplay.api.deps import ERRORS, get_jobs, require_token
 from slamreplay.api.pages import PAGE_ERRORS, page_response, web_session
 from slamreplay.api.people import ACTIONS, AuditEntry
 from slamreplay.api.store import JobRow, Store
+from slamreplay.api.store_runs import Labels
 from slamreplay.api.suites import SuiteRow, SuiteService
 from slamreplay.replay.errors import ReplayError
 
@@ -47,6 +48,16 @@ def record_suite(request: StarletteRequest, suites: SuiteService, row: SuiteRow,
     record(request, "run-on-commit" if rev else "suite", row.id, detail)
     for c in dict((c.job.id, c) for c in new).values():
         record(request, "submit", c.job.id, f"{submitted_text(c.job)}; suite {row.name}")
+
+
+def label_job(request: StarletteRequest, store: Store, job_id: str, labels: Labels) -> JobRow | None:
+    """Set a job's name, tags and note and add the change to the trail; None when the job is unknown."""
+    job = store.set_labels(job_id, labels)
+    if job is not None:
+        note = (labels.note or "").splitlines()[0][:80] if labels.note else ""
+        record(request, "label", job_id, f"name {labels.name or ''!r}, tags {' '.join(labels.tags) or '-'}, "
+                                         f"note {note!r}")
+    return job
 
 
 def when(t: float) -> str:

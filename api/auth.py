@@ -43,6 +43,8 @@ RULES: dict[tuple[str, str], tuple[Role, str]] = {
     ("DELETE", "/recordings/{recording_id}"): ("admin", "delete recordings"),
     ("POST", "/jobs"): ("runner", "submit jobs"),
     ("DELETE", "/jobs/{job_id}"): ("runner", "cancel jobs"),
+    ("PATCH", "/jobs/{job_id}"): ("runner", "name, tag and annotate runs"),
+    ("POST", "/runs"): ("runner", "push runs made elsewhere"),
     ("POST", "/suites"): ("runner", "run suites"),
     ("POST", "/history/suites/{name:path}/runs"): ("runner", "run suites on a commit"),
     ("POST", "/ui/recordings"): ("runner", "upload recordings"),
@@ -235,6 +237,11 @@ def principal_of(request: Request) -> Principal | None:
     """Who the request is from, as its route's check found it (or the page's session, for a public page)."""
     p: Principal | None = getattr(request.state, "principal", None)
     return p if p is not None else page_principal(request)
+
+
+def who(request: Request) -> str:
+    """The name of whom the request is from (``anonymous`` on an open server, ``token holder`` with one token)."""
+    return (principal_of(request) or ANYONE).name
 
 
 def record(request: Request, action: str, target: str | None = None, detail: str | None = None) -> None:

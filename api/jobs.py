@@ -32,6 +32,7 @@ from slamreplay.api.errors import ConflictError, NotFoundError
 from slamreplay.api.executor import Executor, Outcome, Task
 from slamreplay.api.settings import Settings
 from slamreplay.api.store import JobRow, Store
+from slamreplay.api.store_runs import Labels
 from slamreplay.replay.engine.pipeline import all_pipelines, get_pipeline, resolve_config
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.metric_registry import normalize
@@ -202,12 +203,14 @@ class JobService:
     # -- requests ------------------------------------------------------------------------------
 
     def submit(self, recording_id: str, pipeline: str, config: dict[str, Any], seed: int,
-               topic_map: dict[str, str] | None = None, rev: str | None = None) -> JobRow:
+               topic_map: dict[str, str] | None = None, rev: str | None = None, made_by: str | None = None,
+               labels: Labels | None = None) -> JobRow:
         """Validate and queue a job.
 
         ``recording_id``: a whole id or an unambiguous prefix of one; ``topic_map``: file topic -> slamreplay
         topic, applied when the recording is read; ``rev``: the full commit sha whose code runs it (resolved by the
-        caller), None for the service's own. ReplayError (422) names an unknown pipeline or config key, a
+        caller), None for the service's own; ``made_by``: who submits it; ``labels``: its name, tags and note.
+        ReplayError (422) names an unknown pipeline or config key, a
         bad topic map, or the topics the pipeline needs that the recording lacks (and the pipelines it fits);
         NotFoundError an unknown recording, ConflictError an ambiguous prefix.
         """
@@ -234,7 +237,8 @@ class JobService:
         rec = self.store.get_recording(recording_id)
         if rec is not None:  # else add_job answers 404 below
             check_fit(rec, pipeline_cls, topic_map)
-        job = self.store.add_job(uuid.uuid4().hex, recording_id, pipeline, config, seed, topic_map or None, rev)
+        job = self.store.add_job(uuid.uuid4().hex, recording_id, pipeline, config, seed, topic_map or None, rev,
+                                 made_by, labels)
         if job is None:
             raise NotFoundError(f"recording {recording_id} not found; upload it with POST /recordings first")
         self.wake()

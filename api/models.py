@@ -7,9 +7,10 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from slamreplay.api.store import JobRow, RecordingRow
+from slamreplay.api.store_runs import MAX_NAME, MAX_NOTE, MAX_TAGS, Labels
 from slamreplay.recorder.recover import RecoveryReport
 
 SHA256 = r"^[0-9a-f]{64}$"
@@ -103,6 +104,39 @@ class JobSpec(BaseModel):
     topic_map: dict[str, str] = Field(default_factory=dict, max_length=100,
                                       description="file topic -> slamreplay topic, for a recording whose topics "
                                                   'have other names, e.g. {"/wheel/odom": "/odom"}')
+    name: str | None = Field(default=None, max_length=MAX_NAME, description="what people call the run")
+    tags: list[str] = Field(default_factory=list, max_length=MAX_TAGS,
+                            description="letters, digits and _ . : / + - (at most 40 characters each)")
+    note: str | None = Field(default=None, max_length=MAX_NOTE, description="what people say of it")
+
+    @model_validator(mode="after")
+    def _labels_valid(self) -> JobSpec:
+        self.labels()  # ValueError: a 422 naming what is wrong
+        return self
+
+    def labels(self) -> Labels:
+        return Labels.parse(self.name, self.tags, self.note)
+
+
+class LabelsPatch(BaseModel):
+    """``PATCH /jobs/ID``: the labels to change; a field left out keeps its value, null or "" clears it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str | None = Field(default=None, max_length=MAX_NAME)
+    tags: list[str] | None = Field(default=None, max_length=MAX_TAGS, description="replaces every tag")
+    note: str | None = Field(default=None, max_length=MAX_NOTE)
+
+    @model_validator(mode="after")
+    def _labels_valid(self) -> LabelsPatch:
+        Labels.parse(self.name, self.tags, self.note)
+        return self
+
+    def applied_to(self, job: JobRow) -> Labels:
+        given = self.model_fields_set
+        return Labels.parse(self.name if "name" in given else job.name,
+                            self.tags if "tags" in given else list(job.tags),
+                            self.note if "note" in given else job.note)
 
 
 class JobOut(BaseModel):
@@ -119,6 +153,10 @@ class JobOut(BaseModel):
                                          "or what someone wrote of it on the web page")
     name: str | None = Field(default=None, description="the name given to it on the web page")
     tags: list[str] = Field(default_factory=list, description="its tags (the web page's runs table filters by them)")
+    made_by: str | None = Field(default=None, description="who submitted or pushed it (null: before people)")
+    source: dict[str, Any] | None = Field(default=None, description="where a pushed run was made (host, by whom, "
+                                                                     "with which command); null: made by this server")
+    git_commit: str | None = Field(default=None, description="the code's commit, as the run's manifest records it")
     attempts: int
     created_at: datetime
     started_at: datetime | None
@@ -148,8 +186,8 @@ class JobOut(BaseModel):
             links |= {"rrd": f"{base}/rrd", "metrics": f"{base}/metrics"}
         return cls(id=job.id, recording_id=job.recording_id, pipeline=job.pipeline, config=job.config, seed=job.seed,
                    topic_map=dict(job.topic_map or {}), status=job.status, progress=job.progress, error=job.error,
-                   note=job.note, name=job.name,
-                   tags=list(job.tags), attempts=job.attempts,
+                   note=job.note, name=job.name, tags=list(job.tags), made_by=job.made_by, source=job.source,
+                   git_commit=job.git_commit, attempts=job.attempts,
                    created_at=_time(job.created), started_at=_maybe_time(job.started),
                    finished_at=_maybe_time(job.finished),
                    duration_s=duration, metrics=metrics, manifest=manifest, links=links)

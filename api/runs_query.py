@@ -191,6 +191,17 @@ def parse_view(query: Mapping[str, list[str]], config_keys: frozenset[str] = fro
                     errors=tuple(errors))
 
 
+def strict_view(query: Mapping[str, list[str]]) -> RunsView:
+    """`parse_view` for the API: a part that does not parse is a 422 saying what is wrong (ReplayError), not a
+    line above a table."""
+    from slamreplay.replay.errors import ReplayError
+
+    view = parse_view(query)
+    if view.errors:
+        raise ReplayError(view.errors[0].removesuffix(" (the condition is not applied)"))
+    return view
+
+
 def _like(text: str) -> str:
     return "%" + text.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_") + "%"
 

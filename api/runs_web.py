@@ -23,7 +23,7 @@ from fastapi import Path as PathParam
 from fastapi.responses import HTMLResponse, RedirectResponse, Response, StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
-from slamreplay.api.audit import submitted_text
+from slamreplay.api.audit import label_job, submitted_text
 from slamreplay.api.auth import client_address, record
 from slamreplay.api.deps import JobsDep, get_jobs
 from slamreplay.api.errors import ConflictError
@@ -42,12 +42,10 @@ from slamreplay.api.runs_query import (
     where_sql,
 )
 from slamreplay.api.store import ACTIVE, JOB_STATUSES
-from slamreplay.api.store_runs import RunRow
+from slamreplay.api.store_runs import Labels, RunRow
 from slamreplay.replay.errors import ReplayError
 
 JobPath = Annotated[str, PathParam(pattern=JOB_ID)]
-TAG_RE = re.compile(r"[\w.:/+-]{1,40}")
-MAX_TAGS = 20
 router = APIRouter(dependencies=[Depends(web_session)], include_in_schema=False)
 
 
@@ -237,17 +235,6 @@ def _next(raw: Any) -> str:
     return nxt if nxt.startswith("/") and not nxt.startswith("//") and "\\" not in nxt else "/runs"
 
 
-def parse_tags(text: str) -> list[str]:
-    """Tags from ``a, b c``: letters, digits and ``_ . : / + -``, at most 40 characters each and 20 in all."""
-    tags = list(dict.fromkeys(t for t in re.split(r"[,\s]+", text.strip()) if t))
-    bad = [t for t in tags if not TAG_RE.fullmatch(t)]
-    if bad:
-        raise ValueError(f"tag {bad[0]!r}: use letters, digits and _ . : / + - (at most 40 characters)")
-    if len(tags) > MAX_TAGS:
-        raise ValueError(f"{len(tags)} tags: at most {MAX_TAGS}")
-    return tags
-
-
 @router.get("/ui/jobs/{job_id}/edit")
 def edit_form(request: Request, job_id: JobPath, jobs: JobsDep, next: str = "/runs") -> HTMLResponse:
     """The form that names, tags and annotates a job."""
@@ -262,17 +249,12 @@ def edit_form(request: Request, job_id: JobPath, jobs: JobsDep, next: str = "/ru
 async def edit_job(request: Request, job_id: JobPath, jobs: JobsDep) -> Response:
     """Rename, tag and annotate a job (empty fields clear them)."""
     form = await request.form()
-    name, note = str(form.get("name", "")).strip(), str(form.get("note", "")).strip()
     try:
-        if len(name) > 120 or len(note) > 2000:
-            raise ValueError("a name has at most 120 characters, a note 2000")
-        tags = parse_tags(str(form.get("tags", "")))
+        labels = Labels.parse(str(form.get("name", "")), str(form.get("tags", "")), str(form.get("note", "")))
     except ValueError as err:
         return _error(request, ReplayError(f"cannot save job {job_id[:8]}: {err}"))
-    if await run_in_threadpool(jobs.store.set_labels, job_id, name or None, tags, note or None) is None:
+    if await run_in_threadpool(label_job, request, jobs.store, job_id, labels) is None:
         return _error(request, jobs.missing(job_id))
-    await run_in_threadpool(record, request, "label", job_id,
-                            f"name {name!r}, tags {' '.join(tags) or '-'}, note {first_line(note, 80)!r}")
     return RedirectResponse(_next(form.get("next")), 303)
 
 

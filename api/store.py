@@ -31,7 +31,7 @@ from slamreplay.api.people import PeopleMixin, TokenCache
 
 # JobRow and the job statuses live with the runs-table queries; imported from here as they always were.
 from slamreplay.api.store_runs import ACTIVE as ACTIVE
-from slamreplay.api.store_runs import JOB_COLUMNS, RunsTableMixin
+from slamreplay.api.store_runs import JOB_COLUMNS, Labels, RunsTableMixin
 from slamreplay.api.store_runs import JOB_STATUSES as JOB_STATUSES
 from slamreplay.api.store_runs import JobRow as JobRow
 from slamreplay.api.store_runs import JobStatus as JobStatus
@@ -68,13 +68,17 @@ CREATE TABLE IF NOT EXISTS jobs (
     name TEXT,                      -- given on the page; NULL: none
     metrics TEXT,                   -- JSON {metric: value} of a succeeded job; NULL: not read yet
     topic_map TEXT,                 -- JSON {file topic: slamreplay topic}; NULL: none
-    rev TEXT                        -- commit sha whose code runs it; NULL: the service's own
+    rev TEXT,                       -- commit sha whose code runs it; NULL: the service's own
+    made_by TEXT,                   -- who submitted or pushed it (api/auth.py); NULL: a server before people
+    source TEXT,                    -- JSON of where a pushed run was made (api/push.py); NULL: made here
+    git_commit TEXT                 -- the code's commit as its manifest records it; NULL: not known (yet)
 );
 CREATE INDEX IF NOT EXISTS jobs_status ON jobs (status, seq);
 CREATE INDEX IF NOT EXISTS jobs_recording ON jobs (recording_id);
 """
 # Columns added since the first schema: (name, declaration), added by ALTER TABLE to an older file.
-ADDED_COLUMNS = (("name", "TEXT"), ("metrics", "TEXT"), ("topic_map", "TEXT"), ("rev", "TEXT"))
+ADDED_COLUMNS = (("name", "TEXT"), ("metrics", "TEXT"), ("topic_map", "TEXT"), ("rev", "TEXT"), ("made_by", "TEXT"),
+                 ("source", "TEXT"), ("git_commit", "TEXT"))
 # Run after the columns exist (an index on a column an old file lacks would fail in SCHEMA).
 SCHEMA_AFTER = """
 CREATE TABLE IF NOT EXISTS job_tags (
@@ -240,19 +244,24 @@ class Store(RunsTableMixin, PeopleMixin):
     # -- jobs ------------------------------------------------------------------------------
 
     def add_job(self, job_id: str, recording_id: str, pipeline: str, config: dict[str, Any],
-                seed: int, topic_map: dict[str, str] | None = None, rev: str | None = None) -> JobRow | None:
-        """Queue a job (``rev``: the commit sha whose code runs it, None for the service's own); None when the
-        recording is unknown (checked in the same transaction)."""
+                seed: int, topic_map: dict[str, str] | None = None, rev: str | None = None,
+                made_by: str | None = None, labels: Labels | None = None) -> JobRow | None:
+        """Queue a job (``rev``: the commit sha whose code runs it, None for the service's own; ``made_by``: who
+        submitted it; ``labels``: its name, tags and note as submitted); None when the recording is unknown
+        (checked in the same transaction)."""
+        labels = labels or Labels()
         with self._tx() as conn:
             cur = conn.execute(
-                "INSERT INTO jobs (id, recording_id, pipeline, config, seed, status, created, topic_map, rev) "
-                "SELECT ?, ?, ?, ?, ?, 'queued', ?, ?, ? WHERE EXISTS (SELECT 1 FROM recordings WHERE id = ?)",
+                "INSERT INTO jobs (id, recording_id, pipeline, config, seed, status, created, topic_map, rev, made_by, "
+                "name, note) SELECT ?, ?, ?, ?, ?, 'queued', ?, ?, ?, ?, ?, ? "
+                "WHERE EXISTS (SELECT 1 FROM recordings WHERE id = ?)",
                 (job_id, recording_id, pipeline, json.dumps(config), seed, time.time(),
-                 json.dumps(topic_map) if topic_map else None, rev, recording_id))
+                 json.dumps(topic_map) if topic_map else None, rev, made_by, labels.name, labels.note, recording_id))
             if cur.rowcount != 1:
                 return None
-            row = conn.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return _job(row)
+            conn.executemany("INSERT OR IGNORE INTO job_tags (job_id, tag) VALUES (?, ?)",
+                             [(job_id, t) for t in labels.tags])
+        return self.get_job(job_id)
 
     def get_job(self, job_id: str) -> JobRow | None:
         with self._read() as conn:

@@ -9,6 +9,7 @@ validated view by `slamreplay.api.runs_query`; values only ever travel as ``?`` 
 from __future__ import annotations
 
 import json
+import re
 import sqlite3
 import time
 from contextlib import AbstractContextManager
@@ -45,6 +46,9 @@ class JobRow:
     metrics: dict[str, float] | None = None  # succeeded jobs, once read from metrics.json
     topic_map: dict[str, str] | None = None  # file topic -> slamreplay topic, as submitted
     rev: str | None = None  # the commit sha whose code runs it (replay/runs/revisions.py); None: the service's own
+    made_by: str | None = None  # who submitted or pushed it; None: a server before people (api/auth.py)
+    source: dict[str, Any] | None = None  # where a pushed run was made (api/push.py); None: made by this server
+    git_commit: str | None = None  # the code's commit as the run's manifest records it; None: not known (yet)
 
 
 def job_row(row: sqlite3.Row) -> JobRow:
@@ -53,10 +57,50 @@ def job_row(row: sqlite3.Row) -> JobRow:
     tags = tuple(json.loads(row["tags"])) if "tags" in keys and row["tags"] else ()
     metrics = json.loads(row["metrics"]) if "metrics" in keys and row["metrics"] else None
     topic_map = json.loads(row["topic_map"]) if "topic_map" in keys and row["topic_map"] else None
+    source = json.loads(row["source"]) if "source" in keys and row["source"] else None
     return JobRow(row["id"], row["recording_id"], row["pipeline"], json.loads(row["config"]), row["seed"],
                   row["status"], row["progress"], row["error"], row["note"], row["attempts"], row["created"],
                   row["started"], row["finished"], row["name"] if "name" in keys else None, tags, metrics, topic_map,
-                  row["rev"] if "rev" in keys else None)
+                  row["rev"] if "rev" in keys else None, row["made_by"] if "made_by" in keys else None, source,
+                  row["git_commit"] if "git_commit" in keys else None)
+
+
+TAG_RE = re.compile(r"[\w.:/+-]{1,40}")
+MAX_TAGS = 20
+MAX_NAME = 120
+MAX_NOTE = 2000
+
+
+def parse_tags(text: str | list[str]) -> list[str]:
+    """Tags from ``a, b c`` (or a list): letters, digits and ``_ . : / + -``, at most 40 characters each and 20 in
+    all; ValueError names the first bad one."""
+    parts = text if isinstance(text, list) else re.split(r"[,\s]+", text.strip())
+    tags = list(dict.fromkeys(t.strip() for t in parts if t.strip()))
+    bad = [t for t in tags if not TAG_RE.fullmatch(t)]
+    if bad:
+        raise ValueError(f"tag {bad[0][:50]!r}: use letters, digits and _ . : / + - (at most 40 characters)")
+    if len(tags) > MAX_TAGS:
+        raise ValueError(f"{len(tags)} tags: at most {MAX_TAGS}")
+    return tags
+
+
+@dataclass(frozen=True, slots=True)
+class Labels:
+    """What people say of a run: its name, tags and note (the page's edit form, submit and ``PATCH /jobs/ID``)."""
+
+    name: str | None = None
+    tags: tuple[str, ...] = ()
+    note: str | None = None
+
+    @classmethod
+    def parse(cls, name: str | None, tags: str | list[str] | None, note: str | None) -> Labels:
+        """Labels from what a person typed (empty: none); ValueError says what is wrong in one line."""
+        name, note = (name or "").strip() or None, (note or "").strip() or None
+        if name is not None and len(name) > MAX_NAME:
+            raise ValueError(f"a name has at most {MAX_NAME} characters ({len(name)} given)")
+        if note is not None and len(note) > MAX_NOTE:
+            raise ValueError(f"a note has at most {MAX_NOTE} characters ({len(note)} given)")
+        return cls(name, tuple(parse_tags(tags or [])), note)
 
 
 @dataclass(frozen=True, slots=True)
@@ -87,14 +131,15 @@ class RunsTableMixin:
     def get_job(self, job_id: str) -> JobRow | None:
         raise NotImplementedError
 
-    def set_labels(self, job_id: str, name: str | None, tags: list[str], note: str | None) -> JobRow | None:
-        """Replace a job's name, tags and note (None: none); None when the job is unknown."""
+    def set_labels(self, job_id: str, labels: Labels) -> JobRow | None:
+        """Replace a job's name, tags and note; None when the job is unknown."""
         with self._tx() as conn:
-            cur = conn.execute("UPDATE jobs SET name = ?, note = ? WHERE id = ?", (name, note, job_id))
+            cur = conn.execute("UPDATE jobs SET name = ?, note = ? WHERE id = ?", (labels.name, labels.note, job_id))
             if cur.rowcount != 1:
                 return None
             conn.execute("DELETE FROM job_tags WHERE job_id = ?", (job_id,))
-            conn.executemany("INSERT OR IGNORE INTO job_tags (job_id, tag) VALUES (?, ?)", [(job_id, t) for t in tags])
+            conn.executemany("INSERT OR IGNORE INTO job_tags (job_id, tag) VALUES (?, ?)",
+                             [(job_id, t) for t in labels.tags])
         return self.get_job(job_id)
 
     def delete_job(self, job_id: str, who: str = "anonymous",
@@ -158,6 +203,22 @@ class RunsTableMixin:
                                 f"WHERE {where} ORDER BY {order} LIMIT ? OFFSET ?",
                                 (*args, -1 if limit is None else limit, offset)).fetchall()
         return [RunRow(job_row(r), r["recording_name"], r["variant"]) for r in rows], total
+
+    def jobs_page(self, where: str, args: list[Any], limit: int,
+                  before: int | None = None) -> tuple[list[JobRow], int, int | None]:
+        """Jobs matching ``where`` (as `select_runs`), newest first, after the cursor ``before`` (a job's sequence
+        number; None: from the newest): (at most ``limit`` jobs, how many match in all, the next page's cursor or
+        None when this is the last). A cursor stays valid while jobs are added or deleted."""
+        with self._read() as conn:
+            joins = f"FROM jobs j LEFT JOIN recordings r ON r.id = j.recording_id {self._variants(conn)}"
+            total = int(conn.execute(f"SELECT COUNT(*) {joins} WHERE {where}", args).fetchone()[0])
+            after = "" if before is None else " AND j.seq < ?"
+            rows = conn.execute(f"SELECT {JOB_COLUMNS}, j.seq AS seq {joins} WHERE ({where}){after} "
+                                "ORDER BY j.seq DESC LIMIT ?",
+                                (*args, *(() if before is None else (before,)), limit + 1)).fetchall()
+        more = len(rows) > limit
+        rows = rows[:limit]
+        return [job_row(r) for r in rows], total, int(rows[-1]["seq"]) if more else None
 
     def ids_starting(self, table: str, prefix: str, limit: int = 10) -> list[str]:
         """Ids of ``table`` (jobs, recordings or suites) that start with the hex ``prefix``, at most ``limit``, by id.

@@ -24,6 +24,7 @@ from slamreplay.api.errors import ConflictError, NotFoundError
 from slamreplay.api.jobs import JobService
 from slamreplay.api.people import Tombstone
 from slamreplay.api.store import JobRow
+from slamreplay.api.store_runs import Labels
 from slamreplay.recorder.version import git_commit
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.runs.compare import Side, run_row, side_of_rows
@@ -192,10 +193,12 @@ class SuiteService:
             if rec is not None:
                 check_fit(rec, get_pipeline(pipeline), dict(spec.topic_map))
 
-    def submit(self, text: str, fmt: str, rev: str | None = None) -> SuiteRow:
+    def submit(self, text: str, fmt: str, rev: str | None = None, made_by: str | None = None,
+               labels: Labels | None = None) -> SuiteRow:
         """Validate the suite, queue a job per cell (or reuse one of the same code), and record the suite.
 
-        ``rev``: a full commit sha whose code runs the cells (resolved by the caller), None for the service's own.
+        ``rev``: a full commit sha whose code runs the cells (resolved by the caller), None for the service's own;
+        ``made_by``: who sends it; ``labels``: the tags and note of each job it queues (a reused job keeps its own).
         """
         suite = self.parse(text, fmt)
         cells = suite.cells()
@@ -209,7 +212,8 @@ class SuiteService:
             job = self._reusable(rid, cell.pipeline, cell.config, cell.seed, topic_map, rev)
             reused = job is not None
             if job is None:
-                job = self.jobs.submit(rid, cell.pipeline, dict(cell.config), cell.seed, topic_map, rev)
+                job = self.jobs.submit(rid, cell.pipeline, dict(cell.config), cell.seed, topic_map, rev, made_by,
+                                       labels)
             rows.append((suite_id, i, json.dumps(cell.to_json(), sort_keys=True), job.id, int(reused)))
         created = time.time()
         with self._conn() as conn:

@@ -29,11 +29,13 @@ from pydantic import BaseModel, Field
 from starlette.concurrency import run_in_threadpool
 
 from slamreplay.api.audit import record_suite
-from slamreplay.api.auth import link_secret
+from slamreplay.api.auth import link_secret, who
 from slamreplay.api.deps import ERRORS, require_token, viewer_href
 from slamreplay.api.errors import ApiError
 from slamreplay.api.models import JOB_ID
+from slamreplay.api.store_runs import MAX_NOTE, MAX_TAGS, Labels
 from slamreplay.api.suites import SuiteCell, SuiteRow, SuiteService
+from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.runs.compare import Comparison, compare
 from slamreplay.replay.runs.diff import parse_tolerances
 from slamreplay.replay.runs.report import Links, render_html
@@ -112,8 +114,16 @@ router = APIRouter(dependencies=[Depends(require_token)], responses=ERRORS, tags
 
 
 @router.post("/suites", status_code=202, openapi_extra=SUITE_BODY)
-async def submit_suite(request: Request, suites: SuitesDep) -> SuiteOut:
+async def submit_suite(request: Request, suites: SuitesDep,
+                       tags: Annotated[list[str] | None, Query(max_length=MAX_TAGS, description=(
+                           "tags of every job the suite queues (a reused job keeps its own)"))] = None,
+                       note: Annotated[str | None, Query(max_length=MAX_NOTE, description=(
+                           "a note on every job the suite queues"))] = None) -> SuiteOut:
     """Queue every cell of a suite as a job (or reuse a job with the same inputs); 422 naming a bad key."""
+    try:
+        labels = Labels.parse(None, [t for raw in tags or [] for t in raw.split(",")], note)
+    except ValueError as err:
+        raise ReplayError(str(err)) from None
     body = b""
     async for chunk in request.stream():
         body += chunk
@@ -124,7 +134,7 @@ async def submit_suite(request: Request, suites: SuitesDep) -> SuiteOut:
     except UnicodeDecodeError:
         raise ApiError("the suite is not UTF-8 text: send the TOML file (or JSON) as it is") from None
     fmt = "json" if "json" in request.headers.get("content-type", "") else "toml"
-    row = await run_in_threadpool(suites.submit, text, fmt)
+    row = await run_in_threadpool(suites.submit, text, fmt, None, who(request), labels)
     await run_in_threadpool(record_suite, request, suites, row)
     _, _, cells = suites.get(row.id)
     return SuiteOut.of(suites, row, cells)

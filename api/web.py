@@ -39,6 +39,7 @@ from slamreplay.api.auth import (
     record,
     server_mode,
     session_value,
+    who,
 )
 from slamreplay.api.compare_web import router as compare_router
 from slamreplay.api.deps import JobsDep, RecordingsDep, SettingsDep, rrd_key
@@ -57,6 +58,7 @@ from slamreplay.api.pages import page_response as _page
 from slamreplay.api.people import SESSION_TTL_S
 from slamreplay.api.people_web import page as people_page
 from slamreplay.api.runs_web import router as runs_router  # the runs table at / and /runs
+from slamreplay.api.store_runs import Labels
 from slamreplay.api.submit_checks import parse_topic_map
 from slamreplay.api.suites import SuiteService
 from slamreplay.api.suites_routes import SuitesDep
@@ -204,8 +206,9 @@ async def job_form(request: Request, jobs: JobsDep) -> Response:
         if not isinstance(config, dict):
             raise ReplayError('config must be a JSON object, e.g. {"range_sigma_m": 0.05}')
         topic_map = parse_topic_map(str(form.get("topic_map", "")))
+        labels = Labels.parse(str(form.get("name", "")), str(form.get("tags", "")), str(form.get("note", "")))
         job = await run_in_threadpool(jobs.submit, str(form.get("recording_id", "")), str(form.get("pipeline", "")),
-                                      config, seed, topic_map)
+                                      config, seed, topic_map, None, who(request), labels)
     except ValueError as err:
         return _error(request, ReplayError(f"bad job form: {err}"))
     except PAGE_ERRORS as err:
@@ -218,7 +221,7 @@ async def job_form(request: Request, jobs: JobsDep) -> Response:
 async def suite_form(request: Request, suites: SuitesDep) -> Response:
     form = await request.form()
     try:
-        row = await run_in_threadpool(suites.submit, str(form.get("suite", "")), "toml")
+        row = await run_in_threadpool(suites.submit, str(form.get("suite", "")), "toml", None, who(request))
     except PAGE_ERRORS as err:
         return _error(request, err)
     await run_in_threadpool(record_suite, request, suites, row)

@@ -23,6 +23,7 @@ from slamreplay.api.app import create_app
 from slamreplay.api.runs_query import RunsView, parse_conditions, parse_view
 from slamreplay.api.settings import Settings
 from slamreplay.api.store import RecordingRow, Store
+from slamreplay.api.store_runs import Labels
 
 SIM, HALL = "a" * 64, "b" * 64
 # The jobs table as the first release made it: a database from then must open and work.
@@ -157,8 +158,8 @@ def test_each_sort(table: tuple[TestClient, Store], sort: str, expected: list[in
 def test_sort_by_name_tags_note_duration_and_variant(table: tuple[TestClient, Store]) -> None:
     """Name, tags, note, duration and variant sort too; unnamed runs come last."""
     client, store = table
-    store.set_labels(jid(2), "beta", ["z"], "second")
-    store.set_labels(jid(4), "Alpha", ["a"], "first")
+    store.set_labels(jid(2), Labels("beta", ("z",), "second"))
+    store.set_labels(jid(4), Labels("Alpha", ("a",), "first"))
     assert row_ids(client.get("/runs", params={"sort": "name"}).text)[:2] == [4, 2]
     assert row_ids(client.get("/runs", params={"sort": "-name"}).text)[:2] == [2, 4]
     assert row_ids(client.get("/runs", params={"sort": "note"}).text)[:2] == [4, 2]
@@ -197,8 +198,8 @@ def test_each_filter(table: tuple[TestClient, Store], params: dict[str, str], ex
 def test_tag_and_text_filters_find_labels(table: tuple[TestClient, Store]) -> None:
     """A tag filters exactly; free text finds names, notes and tags (every word must match)."""
     client, store = table
-    store.set_labels(jid(1), "old baseline", ["paper", "v1"], "before the fix")
-    store.set_labels(jid(2), None, ["paper-draft"], None)
+    store.set_labels(jid(1), Labels("old baseline", ("paper", "v1"), "before the fix"))
+    store.set_labels(jid(2), Labels(None, ("paper-draft",), None))
     assert row_ids(client.get("/runs", params={"tag": "paper"}).text) == [1]
     assert row_ids(client.get("/runs", params={"q": "baseline"}).text) == [1]
     assert row_ids(client.get("/runs", params={"q": "before fix"}).text) == [1]
@@ -282,7 +283,7 @@ def test_csv_export_is_the_view_on_every_page(table: tuple[TestClient, Store]) -
 def test_csv_cells_are_never_formulas(table: tuple[TestClient, Store]) -> None:
     """A name a spreadsheet would run (=HYPERLINK...) is exported with a leading apostrophe."""
     client, store = table
-    store.set_labels(jid(0), "=HYPERLINK(1)", [], None)
+    store.set_labels(jid(0), Labels("=HYPERLINK(1)"))
     rows = list(csv.reader(io.StringIO(client.get("/runs.csv").text)))
     assert [x[1] for x in rows if x[0] == jid(0)] == ["'=HYPERLINK(1)"]
 
@@ -403,7 +404,7 @@ def test_old_database_is_migrated_in_place(tmp_path: Path) -> None:
     client = app_for(tmp_path)
     html = client.get("/runs", params={"cols": "ape_rmse_m"}).text
     assert row_ids(html) == [1] and "old.mcap" in html and "0.25" in html and "3.0 s" in html
-    assert store.set_labels(jid(1), "kept", ["old"], None) is not None
+    assert store.set_labels(jid(1), Labels("kept", ("old",), None)) is not None
 
 
 def test_finished_job_stores_its_metrics(tmp_path: Path) -> None:
