@@ -33,13 +33,14 @@ import subprocess
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
 from typing import Any, TextIO
 
 from slamreplay.recorder.files import atomic_write
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.runs.gitorder import order_versions
 from slamreplay.replay.runs.revisions import Revision, prepare_revision, resolve, run_cell
 from slamreplay.replay.runs.suite import Suite
 from slamreplay.replay.runs.suite_run import (
@@ -68,6 +69,7 @@ class Commit:
     date: str
     subject: str
     generation: int = 0
+    note: str = ""  # why it stands where it does when git could not place it (``git_order``)
 
     @property
     def short(self) -> str:
@@ -149,6 +151,18 @@ def commit_info(repo: Path, shas: Sequence[str]) -> dict[str, Commit]:
     commits = [line.split("\x1f", 2) for line in out.splitlines() if line.count("\x1f") == 2]
     return {sha: Commit(sha, date, subject, int(_git(repo, "rev-list", "--count", sha).strip()))
             for sha, date, subject in commits}
+
+
+def git_order(repo: Path | None, commits: Sequence[Commit]) -> list[Commit]:
+    """``commits`` in ``repo``'s order (``gitorder.order_versions``), whenever they ran; those git cannot place
+    at the end by date, their ``note`` saying so."""
+    order = order_versions(repo, [(c.sha, c.date) for c in commits])
+    return [replace(commits[i], note=note) for i, note in order]
+
+
+def in_git_order(history: History, repo: Path | None) -> History:
+    """The same history with its commits in ``repo``'s order (:func:`git_order`)."""
+    return History(git_order(repo, history.commits), history.status, history.rows)
 
 
 # ---------------------------------------------------------------------------------------
@@ -297,6 +311,7 @@ def run_history(suite: Suite, out: Path, shas: Sequence[str], repo: Path, *, wor
     ``run(revision, job)`` runs one cell with the revision's code (default: its ``slamreplay run``) and
     returns an error message or None; ``note`` is told of builds and of each commit done;
     ``progress(done, total)`` counts the cells of this call (those already in the store are not counted).
+    The store's commits come back in ``repo``'s order (:func:`git_order`), whatever order they ran in.
     """
     note = note or (lambda text: None)
     if workers < 1:
@@ -334,7 +349,7 @@ def run_history(suite: Suite, out: Path, shas: Sequence[str], repo: Path, *, wor
                 if p.left or sha not in before.status:
                     pending.append(p)
             _run_pending(pending, suite, out, repo, cache, store, workers, run, note, progress)
-    return read_store(out)
+    return in_git_order(read_store(out), repo)
 
 
 def _run_pending(pending: list[_Pending], suite: Suite, out: Path, repo: Path, cache: Path, store: _Store,

@@ -149,3 +149,31 @@ def test_out_checks_and_cache_reuse(repo: tuple[Path, list[str]], tmp_path: Path
     runs.ran.clear()
     h = hist.run_history(suite, tmp_path / "h", shas[:2], r, run=runs)
     assert runs.ran == [shas[1]] * 3 and all(x["cached"] for x in h.cells(shas[0]))
+
+
+def test_backfilled_commits_in_git_order(repo: tuple[Path, list[str]], tmp_path: Path,
+                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """Commits 3-5 run first, 0-2 backfilled after (and the store's generations lost): the history, its report and
+    its markdown read 0..5, the step judged from commit 2 to commit 3, a regression."""
+    r, shas = repo
+    fake_revisions(monkeypatch, set())
+    runs = FakeRuns({s: (0.1 if i < 3 else 0.2) for i, s in enumerate(shas)})
+    suite, out = load_suite(suite_file(tmp_path)), tmp_path / "h"
+    hist.run_history(suite, out, shas[3:], r, run=runs)
+    hist.run_history(suite, out, shas[:3], r, run=runs)
+    store = out / hist.STORE
+    store.write_text("".join(json.dumps({k: v for k, v in json.loads(x).items() if k != "generation"}) + "\n"
+                             for x in store.read_text().splitlines()))  # as an older slamreplay wrote them
+    assert [c.sha for c in hist.read_store(out).commits] == shas[3:] + shas[:3]  # the order they ran in
+    h = hist.run_history(suite, out, shas[:3], r, run=runs)  # nothing left to run: read back in git's order
+    assert [c.sha for c in h.commits] == shas and not any(c.note for c in h.commits)
+    changes = detect_changes(h)
+    assert [(ch.previous, ch.commit, ch.verdict, ch.index) for ch in changes] == [(shas[2], shas[3], "regression", 3)]
+    assert changes[0].mean_before == pytest.approx(0.11) and changes[0].mean_after == pytest.approx(0.21)
+    linked = write_history_reports(h, changes, out, markdown=tmp_path / "summary.md")
+    page = (out / "index.html").read_text()
+    rows = [page.index(f"<tr id='c{k}'><td>{k + 1}</td><td><code>{s[:10]}</code> commit {k}") for k, s in
+            enumerate(shas)]
+    assert rows == sorted(rows)
+    md = (tmp_path / "summary.md").read_text()
+    assert f"`{shas[3][:10]}` commit 3 |" in md and "0.11 | 0.21 | +0.1" in md and linked[0].previous == shas[2]
