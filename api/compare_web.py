@@ -31,6 +31,7 @@ from slamreplay.api.models import JOB_ID
 from slamreplay.api.pages import HERE, PAGE_ERRORS, people_ctx, templates, web_session
 from slamreplay.api.pages import error_response as _error
 from slamreplay.api.pages import page_response as _page
+from slamreplay.api.siteguard import REPORT_CSP
 from slamreplay.api.suites_routes import SuitesDep, service_links
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.runs.compare import compare
@@ -71,7 +72,8 @@ def _report(request: Request, c: Any, deleted: list[str] | None = None) -> HTMLR
         items = "".join(f"<li>{html.escape(d)}</li>" for d in deleted)
         body = (f'<section id="deleted-runs"><h2>Deleted runs</h2><p>These cells ran, but their runs were deleted: '
                 f"the comparison counts them as not succeeded.</p><ul>{items}</ul></section>") + body
-    return HTMLResponse(head.replace("</head>", viewport + style + "</head>") + "<body>" + nav + "<main>" + body)
+    return HTMLResponse(head.replace("</head>", viewport + style + "</head>") + "<body>" + nav + "<main>" + body,
+                        headers={"Content-Security-Policy": REPORT_CSP})
 
 
 def _paired(request: Request, suites: Any, a: str, b: str, tolerance: list[str]) -> HTMLResponse:

@@ -121,9 +121,10 @@ class JobService:
         so no job stays ``running`` while the server lives; at a stop it is re-queued at start-up."""
         attempt = 0
         metrics = self.metric_values(job_id) if outcome.status == "succeeded" else None
+        commit = self.code_commit(job_id)
         while True:
             try:
-                self.store.finish_job(job_id, outcome.status, outcome.error, metrics)
+                self.store.finish_job(job_id, outcome.status, outcome.error, metrics, commit)
                 return
             except Exception:
                 attempt += 1
@@ -139,6 +140,14 @@ class JobService:
             return normalize({k: float(v["value"]) for k, v in doc.get("metrics", {}).items()})
         except (OSError, ValueError, TypeError, KeyError, AttributeError):
             return {}
+
+    def code_commit(self, job_id: str) -> str | None:
+        """The commit of the code that made a run, as its manifest records it; None when not known."""
+        try:
+            sha = json.loads((self.run_dir(job_id) / "manifest.json").read_text())["slamreplay"]["git_commit"]
+        except (OSError, ValueError, TypeError, KeyError):
+            return None
+        return sha if isinstance(sha, str) and 7 <= len(sha) <= 64 else None
 
     def task_of(self, job: JobRow) -> Task:
         """The task of ``job``; with a storage URL, its recording is copied there first (once)."""

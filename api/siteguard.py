@@ -16,7 +16,15 @@ too, with ``Host: evil.example``. So, with or without a token:
   button gets a real click that posts the form with this server's own Origin, which the check above lets
   through): every response says ``Content-Security-Policy: frame-ancestors 'none'`` and
   ``X-Frame-Options: DENY`` (OWASP's defence, the second for browsers without CSP level 2). No page of
-  this server frames another of its own, so nothing is given up.
+  this server frames another of its own, so nothing is given up;
+- no script that is not one of this server's files runs on its pages: every page says
+  ``Content-Security-Policy: PAGE_CSP`` (scripts, styles, images and connections from this server only; no
+  inline script, event handler or style attribute; forms post only here; no ``<base>``, no plugins), so
+  text a user wrote (a run's name, a note, a suite file) cannot become a script even if escaping ever failed.
+  Three kinds of page set their own policy, which keeps ``frame-ancestors 'none'``: the Rerun web viewer
+  (api/web.py ``VIEWER_CSP``: WebAssembly and its inline loader), the API docs (api/docs_pages.py: the hash of
+  Swagger UI's one inline script, ReDoc's inline styles) and the comparison and history reports, which are
+  self-contained HTML files with an inline stylesheet (``REPORT_CSP``: inline styles, still no inline script).
 
 Ports are not compared for ``Host``: a rebinding attack keeps the victim's port and changes the name.
 """
@@ -35,9 +43,16 @@ LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
 WILDCARD_BINDS = ("", "0.0.0.0", "::")  # "every address": never a Host a client sends
 STATE_CHANGING = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 DEFAULT_PORTS = {"http": 80, "https": 443, "ws": 80, "wss": 443}
-# on every response (see the module docstring): no framing by any site, no content-type sniffing
-SECURITY_HEADERS = ((b"content-security-policy", b"frame-ancestors 'none'"), (b"x-frame-options", b"DENY"),
-                    (b"x-content-type-options", b"nosniff"))
+# The policy of slamreplay's own pages (see the module docstring)
+PAGE_CSP = ("default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data:; connect-src 'self'; "
+            "font-src 'self'; object-src 'none'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'")
+# A self-contained report (replay/runs/report.py's HTML) served as a page: its inline stylesheet, no inline script
+REPORT_CSP = PAGE_CSP.replace("style-src 'self'", "style-src 'self' 'unsafe-inline'")
+# on every response (see the module docstring): no framing by any site, only this server's scripts, no
+# content-type sniffing, no full URL (with its query: a filter, a run's name) sent to other sites
+SECURITY_HEADERS = ((b"content-security-policy", PAGE_CSP.encode()), (b"x-frame-options", b"DENY"),
+                    (b"x-content-type-options", b"nosniff"), (b"referrer-policy", b"same-origin"))
+FRAME_ANCESTORS = b"frame-ancestors 'none'"
 
 
 def split_host(value: str) -> tuple[str, int | None]:
@@ -147,9 +162,9 @@ class SiteGuard:
 
 def _with_headers(send: Send) -> Send:
     """``send`` adding ``SECURITY_HEADERS`` to the response's start (replacing any of the same name, but for a
-    route's own Content-Security-Policy, the web viewer's, which keeps its directives and gains frame-ancestors)."""
+    route's own Content-Security-Policy, which keeps its directives and gains frame-ancestors)."""
     names = {name for name, _ in SECURITY_HEADERS}
-    csp = SECURITY_HEADERS[0][1]
+    csp = FRAME_ANCESTORS
 
     async def wrapped(message: Message) -> None:
         if message["type"] == "http.response.start":

@@ -294,15 +294,15 @@ class Store(RunsTableMixin, PeopleMixin):
         return _job(job)
 
     def finish_job(self, job_id: str, status: JobStatus, error: str | None,
-                   metrics: dict[str, float] | None = None) -> bool:
+                   metrics: dict[str, float] | None = None, git_commit: str | None = None) -> bool:
         """Record how a running job ended, and the metric values of a succeeded one (None: read them later,
         see `unscored`); False when it is no longer running (e.g. cancelled meanwhile)."""
         progress = "1.0" if status == "succeeded" else "progress"
         values = None if metrics is None else json.dumps(metrics)
         with self._tx() as conn:
             cur = conn.execute(f"UPDATE jobs SET status = ?, error = ?, finished = ?, progress = {progress}, "
-                               "metrics = ? WHERE id = ? AND status = 'running'",
-                               (status, error, time.time(), values, job_id))
+                               "metrics = ?, git_commit = ? WHERE id = ? AND status = 'running'",
+                               (status, error, time.time(), values, git_commit, job_id))
         return cur.rowcount == 1
 
     def cancel_job(self, job_id: str) -> tuple[JobRow | None, JobStatus | None]:

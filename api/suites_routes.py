@@ -33,6 +33,7 @@ from slamreplay.api.auth import link_secret, who
 from slamreplay.api.deps import ERRORS, require_token, viewer_href
 from slamreplay.api.errors import ApiError
 from slamreplay.api.models import JOB_ID
+from slamreplay.api.siteguard import REPORT_CSP
 from slamreplay.api.store_runs import MAX_NOTE, MAX_TAGS, Labels
 from slamreplay.api.suites import SuiteCell, SuiteRow, SuiteService
 from slamreplay.replay.errors import ReplayError
@@ -197,7 +198,8 @@ def compare_route(request: Request, suites: SuitesDep, a: OptRef = None, b: OptR
     c = comparison(suites, a, b, tolerance)
     if wants_html:
         from pathlib import Path as FsPath
-        return HTMLResponse(render_html(c, FsPath("/"), service_links(str(request.base_url), link_secret(request))))
+        return HTMLResponse(render_html(c, FsPath("/"), service_links(str(request.base_url), link_secret(request))),
+                            headers={"Content-Security-Policy": REPORT_CSP})
     return JSONResponse(_finite(c.to_json() | {"a_id": a, "b_id": b}))
 
 

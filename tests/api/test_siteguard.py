@@ -3,6 +3,8 @@ another origin is a 403 and changes nothing; the server's own pages and clients 
 
 from __future__ import annotations
 
+import re
+
 import warnings
 from pathlib import Path
 
@@ -150,7 +152,10 @@ def test_allowed_hosts_setting() -> None:
 def test_no_page_can_be_framed_by_another_site(client: TestClient, path: str) -> None:
     """Clickjacking: every answer (pages, forms, JSON, static files, errors) forbids framing by any site."""
     r = client.get(path)
-    assert r.headers["content-security-policy"] == "frame-ancestors 'none'"
+    policy = r.headers["content-security-policy"]
+    assert "frame-ancestors 'none'" in policy and "object-src 'none'" in policy, policy
+    assert re.search(r"script-src 'self'( 'sha256-[A-Za-z0-9+/=]+')*;", policy), policy  # never 'unsafe-inline'
     assert r.headers["x-frame-options"] == "DENY" and r.headers["x-content-type-options"] == "nosniff"
+    assert r.headers["referrer-policy"] == "same-origin"
     refused = client.get(path, headers={"Host": "evil.example"})
     assert refused.status_code == 400 and refused.headers["x-frame-options"] == "DENY"

@@ -152,6 +152,23 @@ def test_embedded_viewer_logs_quietly(page: Any, site: tuple[str, dict[str, str]
     assert page.problems == [], page.problems  # its usage statistics and version check no longer fail in the console
 
 
+def test_only_the_servers_own_scripts_run(page: Any, site: tuple[str, dict[str, str]]) -> None:
+    """The pages' Content-Security-Policy (issue 40): markup that reached a page with an inline script or event
+    handler (as text a user wrote would, were escaping ever to fail) does not run, while the page's own script does
+    (web.js, the live refresh, loads)."""
+    base, _ = site
+    page.goto(base + "/runs")
+    page.evaluate("""() => {
+        window.ran = [];
+        document.body.insertAdjacentHTML('beforeend', '<img src="/nothing.png" onerror="window.ran.push(1)">');
+        const s = document.createElement('script'); s.textContent = 'window.ran.push(2)'; document.body.append(s);
+    }""")
+    page.wait_for_timeout(500)
+    assert page.evaluate("window.ran") == []
+    assert any("Content Security Policy" in p for p in page.problems), page.problems  # chromium says why
+    assert page.evaluate("performance.getEntriesByName(location.origin + '/static/web.js').length") == 1
+
+
 def test_another_site_cannot_frame_the_delete_page(page: Any, site: tuple[str, dict[str, str]],
                                                    tmp_path: Path) -> None:
     """Clickjacking (issue 40): a page on another origin frames /ui/jobs/ID/delete under a decoy button; chromium
