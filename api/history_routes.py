@@ -34,7 +34,7 @@ from slamreplay.api.pages import page_response as _page
 from slamreplay.api.suites import SuiteRow, SuiteService
 from slamreplay.api.suites_routes import SuiteOut, SuitesDep
 from slamreplay.replay.runs.changepoints import Change, detect_changes
-from slamreplay.replay.runs.history import Commit, History, history_of_versions, series
+from slamreplay.replay.runs.history import Commit, History, git_order, history_of_versions, series
 
 SUITES_READ = 10_000
 # a suite's name is any string its file gives (spaces, slashes...): the route takes the rest of the path
@@ -43,17 +43,21 @@ router = APIRouter(dependencies=[Depends(require_token)], responses=ERRORS, tags
 page = APIRouter(dependencies=[Depends(web_session)], include_in_schema=False)
 
 
-def _subjects(shas: list[str]) -> dict[str, str]:
-    """Commit subjects when the service runs from a git checkout that has them; else none."""
+def _subjects(repo: FsPath | None, versions: list[str]) -> dict[str, str]:
+    """Commit subjects of the versions ``repo`` has (a ``<sha>-dirty...`` version: its commit's, so marked)."""
     from slamreplay.replay.errors import ReplayError
+    from slamreplay.replay.runs.gitorder import SHA, known_commits
     from slamreplay.replay.runs.history import commit_info
-    from slamreplay.replay.runs.revisions import find_repo
 
-    clean = [s for s in shas if len(s) == 40 and all(ch in "0123456789abcdef" for ch in s)]
+    base = {v: m.group(1) for v in versions if (m := SHA.fullmatch(v))}
+    if repo is None or not base:
+        return {}
     try:
-        return {sha: c.subject for sha, c in commit_info(find_repo(), clean).items()}
+        info = commit_info(repo, sorted(known_commits(repo, sorted(set(base.values())))))
     except (ReplayError, OSError):
         return {}
+    return {v: info[b].subject + ("" if v == b else " (with uncommitted changes)") for v, b in base.items()
+            if b in info}
 
 
 def service_repo() -> FsPath | None:
@@ -92,7 +96,11 @@ def run_on_revision(suites: SuiteService, name: str, rev: str) -> SuiteRow:
 
 
 def suite_history(suites: SuiteService, name: str) -> tuple[History, dict[str, list[str]]]:
-    """The history of the ended suites named ``name``, and the suite ids of each version; NotFoundError if none."""
+    """The history of the ended suites named ``name``, and the suite ids of each version; NotFoundError if none.
+
+    Versions in git's order in the checkout the service runs from (``history.git_order``), whenever they ran: a
+    commit run after a newer one still comes before it; versions that checkout does not know come last, by the
+    date they first ran, each with a note."""
     named = sorted((s for s in suites.recent(SUITES_READ) if s.name == name), key=lambda s: s.created)
     if not named:
         raise NotFoundError(f"no suite named {name!r}: GET /suites lists the suites and their names")
@@ -112,11 +120,21 @@ def suite_history(suites: SuiteService, name: str) -> tuple[History, dict[str, l
         for r in got:  # a later suite of the same version wins for the same cell
             rows.setdefault(version, {})[(r["recording"], r.get("recording_seed"), r["pipeline"], r["variant"],
                                           r.get("seed"))] = r
-    order = sorted(first, key=lambda v: first[v])
-    subjects = _subjects(order)
-    versions = [(Commit(v, datetime.fromtimestamp(first[v], timezone.utc).isoformat(timespec="seconds"),
-                        subjects.get(v, "")), list(rows[v].values())) for v in order]
-    return history_of_versions(versions), ids
+    repo = service_repo()
+    subjects = _subjects(repo, list(first))
+    commits = git_order(repo, [Commit(v, datetime.fromtimestamp(first[v], timezone.utc).isoformat(timespec="seconds"),
+                                      subjects.get(v, "")) for v in sorted(first, key=lambda v: first[v])])
+    return history_of_versions([(c, list(rows[c.sha].values())) for c in commits]), ids
+
+
+def order_note(history: History) -> str:
+    """How the versions are ordered, in a sentence."""
+    stray = sum(1 for c in history.commits if c.note)
+    text = "git's order (git rev-list --topo-order of the server's checkout), whenever each version ran"
+    if stray:
+        text += (f"; {stray} version(s) the server's checkout cannot place (another clone's commits, or no checkout) "
+                 "come last, by the date they first ran")
+    return text
 
 
 def history_json(history: History, changes: list[Change], ids: dict[str, list[str]], name: str) -> dict[str, Any]:
@@ -132,10 +150,10 @@ def history_json(history: History, changes: list[Change], ids: dict[str, list[st
                                "sd": float(np.std(xs, ddof=1)) if len(xs) > 1 else None})
             out_series.append({"recording": rec, "pipeline": pipe, "variant": variant, "metric": metric,
                                "points": points})
-    return {"suite": name,
+    return {"suite": name, "order": order_note(history),
             "versions": [{"code_version": c.sha, "first_run": c.date, "subject": c.subject,
-                          "suites": ids.get(c.sha, []), "status": history.status.get(c.sha, {}).get("status")}
-                         for c in history.commits],
+                          "suites": ids.get(c.sha, []), "status": history.status.get(c.sha, {}).get("status"),
+                          "placed": c.note or "git"} for c in history.commits],
             "series": out_series, "changes": [ch.to_json() for ch in changes]}
 
 
@@ -170,13 +188,13 @@ def history_page(request: Request, name: SuiteName, suites: SuitesDep) -> HTMLRe
         mine = ids.get(c.sha, [])
         link = f"/ui/compare?a={prev[-1]}&b={mine[-1]}" if prev and mine else None
         versions.append({"k": k, "version": c.sha, "short": c.sha[:10], "date": c.date, "subject": c.subject,
-                         "suites": mine, "compare": link})
+                         "suites": mine, "compare": link, "note": c.note})
     shown = [{**ch.to_json(), "short": ch.commit[:10], "before": fmt(ch.mean_before),
               "after": "missing" if ch.mean_after is None else fmt(ch.mean_after),
               "delta": fmt(ch.delta, signed=True), "rel": f"{ch.relative:+.1%}" if ch.relative is not None else "",
               "k": ch.index} for ch in changes]
     return _page(request, "suite_history.html", suite_name=name, groups=groups, versions=versions, changes=shown,
-                 can_run_rev=service_repo() is not None)
+                 can_run_rev=service_repo() is not None, order=order_note(history))
 
 
 class RevIn(BaseModel):

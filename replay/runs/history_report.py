@@ -181,7 +181,8 @@ def render_index(history: History, changes: Sequence[Change], out: Path, reports
                 runs.append(f"<span class='failed' title='{e(str(r.get('error')))}'>{e(label)} failed</span>")
         err = f"<div class='failed small'>{e(str(st.get('error')))}</div>" if st.get("error") else ""
         cmp_link = f"<a href='{e(reports[c.sha])}'>compare</a>" if c.sha in reports else ""
-        body.append(f"<tr id='c{k}'><td>{k + 1}</td><td><code>{e(c.short)}</code> {e(c.subject[:80])}</td>"
+        note = f"<div class='small'>{e(c.note)}</div>" if c.note else ""
+        body.append(f"<tr id='c{k}'><td>{k + 1}</td><td><code>{e(c.short)}</code> {e(c.subject[:80])}{note}</td>"
                     f"<td>{e(c.date[:19])}</td><td class='{'failed' if 'failed' in status else ''}'>{e(status)}"
                     f"{err}</td><td class='small'>{' '.join(runs)}</td><td>{cmp_link}</td></tr>")
     body.append("</table></body></html>\n")
