@@ -162,9 +162,15 @@ def test_backfilled_commits_in_git_order(repo: tuple[Path, list[str]], tmp_path:
     hist.run_history(suite, out, shas[3:], r, run=runs)
     hist.run_history(suite, out, shas[:3], r, run=runs)
     store = out / hist.STORE
-    store.write_text("".join(json.dumps({k: v for k, v in json.loads(x).items() if k != "generation"}) + "\n"
-                             for x in store.read_text().splitlines()))  # as an older slamreplay wrote them
-    assert [c.sha for c in hist.read_store(out).commits] == shas[3:] + shas[:3]  # the order they ran in
+
+    def older_slamreplay(row: dict[str, object]) -> dict[str, object]:  # no generation; dates that mislead
+        late = row["commit"] in shas[:3]
+        return {**{k: v for k, v in row.items() if k != "generation"},
+                "date": f"2030-01-0{shas.index(str(row['commit'])) + 1}T00:00:00+00:00" if late else row["date"]}
+
+    lines = store.read_text().splitlines()
+    store.write_text("".join(json.dumps(older_slamreplay(json.loads(x))) + "\n" for x in lines))
+    assert [c.sha for c in hist.read_store(out).commits] == shas[3:] + shas[:3]  # by date, as the store says
     h = hist.run_history(suite, out, shas[:3], r, run=runs)  # nothing left to run: read back in git's order
     assert [c.sha for c in h.commits] == shas and not any(c.note for c in h.commits)
     changes = detect_changes(h)
