@@ -182,8 +182,14 @@ def forbidden_text(p: Principal, need: Role, what: str) -> str:
 
 
 def api_principal(request: Request) -> Principal:
-    """The API's check: 401 without a good token, 403 when the person's role may not use the route."""
+    """The API's check: 401 without a good token, 403 when the person's role may not use the route.
+
+    A read (GET, HEAD) without an Authorization header may come from the page's session instead (the page links to
+    a job's manifest, log and files); a change through the API always needs the token (a cookie alone would let
+    another site's form make it: the page's own forms carry CSRF tokens)."""
     p = bearer_principal(request)
+    if p is None and request.method in ("GET", "HEAD") and "authorization" not in request.headers:
+        p = page_principal(request)
     if p is None:
         raise unauthorized(request)
     need, what = route_rule(request)
