@@ -1,16 +1,25 @@
-"""Another version of the code: a git worktree of a revision with its own virtual environment.
+"""Another version of the code: a git worktree of a revision, run with an environment of its dependencies.
 
-``prepare_revision`` checks the revision out with ``git worktree add --detach`` into
-``<cache>/revs/<sha>/src`` and builds ``<cache>/revs/<sha>/venv`` (``python -m venv`` then
-``pip install -e src``), once per commit sha; a ``ready`` stamp marks a finished build, a lock
-file keeps two suites from building the same revision at once, and a failed build is removed
-so that the next attempt starts clean. Cells run there through that environment's
-``slamreplay run`` (which every revision has, unlike ``suite``), so results of a revision come
-from its own code only: the checkout the user works in is never touched.
+``prepare_revision`` checks the revision out with ``git worktree add --detach`` into ``<cache>/revs/<sha>/src``
+and lays out ``<cache>/revs/<sha>/site`` beside it: the revision's own code as an install would present it
+(a ``slamreplay`` namespace whose folders link into the worktree, and a dist-info with the revision's version and
+entry points, so its pipelines and importers are found; ``slamreplay.replay.runs.rev_envs``). Its dependencies
+come from an environment shared by every commit that declares the same ones: ``<cache>/envs/<key>/``, keyed by
+the interpreter's version and the revision's ``[project] dependencies``, ``requires-python`` and lock file, holding
+only dependencies and built once (``python -m venv`` and ``pip install``, about a minute; uv when it is there).
+Cells run there through the revision's own CLI, ``<env>/bin/python`` with ``site/`` first on ``PYTHONPATH``, so
+results of a revision come from its own code only: the checkout the user works in is never touched. A revision
+costs a worktree (about 15 MB and a second); a new environment only comes with changed dependencies (about 1 GB).
 
-``SLAMREPLAY_REV_PYTHON`` names an interpreter that already has the dependencies, to use
-instead of building a virtual environment (tests; a cluster image): cells then run the worktree's
-own CLI with that interpreter (``_source_cli``), still the revision's code.
+A ``ready`` stamp marks a finished build of each, a lock file keeps two processes from building the same one at
+once, and a failed build is removed so that the next attempt starts clean. A ``Revision`` holds its revision and
+its environment in use while it lives; the cache is pruned to ``$SLAMREPLAY_CACHE_LIMIT_GB`` (default 10), least
+recently used first and never what is in use, after each revision prepared (``slamreplay.replay.runs.rev_cache``;
+``slamreplay cache`` lists and prunes it).
+
+``SLAMREPLAY_REV_PYTHON`` names an interpreter that already has the dependencies, to use instead of an
+environment (tests; a cluster image): cells run the worktree's own CLI with that interpreter, the same ``site/``
+first on its path, so still the revision's code and metadata even if that interpreter has slamreplay installed.
 
 A revision of **an external program's own repository** (docs/external.md: a declaration that lives in
 a git checkout other than slamreplay's, e.g. ``compare rev:HEAD~1 rev:HEAD`` run inside it) is that
@@ -30,22 +39,37 @@ import sys
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from slamreplay.recorder.files import atomic_write
 from slamreplay.recorder.version import SOURCE_ROOT
 from slamreplay.replay.engine.declared import DECLARATIONS_ENV, declaration_files
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.runs.rev_cache import Hold, build_lock, format_size, prune, total_size
+from slamreplay.replay.runs.rev_envs import (
+    ENV_STEP_NOTES,
+    DependencySpec,
+    build_env,
+    check_python,
+    dependency_spec,
+    env_python,
+    interpreter_id,
+    read_project,
+    run_step,
+    write_site,
+)
 from slamreplay.replay.runs.suite_run import CellJob
+from slamreplay.replay.tools.cache import LIMIT_ENV, cache_limit
 from slamreplay.replay.tools.child import child_setup
-
-BUILD_TIMEOUT_S = 1800
 
 
 @dataclass(frozen=True, slots=True)
 class Revision:
-    """A built revision: its commit, worktree and the command that runs ``slamreplay``."""
+    """A built revision: its commit, worktree and the command that runs ``slamreplay``; while it lives, its
+    ``hold`` keeps the revision and its environment in use (a copy sent elsewhere, e.g. to a Ray task, holds
+    nothing)."""
 
     rev: str
     sha: str
@@ -53,6 +77,10 @@ class Revision:
     command: tuple[str, ...]
     env: dict[str, str]
     repo: Path | None = None  # the checkout the worktree was made from
+    hold: Hold | None = field(default=None, compare=False, repr=False)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (Revision, (self.rev, self.sha, self.worktree, self.command, self.env, self.repo))
 
 
 def revision_env(revision: Revision, env: dict[str, str]) -> dict[str, str]:
@@ -159,7 +187,7 @@ def ancestry(repo: Path, good: str, bad: str) -> list[str]:
 @contextmanager
 def _locked(path: Path) -> Iterator[None]:
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w") as f:
+    with open(path, "a") as f:
         fcntl.flock(f, fcntl.LOCK_EX)
         try:
             yield
@@ -176,13 +204,56 @@ def _remove_build(repo: Path, root: Path) -> None:
 
 
 # What each build step is, for the note printed before it (a build is minutes of silence otherwise).
-STEP_NOTES = {"git worktree add": "git worktree add (a checkout of it)",
-              "python -m venv": "python -m venv (its own virtual environment)",
-              "pip install -e": "pip install -e (it and its dependencies: about a minute)"}
+STEP_NOTES = {"git worktree add": "git worktree add (a checkout of it)", **ENV_STEP_NOTES}
+REVISION_FORMAT = 2  # of revision.json: 1 had a virtual environment per commit (revs/<sha>/venv), no revision.json
+
+
+def _ready(root: Path) -> dict[str, Any] | None:
+    """``root``'s revision.json when it is a finished build of this format, else None."""
+    if not (root / "ready").is_file():
+        return None
+    try:
+        info = json.loads((root / "revision.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return info if isinstance(info, dict) and info.get("format") == REVISION_FORMAT else None
+
+
+def _spec_of(info: Mapping[str, Any]) -> DependencySpec:
+    """The dependency spec a revision.json recorded, with this interpreter (an upgraded Python: a new key)."""
+    d = info["dependencies"]
+    return DependencySpec(interpreter_id(), tuple(d["dependencies"]), d["requires_python"],
+                          tuple(sorted(d["locks"].items())))
+
+
+def _ensure_env(spec: DependencySpec, cache: Path, src: Path, log: Path, hold: Hold,
+                note: Callable[[str], None]) -> Path:
+    """The environment of ``spec``, built once (under its lock; removed when it fails), held in use by ``hold``."""
+    env = cache / "envs" / spec.key
+    with _locked(build_lock(env)):
+        if not (env / "ready").is_file():
+            check_python(spec)
+            note(f"building the environment of its dependencies ({spec.key}, {len(spec.dependencies)} of them), "
+                 f"shared by every commit that declares the same; log: {log}")
+            try:
+                with open(log, "a") as out:
+
+                    def step(name: str, argv: list[str]) -> None:
+                        note(STEP_NOTES[name])
+                        run_step(name, argv, src, out)
+
+                    build_env(spec, env, src, step)
+            except BaseException:
+                shutil.rmtree(env, ignore_errors=True)
+                raise
+            shutil.copy(log, env / "build.log")
+        hold.take(env)
+    return env
 
 
 def prepare_revision(repo: Path, rev: str, cache: Path, note: Callable[[str], None] | None = None) -> Revision:
-    """Worktree and environment of ``rev``, built once per commit; ReplayError if it does not build.
+    """Worktree of ``rev`` and the environment of its dependencies (see the module docstring); ReplayError if it
+    does not build. The revision and its environment are in use (never pruned) while the Revision lives.
 
     ``note(text)`` is told before the build and each of its slow steps, and when a finished build is
     reused; the command line prints it (a build is a minute or more of silence otherwise).
@@ -190,67 +261,85 @@ def prepare_revision(repo: Path, rev: str, cache: Path, note: Callable[[str], No
     note = note or (lambda text: None)
     sha = resolve(repo, rev)
     root = cache / "revs" / sha
-    src, venv = root / "src", root / "venv"
+    src = root / "src"
     program = not is_slamreplay_checkout(repo)
     if program:
         note(f"{rev} is a revision of {repository_of_revisions(repo)}")
-    override = os.environ.get("SLAMREPLAY_REV_PYTHON") or (sys.executable if program else None)
-    lock = cache / "revs" / f".{sha}.lock"
+    override = os.environ.get("SLAMREPLAY_REV_PYTHON") or None
     shown = sha[:10] if rev == sha else f"{rev} ({sha[:10]})"
-    if not (root / "ready").is_file():
-        note(f"building the environment of {shown}, once per commit; log: {root / 'build.log'}")
-    with _locked(lock):
-        if (root / "ready").is_file():
+    hold = Hold()
+    if _ready(root) is None:
+        note(f"building the environment of {shown}: its worktree, its dependencies' environment shared with "
+             f"the commits that declare the same; log: {root / 'build.log'}")
+    with _locked(build_lock(root)):
+        info = _ready(root)
+        if info is not None:
             note(f"using the environment of {shown} built before ({root})")
-        else:
-            _remove_build(repo, root)
-            root.mkdir(parents=True, exist_ok=True)
-            log = root / "build.log"
-            steps = [("git worktree add", ["git", "worktree", "add", "--detach", str(src), sha])]
-            if not override:
-                steps += [("python -m venv", [sys.executable, "-m", "venv", str(venv)]),
-                          ("pip install -e", [str(venv / "bin" / "python"), "-m", "pip", "install", "--quiet", "-e",
-                                              str(src)])]
-            with open(log, "w") as out:
-                for name, step in steps:
-                    note(STEP_NOTES[name])
-                    out.write(f"$ {' '.join(step)}\n")
-                    out.flush()
-                    try:
-                        done = subprocess.run(step, cwd=repo, stdout=out, stderr=subprocess.STDOUT,
-                                              timeout=BUILD_TIMEOUT_S)
-                    except (OSError, subprocess.SubprocessError) as err:
-                        done = subprocess.CompletedProcess(step, 1, None, None)
-                        out.write(f"{err}\n")
-                    if done.returncode != 0:
-                        keep = cache / "revs" / f"{sha}.failed-build.log"
-                        shutil.copy(log, keep)
-                        out.close()
-                        _remove_build(repo, root)
-                        raise ReplayError(f"revision {rev} ({sha[:10]}) does not build: `{name}` failed; "
-                                          f"see {keep}")
-            (root / "ready").write_text(sha + "\n")
+        env = None
+        try:
+            if info is None:
+                _remove_build(repo, root)
+                root.mkdir(parents=True, exist_ok=True)
+                (root / "build.log").write_text("")
+                info = _build(repo, sha, root, cache, program, note)
+            if not program and not override:
+                env = _ensure_env(_spec_of(info), cache, src, root / "build.log", hold, note)
+        except ReplayError as err:
+            hold.release()
+            keep = cache / "revs" / f"{sha}.failed-build.log"
+            if (root / "build.log").is_file():
+                shutil.copy(root / "build.log", keep)
+            if _ready(root) is None:
+                _remove_build(repo, root)
+            raise ReplayError(f"revision {rev} ({sha[:10]}) does not build: {err}; see {keep}") from None
+        (root / "ready").write_text(sha + "\n")
+        hold.take(root)
     if program:  # this slamreplay, the program's worktree
-        return Revision(rev, sha, src, (sys.executable, "-c", _INSTALLED_CLI), {}, repo)
-    if override:
-        return Revision(rev, sha, src, (override, "-c", _source_cli(src), str(src)), {}, repo)
-    return Revision(rev, sha, src, (str(venv / "bin" / "slamreplay"),), {}, repo)
+        revision = Revision(rev, sha, src, (sys.executable, "-c", _INSTALLED_CLI), {}, repo, hold)
+    else:
+        python = override or (str(env_python(env)) if env is not None else sys.executable)
+        path = os.pathsep.join([*info["site"]["path"], *filter(None, [os.environ.get("PYTHONPATH")])])
+        revision = Revision(rev, sha, src, (python, "-c", info["site"]["program"]), {"PYTHONPATH": path}, repo, hold)
+    _prune_over_limit(cache, note)
+    return revision
 
 
-# ``python -c`` programs running a checkout's CLI without installing it: since the packages moved under the
-# ``slamreplay`` namespace (a package-dir mapping only an install sets up) a namespace module whose path is the
-# checkout stands in for the install; a revision from before the move imports its bare top-level packages.
-_NAMESPACED_CLI = ("import sys, types; src = sys.argv.pop(1); ns = types.ModuleType('slamreplay'); "
-                   "ns.__path__ = [src]; sys.modules['slamreplay'] = ns; "
-                   "from slamreplay.api.cli import main; sys.exit(main(sys.argv[1:]))")
+def _build(repo: Path, sha: str, root: Path, cache: Path, program: bool, note: Callable[[str], None]
+           ) -> dict[str, Any]:
+    """Check ``sha`` out into ``root/src`` and lay out its ``site/``; what revision.json records."""
+    src = root / "src"
+    with open(root / "build.log", "a") as out:
+        note(STEP_NOTES["git worktree add"])
+        run_step("git worktree add", ["git", "worktree", "add", "--detach", str(src), sha], repo, out)
+    try:
+        subject = one_line(repo, sha).partition(" ")[2]
+    except ReplayError:
+        subject = ""
+    info: dict[str, Any] = {"format": REVISION_FORMAT, "sha": sha, "subject": subject, "repo": str(repo.resolve()),
+                            "program": program}
+    if not program:
+        project = read_project(src)
+        spec = dependency_spec(src, project)
+        site = write_site(src, root / "site", project)
+        info.update(env=spec.key, dependencies=spec.to_json(), site={"path": list(site.path),
+                                                                       "program": site.program})
+    atomic_write(root / "revision.json", json.dumps(info, indent=2) + "\n")
+    return info
+
+
+def _prune_over_limit(cache: Path, note: Callable[[str], None]) -> None:
+    """Prune the cache to its limit when it holds more (``slamreplay.replay.runs.rev_cache``)."""
+    limit = cache_limit()
+    if total_size(cache) <= limit:
+        return
+    done = prune(cache, limit, note)
+    if done.after > limit:
+        note(f"the revision cache holds {format_size(done.after)}, over its limit of {format_size(limit)} "
+             f"(${LIMIT_ENV}): the rest is in use")
+
+
+# ``python -c`` program running slamreplay's installed CLI (an external program's revision: this slamreplay).
 _INSTALLED_CLI = "import sys; from slamreplay.api.cli import main; sys.exit(main(sys.argv[1:]))"
-_BARE_CLI = "import sys; sys.path.insert(0, sys.argv.pop(1)); from api.cli import main; sys.exit(main(sys.argv[1:]))"
-
-
-def _source_cli(src: Path) -> str:
-    """The ``python -c`` program that runs the CLI of the checkout ``src`` (see above)."""
-    namespaced = '"slamreplay.api" = "api"' in (src / "pyproject.toml").read_text()
-    return _NAMESPACED_CLI if namespaced else _BARE_CLI
 
 
 def run_cell(revision: Revision, job: CellJob) -> str | None:
