@@ -33,6 +33,7 @@ from slamreplay.api.pages import error_response as _error
 from slamreplay.api.pages import page_response as _page
 from slamreplay.api.suites import SuiteRow, SuiteService
 from slamreplay.api.suites_routes import SuiteOut, SuitesDep
+from slamreplay.replay.metric_registry import axis_bounds
 from slamreplay.replay.runs.changepoints import Change, detect_changes
 from slamreplay.replay.runs.history import Commit, History, git_order, history_of_versions, series
 
@@ -178,7 +179,8 @@ def history_page(request: Request, name: SuiteName, suites: SuitesDep) -> HTMLRe
     groups = []
     for group, by_metric in sorted(series(history).items()):
         plots = [(m, Markup(plot_svg(v, [ch for ch in changes if (ch.recording, ch.pipeline, ch.variant) == group
-                                         and ch.metric == m], label=f"{m} of {'/'.join(group)} over versions")))
+                                         and ch.metric == m], label=f"{m} of {'/'.join(group)} over versions",
+                                     bounds=axis_bounds(m))))
                  # our own SVG, its text escaped
                  for m, v in sorted(by_metric.items())]
         groups.append({"name": "/".join(group), "plots": plots})

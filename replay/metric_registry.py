@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 # Default diff tolerance of a measured (floating-point) metric: a change within
@@ -63,30 +63,39 @@ class MetricSpec:
     rel_tolerance: float = 0.0  # relative to run A's value
     target: float | None = None  # the consistent value, with better="target"
     optional: str = ""  # why a run may leave it out (see LOST); "" : a run that had it and lost it got worse
+    minimum: float | None = None  # the least value it can take (an error, a count: 0): plots' axes stop there
+    maximum: float | None = None  # the greatest (a fraction: 1); None: unbounded
 
     def __post_init__(self) -> None:
         if (self.better == "target") != (self.target is not None):
             raise ValueError(f"a metric with a target value has better='target' and only then: {self}")
         if self.target is not None and not self.target > 0:
             raise ValueError(f"a metric's target value must be > 0 (it is judged on a log scale): {self}")
+        if self.minimum is not None and self.maximum is not None and not self.minimum < self.maximum:
+            raise ValueError(f"a metric's minimum must be below its maximum: {self}")
 
     @classmethod
     def measured(cls, better: Literal["lower", "higher", "target", "none"], unit: str, description: str,
-                 target: float | None = None, optional: str = "") -> MetricSpec:
+                 target: float | None = None, optional: str = "", minimum: float | None = None,
+                 maximum: float | None = None) -> MetricSpec:
         """A floating-point metric: numerical noise between environments is "same", a 1 % change is not."""
-        return cls(better, unit, description, MEASURED_ABS_TOLERANCE, MEASURED_REL_TOLERANCE, target, optional)
+        return cls(better, unit, description, MEASURED_ABS_TOLERANCE, MEASURED_REL_TOLERANCE, target, optional,
+                   minimum, maximum)
 
 
-_m = MetricSpec.measured
+def _m(better: Literal["lower", "higher", "target", "none"], unit: str, description: str, optional: str = "",
+       minimum: float | None = 0.0, maximum: float | None = None) -> MetricSpec:
+    """A built-in measured metric: never negative unless ``minimum`` says otherwise."""
+    return MetricSpec.measured(better, unit, description, optional=optional, minimum=minimum, maximum=maximum)
 
 
-def _count(better: str, description: str, optional: str = "") -> MetricSpec:
-    return MetricSpec(better, "", description, optional=optional)  # type: ignore[arg-type]
+def _count(better: str, description: str, optional: str = "", maximum: float | None = None) -> MetricSpec:
+    return MetricSpec(better, "", description, optional=optional, minimum=0.0, maximum=maximum)  # type: ignore[arg-type]
 
 
 def _nees(description: str, dof: int) -> MetricSpec:
     return MetricSpec.measured("target", "", f"{description} ({dof} when consistent, lower when conservative, "
-                                             "higher when overconfident)", target=float(dof))
+                                             "higher when overconfident)", target=float(dof), minimum=0.0)
 
 
 _NO_EDGE_IN_TRUTH = "undefined when no accepted edge joins two images inside the ground truth's time span"
@@ -130,12 +139,13 @@ METRICS: dict[str, MetricSpec] = {
                                              "(only with relax_robust)", optional="reported only with relax_robust"),
     "loop_closure_precision": _m("higher", "", "correct / accepted loop closures (truth rule in "
                                                "replay/pipelines/topometric.py)",
-                                 optional="undefined when no loop closure is accepted (loop_closures then says 0)"),
-    "loop_closure_recall": _m("higher", "", "images that closed a loop / images that should have"),
+                                 optional="undefined when no loop closure is accepted (loop_closures then says 0)",
+                                 maximum=1.0),
+    "loop_closure_recall": _m("higher", "", "images that closed a loop / images that should have", maximum=1.0),
     "odometry_ate_rmse_m": _m("lower", "m", "RMS position error of odometry at the same images: the baseline "
                                             "the relaxed map is measured against"),
     "goal_reached": _count("higher", "1 when the navigator stopped at the goal and the true position is within "
-                                     "goal_radius_m of the goal node"),
+                                     "goal_radius_m of the goal node", maximum=1.0),
     "goal_distance_m": _m("lower", "m", "true final position to the goal node's true pose (its map pose when the "
                                         "map has no ground truth; the log says which)"),
     "cross_track_error_m_mean": _m("lower", "m", "mean distance of the true position to the true path (route "
@@ -146,13 +156,13 @@ METRICS: dict[str, MetricSpec] = {
     "cross_track_error_m_final": _m("lower", "m", "distance of the true final position to the true path (map "
                                                   "path fallback, as for the mean)"),
     "visual_corrections": _count("none", "loop closures that reset the position (section IV-B)"),
-    "loop_closure_rate": _m("higher", "", "images with a loop closure / images"),
+    "loop_closure_rate": _m("higher", "", "images with a loop closure / images", maximum=1.0),
     "route_length_m": _m("none", "m", "length of the planned route through the map's nodes"),
     "estimate_error_m_mean": _m("lower", "m", "mean position error of the estimate at the images"),
     "replay_mismatches": _count("lower", "recorded localizations and commands the replay did not reproduce "
                                          "exactly"),
     "code_matches_recording": _count("none", "1 when this replay runs the navigation code that made the "
-                                             "recording (same fingerprint), else 0"),
+                                             "recording (same fingerprint), else 0", maximum=1.0),
     # iFMI photo-mapping (mosaic pixels)
     "registrations": _count("none", "registrations tried (consecutive and loop candidates)"),
     "registrations_accepted": _count("higher", "registrations with PNR >= min_pnr"),
@@ -162,9 +172,11 @@ METRICS: dict[str, MetricSpec] = {
     "chi2_per_dof": MetricSpec.measured("target", "", "chi2 after optimization over the edges the optimizer kept, "
                                                       "per degree of freedom (3 per kept edge - 3 per free node): "
                                                       "1 when the edge covariances are calibrated", target=1.0,
-                                      optional="undefined when the kept edges leave no degree of freedom"),
+                                      optional="undefined when the kept edges leave no degree of freedom",
+                                      minimum=0.0),
     "mosaic_ncc": _m("higher", "", "mean NCC of the image pairs overlapping by 30 % or more at the optimized "
-                                   "poses (illumination flattened): the mosaic's agreement with itself"),
+                                   "poses (illumination flattened): the mosaic's agreement with itself",
+                     minimum=-1.0, maximum=1.0),
     "edges_rejected": _count("none", "edges the optimizer's chi2 gate left out (covariance=calibrated)"),
     "ate_rmse_px_initial": _m("lower", "px", "node position RMSE before optimization (similarity-aligned)"),
     "ate_rmse_px": _m("lower", "px", "node position RMSE after optimization (similarity-aligned)"),
@@ -203,8 +215,7 @@ def spec(name: str) -> MetricSpec:
     m = _PER_ROBOT.match(name)
     if m and m.group(2) in PER_ROBOT:
         base = PER_ROBOT[m.group(2)]
-        return MetricSpec(base.better, base.unit, f"robot {m.group(1)}: {base.description}", base.tolerance,
-                          base.rel_tolerance, base.target, base.optional)
+        return replace(base, description=f"robot {m.group(1)}: {base.description}")
     raise KeyError(name)
 
 
@@ -239,6 +250,16 @@ def optional_reason(name: str, entry: Mapping[str, Any] | None = None) -> str:
         return spec(current_name(name)).optional
     except KeyError:
         return ""
+
+
+def axis_bounds(name: str) -> tuple[float | None, float | None]:
+    """The (least, greatest) values registered metric ``name`` (under any of its names) can take, for a plot's axis;
+    (None, None) for a metric the registry does not know."""
+    try:
+        s = spec(current_name(name))
+    except KeyError:
+        return None, None
+    return s.minimum, s.maximum
 
 
 def direction_label(better: str, target: float | None = None) -> str:

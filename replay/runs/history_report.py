@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreplay.recorder.files import atomic_write
+from slamreplay.replay.metric_registry import axis_bounds
 from slamreplay.replay.runs.changepoints import Change
 from slamreplay.replay.runs.compare import compare, fmt, side_of_rows
 from slamreplay.replay.runs.history import History, series
@@ -74,18 +75,30 @@ def pair_reports(history: History, changes: Sequence[Change], out: Path) -> tupl
     return reports, linked
 
 
+def y_range(lo: float, hi: float, bounds: tuple[float | None, float | None] = (None, None)) -> tuple[float, float]:
+    """The y axis of data from ``lo`` to ``hi``: 8 % of their span on each side, never past the metric's registered
+    (least, greatest) values (``metric_registry.axis_bounds``) unless the data are."""
+    span = (hi - lo) or (abs(hi) * 0.1 or 1.0)
+    low, high = lo - 0.08 * span, hi + 0.08 * span
+    least, greatest = bounds
+    if least is not None and lo >= least:
+        low = max(low, least)
+    if greatest is not None and hi <= greatest:
+        high = min(high, greatest)
+    return low, high
+
+
 def plot_svg(values: Sequence[dict[int, float]], marks: Sequence[Change], width: int = 240, height: int = 90,
-             label: str = "a metric over commits") -> str:
+             label: str = "a metric over commits", bounds: tuple[float | None, float | None] = (None, None)) -> str:
     """One series as inline SVG: the mean line, the seeds' range as whiskers, changes as dashed lines; point k
-    links to ``#c<k>`` (its commit's row), a commit without a succeeded run is a red cross."""
+    links to ``#c<k>`` (its commit's row), a commit without a succeeded run is a red cross. ``bounds``: the
+    metric's (least, greatest) values, where the y axis stops (:func:`y_range`)."""
     n = len(values)
     have = [k for k, v in enumerate(values) if v]
     if not have:
         return "<svg width='240' height='90'></svg>"
-    lo = min(min(values[k].values()) for k in have)
-    hi = max(max(values[k].values()) for k in have)
-    span = (hi - lo) or (abs(hi) * 0.1 or 1.0)
-    lo, hi = lo - 0.08 * span, hi + 0.08 * span
+    lo, hi = y_range(min(min(values[k].values()) for k in have), max(max(values[k].values()) for k in have),
+                     bounds)
 
     def x(k: float) -> float:
         return 8 + (width - 16) * (k / max(n - 1, 1))
@@ -163,7 +176,8 @@ def render_index(history: History, changes: Sequence[Change], out: Path, reports
             marks = [ch for ch in changes if (ch.recording, ch.pipeline, ch.variant) == group and ch.metric == m]
             if i and i % 4 == 0:
                 body.append("</tr><tr>")
-            plot = plot_svg(by_metric[m], marks, label=f"{m} of {'/'.join(group)} over commits")
+            plot = plot_svg(by_metric[m], marks, label=f"{m} of {'/'.join(group)} over commits",
+                            bounds=axis_bounds(m))
             body.append(f"<td><div class='small'>{e(m)}</div>{plot}</td>")
         body.append("</tr></table>")
     body.append("<h2>Commits</h2><table><tr><th>#</th><th>commit</th><th>date</th><th>status</th><th>runs</th>"
