@@ -16,6 +16,7 @@ from typing import Any
 
 # Only light modules here (a test checks it): the parser is built before every command, --help included, and
 # each command imports the heavy stack (numpy, rerun, mcap, fastapi ...) in its function.
+from slamreplay.api.cache_cli import add_cache_parsers
 from slamreplay.api.cli_parser import SuggestingParser, VersionAction, command_of
 from slamreplay.api.external_cli import add_external_parsers
 from slamreplay.api.graph_cli import add_graph_parser
@@ -572,6 +573,7 @@ def build_parser(command: str | None = None) -> SuggestingParser:
     add_graph_parser(sub)
     add_suite_parsers(sub, quiet)
     add_history_parsers(sub, quiet)
+    add_cache_parsers(sub, quiet)
     add_external_parsers(sub, quiet)
     add_users_parser(sub)
     return p

@@ -20,6 +20,8 @@ install of slamreplay in the interpreter (``SLAMREPLAY_REV_PYTHON``): the revisi
 from __future__ import annotations
 
 import hashlib
+import importlib.metadata
+import importlib.util
 import json
 import os
 import platform
@@ -196,6 +198,17 @@ ENV_STEP_NOTES = {"python -m venv": "python -m venv (an environment for its depe
                                  "dependencies)"}
 
 
+def _pip_with_python_option() -> bool:
+    """Whether this interpreter has a pip that installs into another one (``--python``: pip 22.3)."""
+    if importlib.util.find_spec("pip") is None:
+        return False
+    try:
+        major, minor = (int(x) for x in importlib.metadata.version("pip").split(".")[:2])
+    except (importlib.metadata.PackageNotFoundError, ValueError):
+        return False
+    return (major, minor) >= (22, 3)
+
+
 def env_steps(spec: DependencySpec, env: Path, src: Path) -> list[tuple[str, list[str]]]:
     """The commands that build the environment ``env`` for ``spec`` (``src``: the checkout, for a lock file)."""
     requirements = env / "requirements.txt"
@@ -204,6 +217,10 @@ def env_steps(spec: DependencySpec, env: Path, src: Path) -> list[tuple[str, lis
     if installer() == "uv":
         steps = [("python -m venv", ["uv", "venv", "--quiet", "--python", sys.executable, str(env)])]
         install = ["uv", "pip", "install", "--quiet", "--python", str(env_python(env))]
+    elif _pip_with_python_option():  # this pip installs into it: no pip inside (5 s and 15 MB less)
+        steps = [("python -m venv", [sys.executable, "-m", "venv", "--without-pip", str(env)])]
+        install = [sys.executable, "-m", "pip", "--python", str(env_python(env)), "install", "--quiet",
+                   "--disable-pip-version-check"]
     else:
         steps = [("python -m venv", [sys.executable, "-m", "venv", str(env)])]
         install = [str(env_python(env)), "-m", "pip", "install", "--quiet", "--disable-pip-version-check"]
@@ -221,9 +238,9 @@ def build_env(spec: DependencySpec, env: Path, src: Path, step: Callable[[str, l
     steps = env_steps(spec, env, src)
     for name, argv in steps:
         step(name, argv)
-        if name == "python -m venv":  # the venv exists now: the requirements go inside it
+        if name == "python -m venv":  # the venv exists now: what it is for goes inside it
             (env / "requirements.txt").write_text("".join(f"{d}\n" for d in spec.dependencies))
-    (env / "spec.json").write_text(json.dumps({"key": spec.key, **spec.to_json()}, indent=2) + "\n")
+            (env / "spec.json").write_text(json.dumps({"key": spec.key, **spec.to_json()}, indent=2) + "\n")
     (env / "ready").write_text(spec.key + "\n")
 
 
