@@ -12,7 +12,9 @@ app starts only while it holds its data directory's lock (``slamreplay.api.datal
 
 from __future__ import annotations
 
+import shutil
 import sqlite3
+import uuid
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Annotated
@@ -22,7 +24,7 @@ from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 from starlette.concurrency import run_in_threadpool
 
 from slamreplay.api.audit import label_job, submitted_text
-from slamreplay.api.auth import record, who
+from slamreplay.api.auth import client_address, record, who
 from slamreplay.api.datalock import DataDirLock
 from slamreplay.api.deps import ERRORS, JobsDep, RecordingsDep, require_token
 from slamreplay.api.docs_pages import install_docs
@@ -46,7 +48,8 @@ from slamreplay.api.record_routes import install_record_routes
 from slamreplay.api.recordings import RecordingService
 from slamreplay.api.settings import Settings
 from slamreplay.api.siteguard import SiteGuard
-from slamreplay.api.store import Store
+from slamreplay.api.store import JobRow, Store
+from slamreplay.api.store_runs import MAX_NAME, MAX_NOTE, MAX_TAGS, Labels
 from slamreplay.api.timeouts import BodyTimeout
 from slamreplay.api.web import install_web
 from slamreplay.recorder.errors import RecorderError
@@ -213,6 +216,53 @@ def label_job_route(request: Request, job_id: JobId, patch: LabelsPatch, jobs: J
     if job is None:
         raise jobs.missing(job_id)
     return JobOut.of(job)
+
+
+@router.post("/runs", status_code=201, tags=["jobs"], openapi_extra={"requestBody": {"required": True, "content": {
+    "application/gzip": {"schema": {"type": "string", "format": "binary"}},
+    "application/x-tar": {"schema": {"type": "string", "format": "binary"}}}}},
+    responses={201: {"description": "kept as a new job"},
+               200: {"model": JobOut, "description": "this run (its manifest's run_id) was pushed before: its job"}})
+async def push_run(request: Request, response: Response, jobs: JobsDep,
+                   origin: Annotated[str | None, Query(max_length=200, description=(
+                       "where the run was made, in your words: a host, a CI job's URL"))] = None,
+                   name: Annotated[str | None, Query(max_length=MAX_NAME)] = None,
+                   tags: Annotated[list[str] | None, Query(max_length=MAX_TAGS)] = None,
+                   note: Annotated[str | None, Query(max_length=MAX_NOTE)] = None) -> JobOut:
+    """Push a run made elsewhere (CI, a laptop's `suite run`, `evaluate`, an external program): a tar of its run
+    directory (`tar -czf - -C RUN_DIR .`), checked (manifest, metrics, the artifacts' sha256, the recording held
+    here) and listed beside the server's own runs, marked with where it came from (runners); `slamreplay push`."""
+    from slamreplay.api import push
+
+    try:
+        labels = Labels.parse(name, [t for raw in tags or [] for t in raw.split(",")], note)
+    except ValueError as err:
+        raise ReplayError(str(err)) from None
+    runs_dir, limit = jobs.settings.runs_dir, jobs.settings.max_upload_bytes
+    stem = runs_dir / f".push-{uuid.uuid4().hex}"
+    archive, folder = stem.with_suffix(".partial"), stem
+    try:
+        try:
+            await push.spool(request.stream(), archive, limit)
+        except OSError as err:
+            if is_disk_full(err):
+                raise disk_full_error("storing a pushed run") from err
+            raise
+
+        def accept() -> tuple[JobRow, bool]:
+            push.unpack(archive, folder, limit)
+            run = push.check_run(folder)
+            return push.keep(jobs.store, runs_dir, run, who(request), client_address(request), origin, labels)
+
+        job, new = await run_in_threadpool(accept)
+    finally:
+        archive.unlink(missing_ok=True)
+        shutil.rmtree(folder, ignore_errors=True)
+    if new:
+        await run_in_threadpool(record, request, "push", job.id,
+                                f"{submitted_text(job)}; made {'at ' + origin if origin else 'elsewhere'}")
+    response.status_code = 201 if new else 200
+    return JobOut.of(job, jobs.run_dir(job.id))
 
 
 @router.get("/jobs/{job_id}", tags=["jobs"])

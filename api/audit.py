@@ -29,8 +29,9 @@ from slamreplay.replay.errors import ReplayError
 
 SHOWN = 200
 # what the job page says of each action on a job
-JOB_WORDS = {"submit": "submitted", "cancel": "cancelled", "label": "named, tagged or annotated", "delete": "deleted"}
-JOB_ACTIONS = ("submit", "cancel", "label", "delete")
+JOB_WORDS = {"submit": "submitted", "push": "pushed (made elsewhere)", "cancel": "cancelled",
+             "label": "named, tagged or annotated", "delete": "deleted"}
+JOB_ACTIONS = ("submit", "push", "cancel", "label", "delete")
 SUITE_ACTIONS = ("suite", "run-on-commit")
 
 

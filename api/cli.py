@@ -24,6 +24,7 @@ from slamreplay.api.hints import spell_commands, tool, view_hint
 from slamreplay.api.history_cli import add_history_parsers
 from slamreplay.api.pipelines_cli import add_pipelines_parser
 from slamreplay.api.progress import progress_bar
+from slamreplay.api.push_cli import add_push_parser
 from slamreplay.api.suite_cli import add_suite_parsers
 from slamreplay.api.users_cli import add_users_parser
 from slamreplay.recorder.errors import RecorderError
@@ -576,6 +577,7 @@ def build_parser(command: str | None = None) -> SuggestingParser:
     add_cache_parsers(sub, quiet)
     add_external_parsers(sub, quiet)
     add_users_parser(sub)
+    add_push_parser(sub)
     return p
 
 

@@ -169,7 +169,8 @@ class JobOut(BaseModel):
     @classmethod
     def of(cls, job: JobRow, run_dir: Path | None = None) -> JobOut:
         """The job; with ``run_dir``, also its metrics and manifest when they exist."""
-        metrics = manifest = None
+        metrics = dict(job.metrics) if job.status == "succeeded" and job.metrics is not None else None
+        manifest = None  # the store's copy of the metrics (a listing); with run_dir, the run's own file
         if run_dir is not None:
             metrics_file, manifest_file = run_dir / "metrics.json", run_dir / "manifest.json"
             if job.status == "succeeded" and metrics_file.is_file():

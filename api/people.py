@@ -83,7 +83,7 @@ CREATE TABLE IF NOT EXISTS server_secrets (
 );
 """
 # Every action the trail records, in the words the audit page filters by.
-ACTIONS = ("upload", "recover", "record", "delete-recording", "submit", "cancel", "label", "delete", "suite",
+ACTIONS = ("upload", "recover", "record", "delete-recording", "submit", "push", "cancel", "label", "delete", "suite",
            "run-on-commit", "sign-in", "sign-in-failed", "sign-out", "user-add", "user-disable", "user-enable",
            "user-role", "user-token")
 

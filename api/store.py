@@ -263,6 +263,32 @@ class Store(RunsTableMixin, PeopleMixin):
                              [(job_id, t) for t in labels.tags])
         return self.get_job(job_id)
 
+    def add_pushed_job(self, job_id: str, recording_id: str, pipeline: str, config: dict[str, Any], seed: int,
+                       status: JobStatus, error: str | None, started: float | None, finished: float | None,
+                       metrics: dict[str, float], made_by: str, source: dict[str, Any], git_commit: str | None,
+                       labels: Labels) -> JobRow:
+        """A run made elsewhere (api/push.py), kept as a job that ended as it did there."""
+        now = time.time()
+        with self._tx() as conn:
+            conn.execute(
+                "INSERT INTO jobs (id, recording_id, pipeline, config, seed, status, progress, error, attempts, "
+                "created, started, finished, name, note, metrics, made_by, source, git_commit) "
+                "VALUES (?, ?, ?, ?, ?, ?, 1.0, ?, 1, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (job_id, recording_id, pipeline, json.dumps(config), seed, status, error, now, started, finished,
+                 labels.name, labels.note, json.dumps(metrics), made_by, json.dumps(source), git_commit))
+            conn.executemany("INSERT OR IGNORE INTO job_tags (job_id, tag) VALUES (?, ?)",
+                             [(job_id, t) for t in labels.tags])
+        job = self.get_job(job_id)
+        assert job is not None
+        return job
+
+    def pushed_job(self, run_id: str) -> JobRow | None:
+        """The job a run made elsewhere became (by the run's own id), if it was pushed before."""
+        with self._read() as conn:
+            row = conn.execute("SELECT id FROM jobs WHERE source IS NOT NULL AND json_extract(source, '$.run_id') = ?",
+                               (run_id,)).fetchone()
+        return None if row is None else self.get_job(row["id"])
+
     def get_job(self, job_id: str) -> JobRow | None:
         with self._read() as conn:
             row = conn.execute(f"SELECT {JOB_COLUMNS} FROM jobs j WHERE id = ?", (job_id,)).fetchone()

@@ -1,0 +1,96 @@
+"""``slamreplay push RUN_DIR... --server URL``: runs made here (``run``, ``suite run``, ``evaluate``, an external
+program) put on a team's server, beside its own runs (`slamreplay.api.client`; docs/service.md).
+
+A ``suite run`` output folder (it holds ``results.jsonl``) pushes each of its cells' runs. The recording a run
+replayed is uploaded first when the server lacks it (``--recording FILE``, else the path its manifest records).
+One line per run: where it went, or why the server refused it. Exit 0 when every run is on the server, 2 when any
+was refused or could not be read (the others are still pushed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+EXIT_OK, EXIT_REFUSED = 0, 2
+
+
+def run_dirs(given: list[Path]) -> list[Path]:
+    """The run directories to push: each folder given, or each cell's of a ``suite run`` output folder."""
+    from slamreplay.api.client import ClientError
+
+    out: list[Path] = []
+    for folder in given:
+        results = folder / "results.jsonl"
+        if (folder / "manifest.json").is_file():
+            out.append(folder)
+            continue
+        if not results.is_file():
+            raise ClientError(f"{folder} is not a run directory (no manifest.json) nor a `suite run` output folder "
+                              "(no results.jsonl)")
+        try:
+            rows = [json.loads(line) for line in results.read_text().splitlines() if line.strip()]
+        except (OSError, ValueError) as err:
+            raise ClientError(f"{results} is unreadable: {err}") from None
+        for row in rows:
+            run = Path(str(row.get("run_dir") or ""))
+            run = run if run.is_absolute() else folder / run
+            if (run / "manifest.json").is_file():
+                out.append(run)
+    return list(dict.fromkeys(out))
+
+
+def cmd_push(args: argparse.Namespace) -> int:
+    from slamreplay.api.client import Client, ClientError
+    from slamreplay.replay.errors import ReplayError
+
+    try:
+        server = Client(args.server, args.token)
+        runs = run_dirs(args.run_dir)
+    except ClientError as err:
+        raise ReplayError(str(err)) from None
+    if not runs:
+        raise ReplayError(f"nothing to push in {', '.join(map(str, args.run_dir))}: give run directories (with "
+                          "manifest.json) or a `suite run` output folder")
+    refused = 0
+    for run in runs:
+        try:
+            job, new = server.push(run, recording=args.recording, origin=args.origin, name=args.name,
+                                   tags=args.tag, note=args.note)
+        except ClientError as err:
+            if err.status == 0 and "cannot reach" in str(err):
+                raise ReplayError(str(err)) from None  # the server is not there: the rest would fail the same way
+            refused += 1
+            print(f"{run}: refused: {err}", file=sys.stderr)
+            continue
+        what = "pushed as job" if new else "already on the server as job"
+        metric = next(iter(sorted((job.get("metrics") or {}).items())), None)
+        shown = f" ({metric[0]} {metric[1]:.6g})" if metric and isinstance(metric[1], float) else ""
+        print(f"{run}: {what} {job['id'][:8]}, {job['pipeline']} seed {job['seed']} {job['status']}{shown}: "
+              f"{server.url}/ui/jobs/{job['id']}")
+    if len(runs) > 1:
+        print(f"{len(runs) - refused} of {len(runs)} runs on {server.url}" + (f"; {refused} refused" if refused
+                                                                                  else ""))
+    return EXIT_REFUSED if refused else EXIT_OK
+
+
+def add_push_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("push", help="put runs made here (run, suite run, evaluate) on a team's server",
+                       description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[1],
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run_dir", nargs="+", type=Path, metavar="RUN_DIR",
+                   help="a run directory, or a `suite run` output folder (each of its cells' runs)")
+    p.add_argument("--server", required=True, metavar="URL", help="the server, e.g. http://slam.lan:8000")
+    p.add_argument("--token", default=None, help="your token (default: $SLAMREPLAY_TOKEN; none on an open server)")
+    p.add_argument("--recording", type=Path, default=None, metavar="FILE",
+                   help="the recording the runs replayed, uploaded when the server lacks it (default: the path each "
+                        "run's manifest records)")
+    p.add_argument("--origin", default=None, metavar="TEXT",
+                   help="where the runs were made, shown on the page (default: the CI job's URL on GitHub Actions "
+                        "or GitLab CI, else this host's name)")
+    p.add_argument("--name", default=None, help="a name for the pushed runs")
+    p.add_argument("--tag", action="append", default=[], metavar="TAG", help="a tag of the pushed runs (repeatable)")
+    p.add_argument("--note", default=None, help="a note on the pushed runs")
+    p.set_defaults(func=cmd_push)
