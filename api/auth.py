@@ -63,6 +63,9 @@ RULES: dict[tuple[str, str], tuple[Role, str]] = {
     ("POST", "/ui/people/{name}"): ("admin", "manage people"),
     ("GET", "/ui/audit"): ("admin", "read the audit trail"),
 }
+# Failed sign-ins on the page: at most this many from one address in the window, then a 429 until the oldest
+# leaves it (each wrong token also costs the server a slow hash: guessing stays hopeless and cheap to refuse)
+SIGN_IN_ATTEMPTS, SIGN_IN_WINDOW_S = 10, 900.0
 RECORD_PREFIX = "/recordings/record/"  # one route per importer (api/record_routes.py): recordings made here
 # Page routes whose form is multipart and streamed: the route checks the CSRF field itself (api/web.py)
 STREAMED_FORMS = frozenset({"/ui/recordings"})
@@ -243,6 +246,15 @@ def principal_of(request: Request) -> Principal | None:
     """Who the request is from, as its route's check found it (or the page's session, for a public page)."""
     p: Principal | None = getattr(request.state, "principal", None)
     return p if p is not None else page_principal(request)
+
+
+def sign_in_wait_s(request: Request) -> float:
+    """Seconds until this address may try to sign in again (0: now): `SIGN_IN_ATTEMPTS` failures in the window."""
+    import time
+
+    now = time.time()
+    failed, oldest = store_of(request).failed_sign_ins(client_address(request), now - SIGN_IN_WINDOW_S)
+    return 0.0 if failed < SIGN_IN_ATTEMPTS or oldest is None else max(oldest + SIGN_IN_WINDOW_S - now, 1.0)
 
 
 def who(request: Request) -> str:

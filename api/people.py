@@ -365,6 +365,13 @@ class PeopleMixin:
         return [AuditEntry(r["seq"], r["at"], r["who"], r["address"], r["action"], r["target"], r["detail"])
                 for r in rows]
 
+    def failed_sign_ins(self, address: str, since: float) -> tuple[int, float | None]:
+        """How many sign-ins failed from ``address`` since ``since``, and when the oldest of them was."""
+        with self._read() as conn:
+            row = conn.execute("SELECT COUNT(*), MIN(at) FROM audit WHERE action = 'sign-in-failed' AND address = ? "
+                               "AND at >= ?", (address, since)).fetchone()
+        return int(row[0]), row[1]
+
     def audit_people(self) -> list[str]:
         """Everyone the trail names, by name."""
         with self._read() as conn:

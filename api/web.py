@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import hmac
 import json
+import math
 from typing import Annotated, Any, Literal
 from urllib.parse import urlencode
 
@@ -39,6 +40,7 @@ from slamreplay.api.auth import (
     record,
     server_mode,
     session_value,
+    sign_in_wait_s,
     who,
 )
 from slamreplay.api.compare_web import router as compare_router
@@ -119,8 +121,10 @@ async def login(request: Request, settings: SettingsDep) -> Response:
     mode = await run_in_threadpool(server_mode, request)
     resp = RedirectResponse(nxt, 303)
     secure = request.url.scheme == "https"
+    store = request.app.state.jobs.store
+    if mode != "open" and (wait := await run_in_threadpool(sign_in_wait_s, request)) > 0:
+        return _page(request, "login.html", 429, next=nxt, wait_min=math.ceil(wait / 60))
     if mode == "people":
-        store = request.app.state.jobs.store
         user = await run_in_threadpool(store.user_of_token, token)
         if user is None:
             await run_in_threadpool(store.add_audit, "(unknown)", client_address(request), "sign-in-failed", None,
@@ -134,6 +138,8 @@ async def login(request: Request, settings: SettingsDep) -> Response:
         await run_in_threadpool(store.add_audit, user.name, client_address(request), "sign-in", user.name, user.role)
     elif mode == "token":
         if not hmac.compare_digest(token.encode(), settings.token.encode()):  # type: ignore[union-attr]
+            await run_in_threadpool(store.add_audit, "(unknown)", client_address(request), "sign-in-failed", None,
+                                    "not the shared token")
             return _page(request, "login.html", 401, next=nxt, wrong=True)
         resp.set_cookie(COOKIE, session_value(settings.token), httponly=True,  # type: ignore[arg-type]
                         samesite="strict", secure=secure, path="/")

@@ -111,3 +111,20 @@ def test_suite_jobs_carry_the_suites_tags(team: Team) -> None:
     assert (job["tags"], job["note"], job["made_by"]) == (["ci", "pr-12"], "PR 12", "rui")
     bad = team.api("runner").post("/suites", params={"tags": "bad tag!"}, content=suite)
     assert bad.status_code == 422 and "tag 'bad tag!'" in bad.json()["detail"], bad.text
+
+
+def test_failed_sign_ins_are_limited_per_address(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Ten wrong tokens from one address in 15 minutes: the eleventh try, even with the right token, is a 429 page
+    saying how long to wait; the failures are in the trail."""
+    from people_helpers import TestClient
+
+    from slamreplay.api.auth import SIGN_IN_ATTEMPTS
+
+    recording = write_tiny_recording(tmp_path_factory.mktemp("rec2") / "tiny.mcap")
+    t, _ = make_team(tmp_path_factory.mktemp("limited"), recording)
+    client = TestClient(t.app)
+    for _ in range(SIGN_IN_ATTEMPTS):
+        assert client.post("/login", data={"token": "slr_wrong"}, follow_redirects=False).status_code == 401
+    r = client.post("/login", data={"token": t.tokens["admin"]}, follow_redirects=False)
+    assert r.status_code == 429 and "try again in 15 minutes" in r.text, r.text
+    assert len(t.store.audit_entries(action="sign-in-failed")) == SIGN_IN_ATTEMPTS
