@@ -46,8 +46,8 @@ def runs_ctx(request: Request, ids: list[str], tolerances: dict[str, str] | None
     jobs = get_jobs(request)
     if len(ids) == 2:
         require_succeeded(runs_of(jobs, ids))
-        return {"mode": "two", **two_runs(jobs, ids, tolerances), "swap": f"/ui/compare?runs={ids[1]},{ids[0]}"}
-    return {"mode": "many", **many_runs(jobs, ids)}
+        return {"view": "two", **two_runs(jobs, ids, tolerances), "swap": f"/ui/compare?runs={ids[1]},{ids[0]}"}
+    return {"view": "many", **many_runs(jobs, ids)}
 
 
 def deleted_cells(side: Any, name: str) -> list[str]:
@@ -88,13 +88,13 @@ def _paired(request: Request, suites: Any, a: str, b: str, tolerance: list[str])
         c = None
     if c is not None and (c.results or c.failures):
         return _report(request, c, deleted_cells(side_a, "A") + deleted_cells(side_b, "B"))
-    ctx: dict[str, Any] = {"reason": unpaired_reason(side_a, side_b), "mode": "none", "a_ref": a, "b_ref": b,
+    ctx: dict[str, Any] = {"reason": unpaired_reason(side_a, side_b), "view": "none", "a_ref": a, "b_ref": b,
                            "deleted": deleted_cells(side_a, "A") + deleted_cells(side_b, "B")}
     ids = list(dict.fromkeys(job_ids_of(side_a) + job_ids_of(side_b)))
     if side_a.kind == "run" and side_b.kind == "run" and len(ids) == 2:
         ctx |= runs_ctx(request, ids, tolerances)
     elif len(ids) >= 2:
-        ctx |= {"mode": "many", **many_runs(get_jobs(request), ids[:20])}
+        ctx |= {"view": "many", **many_runs(get_jobs(request), ids[:20])}
     return _page(request, "compare_runs.html", **ctx)
 
 

@@ -40,7 +40,7 @@ def team(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         store = Store(folder / "data" / "runs" / "jobs.sqlite")
         tokens = {name: store.add_user(name, role) for name, role in
                   (("ada", "admin"), ("rui", "runner"), ("vic", "viewer"))}
-        yield {"base": base, "done": done, "running": running, "tokens": tokens}
+        yield {"base": base, "done": done, "running": running, "tokens": tokens, "recording": str(rec)}
 
 
 @pytest.fixture(scope="module")
@@ -192,3 +192,40 @@ def test_the_people_page(browser: Any, team: dict[str, Any]) -> None:
     axe_clean(admin)
     assert admin.problems == [], admin.problems
     admin.context.close()
+
+
+def test_runs_pushed_from_elsewhere_are_compared_on_the_page(browser: Any, team: dict[str, Any],
+                                                             tmp_path: Path) -> None:
+    """Issue 40, item 5: three runs of a `suite run` made in another folder, pushed by a runner, shown on the
+    compare page beside the server's own run of the same recording (seed 0: the same value), and each marked on
+    its page with where it was made."""
+    from slamreplay.api.cli import main
+    from slamreplay.api.client import Client
+
+    base, tokens = team["base"], team["tokens"]
+    laptop = tmp_path / "laptop"
+    laptop.mkdir()
+    (laptop / "suite.toml").write_text('seeds = [0, 1, 2]\n[recordings.loop]\npath = "corridor-loop.mcap"\n'
+                                       "[pipelines.odometry]\n")
+    rec = Path(team["recording"])
+    (laptop / "corridor-loop.mcap").write_bytes(rec.read_bytes())
+    assert main(["suite", "run", str(laptop / "suite.toml"), "--out", str(laptop / "results"), "-q"]) == 0
+    runner = Client(base, tokens["rui"])
+    pushed = [runner.push(d, origin="rui's laptop")[0] for d in sorted((laptop / "results" / "runs").iterdir())]
+    assert sorted(j["seed"] for j in pushed) == [0, 1, 2] and all(j["made_by"] == "rui" for j in pushed)
+    own = runner.job(team["done"])
+    twin = next(j for j in pushed if j["seed"] == 0)
+    assert twin["metrics"]["ape_rmse_m"] == own["metrics"]["ape_rmse_m"]
+
+    page = new_page(browser)
+    sign_in(page, base, tokens["vic"], f"/ui/compare?runs={own['id']},{','.join(j['id'] for j in pushed)}")
+    text = page.inner_text("main")
+    assert all(j["id"][:8] in text for j in (own, *pushed)), text[:500]
+    assert f"{own['metrics']['ape_rmse_m']:.4g}"[:5] in text
+    shot(page, "team-compare-pushed")
+    axe_clean(page)
+    page.goto(f"{base}/ui/jobs/{twin['id']}")
+    source = page.inner_text("#job-source")
+    assert "Made elsewhere" in source and "rui's laptop" in source and "rui" in source, source
+    assert page.problems == [], page.problems
+    page.context.close()
