@@ -71,7 +71,8 @@ class Hold:
             f.close()
 
     def __del__(self) -> None:
-        self.release()
+        with contextlib.suppress(Exception):  # at interpreter exit the modules may be gone: the OS unlocks anyway
+            self.release()
 
 
 def _try_lock(path: Path) -> IO[str] | None:
