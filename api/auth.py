@@ -46,6 +46,7 @@ RULES: dict[tuple[str, str], tuple[Role, str]] = {
     ("PATCH", "/jobs/{job_id}"): ("runner", "name, tag and annotate runs"),
     ("POST", "/runs"): ("runner", "push runs made elsewhere"),
     ("POST", "/suites"): ("runner", "run suites"),
+    ("POST", "/runs/suites"): ("runner", "push runs made elsewhere"),
     ("POST", "/history/suites/{name:path}/runs"): ("runner", "run suites on a commit"),
     ("POST", "/ui/recordings"): ("runner", "upload recordings"),
     ("POST", "/ui/jobs"): ("runner", "submit jobs"),

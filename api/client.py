@@ -77,7 +77,7 @@ class Client:
         """(status, headers, the decoded JSON body) of one call; ClientError for a 4xx or 5xx or no answer."""
         query = urllib.parse.urlencode([(k, x) for k, v in (params or {}).items() if v is not None
                                         for x in (v if isinstance(v, list | tuple) else [v])])
-        url = self.url + path + ("?" + query if query else "")
+        url = self.url + urllib.parse.quote(path, safe="/%?=&:;,+@") + ("?" + query if query else "")
         headers = {"Accept": "application/json"}
         if self.token:
             headers["Authorization"] = f"Bearer {self.token}"
@@ -216,6 +216,69 @@ class Client:
                                          "tags": list(tags) or None, "note": note},
                 data=archive, content_type="application/gzip", length=size)
         return dict(job), status == 201
+
+
+    def push_suite(self, folder: str | Path, *, recording: str | Path | None = None, origin: str | None = None,
+                   name: str | None = None, tags: Iterable[str] = (), note: str | None = None,
+                   on_run: Callable[[Path, dict[str, Any] | None, bool, ClientError | None], None] | None = None,
+                   ) -> dict[str, Any] | None:
+        """Push every cell's run of a ``suite run`` output folder, then the suite itself (its name, its file and
+        which job each cell became), so that the server's page, comparisons and history of that suite's name count
+        it. ``on_run(run_dir, job, new, error)`` hears of each run. The suite as the server keeps it; None when a
+        run was refused (the suite is not recorded without all its runs)."""
+        folder = Path(folder)
+        about = read_json(folder / "suite.json", "a `suite run` output folder (no suite.json)")
+        cells: list[dict[str, Any]] = []
+        refused = False
+        for run in suite_runs(folder):
+            try:
+                job, new = self.push(run, recording=recording, origin=origin, name=name, tags=tags, note=note)
+            except ClientError as err:
+                if err.status == 0 and "cannot reach" in str(err):
+                    raise
+                refused = True
+                if on_run is not None:
+                    on_run(run, None, False, err)
+                continue
+            if on_run is not None:
+                on_run(run, job, new, None)
+            cell = read_json(run / "cell.json", "a suite's run (no cell.json)").get("cell") or {}
+            keys = ("recording", "recording_seed", "pipeline", "variant", "seed", "config")
+            cells.append({k: cell.get(k) for k in keys if k in cell} | {"job_id": job["id"]})
+        if refused or not cells:
+            return None
+        suite_file = Path(str(about.get("suite") or ""))
+        text = suite_file.read_text() if suite_file.name and suite_file.is_file() else ""
+        return dict(self.request("POST", "/runs/suites", body={
+            "name": str(about.get("suite_name") or folder.name), "text": text, "cells": cells})[2])
+
+
+def read_json(path: Path, what: str) -> dict[str, Any]:
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ClientError(f"{path.parent} is not {what}") from None
+    except (OSError, ValueError) as err:
+        raise ClientError(f"{path} is unreadable: {err}") from None
+    if not isinstance(doc, dict):
+        raise ClientError(f"{path} is not a JSON object")
+    return doc
+
+
+def suite_runs(folder: Path) -> list[Path]:
+    """The run directories of a ``suite run`` output folder's cells, in its results' order."""
+    results = folder / "results.jsonl"
+    try:
+        rows = [json.loads(line) for line in results.read_text().splitlines() if line.strip()]
+    except (OSError, ValueError) as err:
+        raise ClientError(f"{results} is unreadable: {err}") from None
+    out = []
+    for row in rows:
+        run = Path(str(row.get("run_dir") or ""))
+        run = run if run.is_absolute() else folder / run
+        if (run / "manifest.json").is_file():
+            out.append(run)
+    return list(dict.fromkeys(out))
 
 
 def file_sha256(path: Path) -> str:

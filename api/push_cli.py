@@ -1,8 +1,10 @@
 """``slamreplay push RUN_DIR... --server URL``: runs made here (``run``, ``suite run``, ``evaluate``, an external
 program) put on a team's server, beside its own runs (`slamreplay.api.client`; docs/service.md).
 
-A ``suite run`` output folder (it holds ``results.jsonl``) pushes each of its cells' runs. The recording a run
-replayed is uploaded first when the server lacks it (``--recording FILE``, else the path its manifest records).
+A ``suite run`` output folder (it holds ``results.jsonl``) pushes each of its cells' runs, then the suite (its
+name, file and cells), which the server's suite pages, comparisons and history of that name then count. The
+recording a run replayed is uploaded first when the server lacks it (``--recording FILE``, else the path its
+manifest records).
 One line per run: where it went, or why the server refused it. Exit 0 when every run is on the server, 2 when any
 was refused or could not be read (the others are still pushed).
 """
@@ -10,36 +12,11 @@ was refused or could not be read (the others are still pushed).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
+from typing import Any
 
 EXIT_OK, EXIT_REFUSED = 0, 2
-
-
-def run_dirs(given: list[Path]) -> list[Path]:
-    """The run directories to push: each folder given, or each cell's of a ``suite run`` output folder."""
-    from slamreplay.api.client import ClientError
-
-    out: list[Path] = []
-    for folder in given:
-        results = folder / "results.jsonl"
-        if (folder / "manifest.json").is_file():
-            out.append(folder)
-            continue
-        if not results.is_file():
-            raise ClientError(f"{folder} is not a run directory (no manifest.json) nor a `suite run` output folder "
-                              "(no results.jsonl)")
-        try:
-            rows = [json.loads(line) for line in results.read_text().splitlines() if line.strip()]
-        except (OSError, ValueError) as err:
-            raise ClientError(f"{results} is unreadable: {err}") from None
-        for row in rows:
-            run = Path(str(row.get("run_dir") or ""))
-            run = run if run.is_absolute() else folder / run
-            if (run / "manifest.json").is_file():
-                out.append(run)
-    return list(dict.fromkeys(out))
 
 
 def cmd_push(args: argparse.Namespace) -> int:
@@ -48,32 +25,50 @@ def cmd_push(args: argparse.Namespace) -> int:
 
     try:
         server = Client(args.server, args.token)
-        runs = run_dirs(args.run_dir)
+        for folder in args.run_dir:
+            if not (folder / "manifest.json").is_file() and not (folder / "results.jsonl").is_file():
+                raise ClientError(f"{folder} is not a run directory (no manifest.json) nor a `suite run` output "
+                                  "folder (no results.jsonl)")
     except ClientError as err:
         raise ReplayError(str(err)) from None
-    if not runs:
-        raise ReplayError(f"nothing to push in {', '.join(map(str, args.run_dir))}: give run directories (with "
-                          "manifest.json) or a `suite run` output folder")
-    refused = 0
-    for run in runs:
-        try:
-            job, new = server.push(run, recording=args.recording, origin=args.origin, name=args.name,
-                                   tags=args.tag, note=args.note)
-        except ClientError as err:
-            if err.status == 0 and "cannot reach" in str(err):
-                raise ReplayError(str(err)) from None  # the server is not there: the rest would fail the same way
-            refused += 1
+    counts = {"runs": 0, "refused": 0}
+
+    def said(run: Path, job: dict[str, Any] | None, new: bool, err: ClientError | None) -> None:
+        counts["runs"] += 1
+        if job is None:
+            counts["refused"] += 1
             print(f"{run}: refused: {err}", file=sys.stderr)
-            continue
+            return
         what = "pushed as job" if new else "already on the server as job"
         metric = next(iter(sorted((job.get("metrics") or {}).items())), None)
         shown = f" ({metric[0]} {metric[1]:.6g})" if metric and isinstance(metric[1], float) else ""
         print(f"{run}: {what} {job['id'][:8]}, {job['pipeline']} seed {job['seed']} {job['status']}{shown}: "
               f"{server.url}/ui/jobs/{job['id']}")
-    if len(runs) > 1:
-        print(f"{len(runs) - refused} of {len(runs)} runs on {server.url}" + (f"; {refused} refused" if refused
-                                                                                  else ""))
-    return EXIT_REFUSED if refused else EXIT_OK
+
+    labels = {"recording": args.recording, "origin": args.origin, "name": args.name, "tags": args.tag,
+              "note": args.note}
+    try:
+        for folder in args.run_dir:
+            if (folder / "manifest.json").is_file():
+                try:
+                    said(folder, *server.push(folder, **labels), None)
+                except ClientError as err:
+                    if err.status == 0:
+                        raise
+                    said(folder, None, False, err)
+                continue
+            suite = server.push_suite(folder, on_run=said, **labels)
+            if suite is not None:
+                print(f"{folder}: suite {suite['name']!r} ({len(suite['cells'])} cells) recorded as "
+                      f"{suite['id'][:8]}: {server.url}/ui/suites/{suite['id']}")
+            else:
+                print(f"{folder}: suite not recorded: {counts['refused']} of its runs were refused", file=sys.stderr)
+    except ClientError as err:
+        raise ReplayError(str(err)) from None
+    if counts["runs"] > 1:
+        print(f"{counts['runs'] - counts['refused']} of {counts['runs']} runs on {server.url}"
+              + (f"; {counts['refused']} refused" if counts["refused"] else ""))
+    return EXIT_REFUSED if counts["refused"] else EXIT_OK
 
 
 def add_push_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

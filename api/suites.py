@@ -225,6 +225,31 @@ class SuiteService:
             conn.execute("COMMIT")
         return SuiteRow(suite_id, suite.name, fmt, created)
 
+    def add_pushed(self, name: str, text: str, cells: list[tuple[dict[str, Any], str]]) -> SuiteRow:
+        """Record a suite that ran elsewhere (``slamreplay push`` of a ``suite run`` folder): its name, its file's
+        text and each cell with the job its pushed run became, so that its page, comparisons and the history of
+        its name count it. NotFoundError names a job the server does not hold."""
+        for _, job_id in cells:
+            if self.jobs.store.get_job(job_id) is None:
+                raise NotFoundError(f"job {job_id} not found: push the suite's runs first (slamreplay push does)")
+        suite_id, created = uuid.uuid4().hex, time.time()
+        with self._conn() as conn:
+            conn.execute("BEGIN IMMEDIATE")
+            same = conn.execute(  # the same suite pushed again: the one recorded then
+                "SELECT s.id, s.created FROM suites s WHERE s.name = ? AND (SELECT group_concat(job_id, ',') FROM "
+                "(SELECT job_id FROM suite_cells c WHERE c.suite_id = s.id ORDER BY idx)) = ?",
+                (name, ",".join(job for _, job in cells))).fetchone()
+            if same is not None:
+                conn.execute("ROLLBACK")
+                return SuiteRow(same["id"], name, "toml", same["created"])
+            conn.execute("INSERT INTO suites (id, name, format, text, created) VALUES (?, ?, 'toml', ?, ?)",
+                         (suite_id, name, text, created))
+            conn.executemany("INSERT INTO suite_cells (suite_id, idx, cell, job_id, reused) VALUES (?, ?, ?, ?, 1)",
+                             [(suite_id, i, json.dumps(cell, sort_keys=True), job_id)
+                              for i, (cell, job_id) in enumerate(cells)])
+            conn.execute("COMMIT")
+        return SuiteRow(suite_id, name, "toml", created)
+
     # -- reading --------------------------------------------------------------------------------
 
     def recent(self, limit: int = 100) -> list[SuiteRow]:

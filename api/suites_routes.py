@@ -25,11 +25,11 @@ from urllib.parse import urlencode
 
 from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
 from slamreplay.api.audit import record_suite
-from slamreplay.api.auth import link_secret, who
+from slamreplay.api.auth import link_secret, record, who
 from slamreplay.api.deps import ERRORS, require_token, viewer_href
 from slamreplay.api.errors import ApiError
 from slamreplay.api.models import JOB_ID
@@ -139,6 +139,41 @@ async def submit_suite(request: Request, suites: SuitesDep,
     await run_in_threadpool(record_suite, request, suites, row)
     _, _, cells = suites.get(row.id)
     return SuiteOut.of(suites, row, cells)
+
+
+class PushedCell(BaseModel):
+    """A cell of a suite that ran elsewhere and the job its pushed run became."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    recording: str = Field(min_length=1, max_length=200)
+    recording_seed: int | None = None
+    pipeline: str = Field(min_length=1, max_length=100)
+    variant: str | None = Field(default=None, max_length=200)
+    seed: int = Field(ge=0, le=2**63 - 1)
+    config: dict[str, Any] = Field(default_factory=dict)
+    job_id: str = Field(pattern=JOB_ID)
+
+
+class PushedSuite(BaseModel):
+    """``POST /runs/suites``: a suite that ran elsewhere, its runs already pushed (``POST /runs``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=200)
+    text: str = Field(default="", max_length=MAX_SUITE_BYTES, description="the suite file, as it ran")
+    cells: list[PushedCell] = Field(min_length=1, max_length=10_000)
+
+
+@router.post("/runs/suites", status_code=201)
+def push_suite(request: Request, body: PushedSuite, suites: SuitesDep) -> SuiteOut:
+    """Record a suite that ran elsewhere (`slamreplay push` of a `suite run` folder), so that its page, compare and
+    the history of its name count it beside the server's own (runners); 404 names a job not pushed yet."""
+    cells = [({k: v for k, v in c.model_dump().items() if k != "job_id"}, c.job_id) for c in body.cells]
+    row = suites.add_pushed(body.name, body.text, cells)
+    record(request, "suite", row.id, f"{row.name}: {len(cells)} cells run elsewhere and pushed")
+    _, _, got = suites.get(row.id)
+    return SuiteOut.of(suites, row, got)
 
 
 @router.get("/suites")

@@ -57,8 +57,8 @@ def made_elsewhere(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A `suite run` output folder on "a laptop": odometry on one recording, seeds 0, 1 and 2."""
     folder = tmp_path_factory.mktemp("laptop")
     write_tiny_recording(folder / "tiny.mcap", n=60)
-    (folder / "suite.toml").write_text('seeds = [0, 1, 2]\n[recordings.tiny]\npath = "tiny.mcap"\n'
-                                       "[pipelines.odometry]\n")
+    (folder / "suite.toml").write_text('name = "laptop odometry"\nseeds = [0, 1, 2]\n[recordings.tiny]\n'
+                                       'path = "tiny.mcap"\n[pipelines.odometry]\n')
     from slamreplay.api.cli import main
 
     assert main(["suite", "run", str(folder / "suite.toml"), "--out", str(folder / "results"), "-q"]) == 0
@@ -72,8 +72,9 @@ def test_three_suite_runs_pushed_and_compared_with_the_servers_own(
                               "--origin", "laptop of rui", "--tag", "laptop"], capsys)
     assert code == 0, err
     lines = out.strip().splitlines()
-    assert len(lines) == 4 and lines[-1] == f"3 of 3 runs on {url}", out
+    assert len(lines) == 5 and lines[-1] == f"3 of 3 runs on {url}", out
     assert all(": pushed as job " in line and "odometry seed" in line for line in lines[:3]), out
+    assert "suite 'laptop odometry' (3 cells) recorded as" in lines[3], out
 
     runner = Client(url, tokens["runner"])
     pushed = list(runner.jobs(tag="laptop"))
@@ -101,9 +102,19 @@ def test_three_suite_runs_pushed_and_compared_with_the_servers_own(
     page = viewer.request("GET", "/compare", params={"runs": ids})[2]
     assert {r["id"] for r in page["runs"]} == {own["id"], *(j["id"] for j in pushed)}, page.keys()
 
+    # the suite is the server's too: its page and the history of its name count it
+    suite = next(x for x in runner.get("/suites") if x["name"] == "laptop odometry")
+    assert suite["progress"]["status"] == "succeeded" and {c["job_id"] for c in suite["cells"]} == {
+        j["id"] for j in pushed}
+    history = runner.get("/history/suites/laptop odometry")
+    assert [v["code_version"] for v in history["versions"]] == [pushed[0]["git_commit"]], history["versions"]
+    assert history["versions"][0]["status"] == "succeeded" and history["series"], history
+
     again = run_cli(["push", str(made_elsewhere), "--server", url, "--token", tokens["runner"]], capsys)
     assert again[0] == 0 and again[1].count("already on the server as job") == 3, again
     assert runner.count(tag="laptop") == 3 and runner.count(pipeline="odometry") == 4
+    assert f"recorded as {suite['id'][:8]}" in again[1]  # the same suite, not a second one
+    assert [x["id"] for x in runner.get("/suites") if x["name"] == "laptop odometry"] == [suite["id"]]
 
 
 def _tar(files: dict[str, bytes], link: str | None = None) -> bytes:
