@@ -218,9 +218,9 @@ def label_job_route(request: Request, job_id: JobId, patch: LabelsPatch, jobs: J
     return JobOut.of(job)
 
 
-@router.post("/runs", status_code=201, tags=["jobs"], openapi_extra={"requestBody": {"required": True, "content": {
-    "application/gzip": {"schema": {"type": "string", "format": "binary"}},
-    "application/x-tar": {"schema": {"type": "string", "format": "binary"}}}}},
+@router.post("/runs", status_code=201, tags=["jobs"], openapi_extra={"requestBody": {
+    "required": True, "description": "a tar of the run directory, gzipped or not (any content type)",
+    "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}},
     responses={201: {"description": "kept as a new job"},
                200: {"model": JobOut, "description": "this run (its manifest's run_id) was pushed before: its job"}})
 async def push_run(request: Request, response: Response, jobs: JobsDep,
