@@ -140,6 +140,35 @@ def test_a_viewer_sees_no_buttons_and_gets_a_403_page(browser: Any, team: dict[s
     page.context.close()
 
 
+def test_a_runner_submits_and_labels(browser: Any, team: dict[str, Any]) -> None:
+    """rui (runner) runs a job from the home page's form with a name and tags, then edits its note on its page;
+    the job page says who submitted and who labelled it, and the API shows the same labels and maker."""
+    base = team["base"]
+    page = new_page(browser)
+    sign_in(page, base, team["tokens"]["rui"])
+    page.select_option("#job-form select[name=pipeline]", "odometry")
+    page.fill("#job-form input[name=seed]", "3")
+    page.fill("#job-form input[name=name]", "rui's first")
+    page.fill("#job-form input[name=tags]", "team, browser")
+    page.click("#job-form button[type=submit]")
+    page.wait_for_url(re.compile(r"/ui/jobs/[0-9a-f]{32}$"))
+    job = page.url.rsplit("/", 1)[1]
+    assert "rui's first" in page.inner_text("h2")
+    page.click("#edit-job")
+    page.fill("textarea[name=note]", "looked at it: fine")
+    page.click("#edit-form button[type=submit]")
+    page.wait_for_url(re.compile(re.escape(f"/ui/jobs/{job}") + "$"))
+    assert "looked at it: fine" in page.inner_text("#job-note")
+    people = page.inner_text("#job-people")
+    assert "Submitted by rui" in people and "tagged or annotated by rui" in people, people
+    from slamreplay.api.client import Client
+
+    got = Client(base, team["tokens"]["vic"]).job(job)
+    assert (got["name"], got["tags"], got["made_by"]) == ("rui's first", ["browser", "team"], "rui")
+    assert page.problems == [], page.problems
+    page.context.close()
+
+
 def test_an_admin_sees_who_cancelled_what(browser: Any, team: dict[str, Any]) -> None:
     """rui cancels the running job from its page; ada's audit trail names rui, the cancel and the job (filtered by
     action too), and the job's page says who cancelled it; the trail passes axe at both sizes."""
