@@ -16,10 +16,10 @@ from __future__ import annotations
 from collections import Counter
 from datetime import datetime, timezone
 from pathlib import Path as FsPath
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from fastapi import APIRouter, Depends, Path, Request
+from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from markupsafe import Markup
 from pydantic import BaseModel, Field
@@ -36,6 +36,7 @@ from slamreplay.api.suites_routes import SuiteOut, SuitesDep
 from slamreplay.replay.metric_registry import axis_bounds
 from slamreplay.replay.runs.changepoints import Change, detect_changes
 from slamreplay.replay.runs.history import Commit, History, git_order, history_of_versions, series
+from slamreplay.replay.runs.history_dates import history_by_date, ran_at
 
 SUITES_READ = 10_000
 # a suite's name is any string its file gives (spaces, slashes...): the route takes the rest of the path
@@ -96,24 +97,42 @@ def run_on_revision(suites: SuiteService, name: str, rev: str) -> SuiteRow:
     return suites.submit(text, row.format, rev=sha)
 
 
+def ended_suites(suites: SuiteService, name: str) -> list[tuple[SuiteRow, list[dict[str, Any]]]]:
+    """The ended suites named ``name``, oldest first, each with its cells' results rows; NotFoundError if none."""
+    named = sorted((s for s in suites.recent(SUITES_READ) if s.name == name), key=lambda s: s.created)
+    if not named:
+        raise NotFoundError(f"no suite named {name!r}: GET /suites lists the suites and their names")
+    out = []
+    for s in named:
+        _, _, cells = suites.get(s.id)
+        progress = suites.progress(cells)
+        if progress["ended"] == progress["cells"]:
+            out.append((s, [suites.result_row(c) for c in cells]))
+    return out
+
+
+def suite_history_by_date(suites: SuiteService, name: str, version: str | None = None) -> tuple[History, list[str]]:
+    """The history of the ended suites named ``name`` over the days their runs started (``history_dates``: every
+    code version's runs, or ``version``'s), and every code version they ran, in the order they first ran."""
+    rows = []
+    for s, got in ended_suites(suites, name):
+        sent = datetime.fromtimestamp(s.created, timezone.utc).isoformat(timespec="seconds")
+        # a run is dated by its manifest; one without (deleted) by its suite
+        rows += [{**r, "suite_id": s.id, "ran_at": r.get("ran_at") or ran_at(r) or sent} for r in got]
+    versions = list(dict.fromkeys(str(r.get("code_version") or "unknown") for r in rows))
+    return history_by_date(rows, version, name), versions
+
+
 def suite_history(suites: SuiteService, name: str) -> tuple[History, dict[str, list[str]]]:
     """The history of the ended suites named ``name``, and the suite ids of each version; NotFoundError if none.
 
     Versions in git's order in the checkout the service runs from (``history.git_order``), whenever they ran: a
     commit run after a newer one still comes before it; versions that checkout does not know come last, by the
     date they first ran, each with a note."""
-    named = sorted((s for s in suites.recent(SUITES_READ) if s.name == name), key=lambda s: s.created)
-    if not named:
-        raise NotFoundError(f"no suite named {name!r}: GET /suites lists the suites and their names")
     rows: dict[str, dict[tuple[Any, ...], dict[str, Any]]] = {}
     first: dict[str, float] = {}
     ids: dict[str, list[str]] = {}
-    for s in named:
-        _, _, cells = suites.get(s.id)
-        progress = suites.progress(cells)
-        if progress["ended"] < progress["cells"]:
-            continue
-        got = [suites.result_row(c) for c in cells]
+    for s, got in ended_suites(suites, name):
         seen = Counter(str(r["code_version"]) for r in got if r.get("code_version"))
         version = seen.most_common(1)[0][0] if seen else "unknown"
         first.setdefault(version, s.created)
@@ -140,63 +159,101 @@ def order_note(history: History) -> str:
 
 def history_json(history: History, changes: list[Change], ids: dict[str, list[str]], name: str) -> dict[str, Any]:
     """The history for dashboards: versions, each series' points (mean, sd, seeds), the changes."""
+    return {"suite": name, "by": "commit", "order": order_note(history),
+            "versions": [{"code_version": c.sha, "first_run": c.date, "subject": c.subject,
+                          "suites": ids.get(c.sha, []), "status": history.status.get(c.sha, {}).get("status"),
+                          "placed": c.note or "git"} for c in history.commits],
+            "series": _series_json(history, "version"), "changes": [ch.to_json() for ch in changes]}
+
+
+def history_json_by_date(history: History, changes: list[Change], name: str, version: str | None) -> dict[str, Any]:
+    """The history over days for dashboards: the days (their code versions and suites), each series' points, the
+    changes (each between two days, ``previous_date`` and ``date``)."""
+    days = [{"date": c.sha, **{k: history.status[c.sha].get(k) for k in ("versions", "suites", "status")}}
+            for c in history.commits]
+    moved = [{**{k: v for k, v in ch.to_json().items() if k not in ("commit", "previous", "report")},
+              "date": ch.commit, "previous_date": ch.previous} for ch in changes]
+    return {"suite": name, "by": "date", "version": version, "days": days, "series": _series_json(history, "date"),
+            "changes": moved}
+
+
+def _series_json(history: History, point: str) -> list[dict[str, Any]]:
+    """Each series' points: the point's key (a version or a day), the seeds' values, their mean and sd."""
     out_series = []
     for (rec, pipe, variant), by_metric in sorted(series(history).items()):
         for metric, values in sorted(by_metric.items()):
             points = []
             for c, v in zip(history.commits, values, strict=True):
                 xs = list(v.values())
-                points.append({"version": c.sha, "n": len(xs), "values": xs,
+                points.append({point: c.sha, "n": len(xs), "values": xs,
                                "mean": float(np.mean(xs)) if xs else None,
                                "sd": float(np.std(xs, ddof=1)) if len(xs) > 1 else None})
             out_series.append({"recording": rec, "pipeline": pipe, "variant": variant, "metric": metric,
                                "points": points})
-    return {"suite": name, "order": order_note(history),
-            "versions": [{"code_version": c.sha, "first_run": c.date, "subject": c.subject,
-                          "suites": ids.get(c.sha, []), "status": history.status.get(c.sha, {}).get("status"),
-                          "placed": c.note or "git"} for c in history.commits],
-            "series": out_series, "changes": [ch.to_json() for ch in changes]}
+    return out_series
+
+
+By = Annotated[Literal["commit", "date"], Query(description="commit: over the code versions, in git's order; "
+                                                         "date: over the days the runs started")]
+Version = Annotated[str | None, Query(max_length=64, description="with by=date: only this code version's runs "
+                                                                 "(a sha, 7 or more of its hex digits)")]
 
 
 @router.get("/history/suites/{name:path}")
-def get_suite_history(name: SuiteName, suites: SuitesDep) -> dict[str, Any]:
-    """The metrics of the suites sent under ``name`` over the code versions they ran on, and the changes found
-    between versions (the method of ``slamreplay history``)."""
+def get_suite_history(name: SuiteName, suites: SuitesDep, by: By = "commit", version: Version = None
+                      ) -> dict[str, Any]:
+    """The metrics of the suites sent under ``name`` over the code versions they ran on (in git's order, whenever
+    they ran), or with ``by=date`` over the days their runs started, and the changes found between consecutive
+    points (the method of ``slamreplay history``)."""
+    if by == "date":
+        dated, _versions = suite_history_by_date(suites, name, version or None)
+        return history_json_by_date(dated, detect_changes(dated), name, version or None)
     history, ids = suite_history(suites, name)
     return history_json(history, detect_changes(history), ids, name)
 
 
 @page.get("/ui/history/{name:path}")
-def history_page(request: Request, name: SuiteName, suites: SuitesDep) -> HTMLResponse:
+def history_page(request: Request, name: SuiteName, suites: SuitesDep, by: By = "commit", version: Version = None
+                 ) -> HTMLResponse:
     from slamreplay.replay.runs.compare import fmt
     from slamreplay.replay.runs.history_report import plot_svg
 
+    version = version or None
+    versions_seen: list[str] = []
     try:
-        history, ids = suite_history(suites, name)
+        if by == "date":
+            history, versions_seen = suite_history_by_date(suites, name, version)
+        else:
+            history, ids = suite_history(suites, name)
     except PAGE_ERRORS as err:
         return _error(request, err)
     changes = detect_changes(history)
+    over = "days" if by == "date" else "versions"
     groups = []
     for group, by_metric in sorted(series(history).items()):
         plots = [(m, Markup(plot_svg(v, [ch for ch in changes if (ch.recording, ch.pipeline, ch.variant) == group
-                                         and ch.metric == m], label=f"{m} of {'/'.join(group)} over versions",
+                                         and ch.metric == m], label=f"{m} of {'/'.join(group)} over {over}",
                                      bounds=axis_bounds(m))))
                  # our own SVG, its text escaped
                  for m, v in sorted(by_metric.items())]
         groups.append({"name": "/".join(group), "plots": plots})
-    versions = []
+    if by == "date":
+        ids = {c.sha: list(history.status[c.sha].get("suites") or []) for c in history.commits}
+    points = []
     for k, c in enumerate(history.commits):
         prev = ids.get(history.commits[k - 1].sha, []) if k else []
         mine = ids.get(c.sha, [])
-        link = f"/ui/compare?a={prev[-1]}&b={mine[-1]}" if prev and mine else None
-        versions.append({"k": k, "version": c.sha, "short": c.sha[:10], "date": c.date, "subject": c.subject,
-                         "suites": mine, "compare": link, "note": c.note})
+        link = f"/ui/compare?a={prev[-1]}&b={mine[-1]}" if prev and mine and prev[-1] != mine[-1] else None
+        points.append({"k": k, "version": c.sha, "short": c.sha[:10], "date": c.date, "subject": c.subject,
+                       "suites": mine, "compare": link, "note": c.note,
+                       "versions": history.status[c.sha].get("versions", []) if by == "date" else []})
     shown = [{**ch.to_json(), "short": ch.commit[:10], "before": fmt(ch.mean_before),
               "after": "missing" if ch.mean_after is None else fmt(ch.mean_after),
               "delta": fmt(ch.delta, signed=True), "rel": f"{ch.relative:+.1%}" if ch.relative is not None else "",
               "k": ch.index} for ch in changes]
-    return _page(request, "suite_history.html", suite_name=name, groups=groups, versions=versions, changes=shown,
-                 can_run_rev=service_repo() is not None, order=order_note(history))
+    return _page(request, "suite_history.html", suite_name=name, groups=groups, versions=points, changes=shown,
+                 can_run_rev=service_repo() is not None, order=order_note(history), by=by, version=version,
+                 versions_seen=versions_seen)
 
 
 class RevIn(BaseModel):

@@ -6,7 +6,9 @@ seeds' spread (a whisker from the lowest to the highest seed) over the commits, 
 dashed line coloured by its verdict. Each point links to its commit's row in the commits table,
 which lists that commit's runs (their ``run.rrd``) and the compare report against the previous
 commit with results (``DIR/compare/<a>-<b>-<hash>.html``, made by ``report.py`` once per pair of
-commits and cells).
+commits and cells). A history over days (``history_dates``) makes ``DIR/by-date.html`` the same way,
+its points days, without compare reports. Each plot's y axis stops at the metric's registered range
+(:func:`y_range`).
 """
 
 from __future__ import annotations
@@ -26,8 +28,11 @@ from slamreplay.replay.metric_registry import axis_bounds
 from slamreplay.replay.runs.changepoints import Change
 from slamreplay.replay.runs.compare import compare, fmt, side_of_rows
 from slamreplay.replay.runs.history import History, series
+from slamreplay.replay.runs.history_dates import ALL_RECORDINGS
 from slamreplay.replay.runs.report import write_reports
 
+REPORT = {"commit": "index.html", "date": "by-date.html"}
+CHANGES = {"commit": "changes.json", "date": "changes-by-date.json"}
 COLOURS = {"regression": "#c62828", "lost": "#c62828", "improvement": "#2e7d32", "changed": "#757575"}
 CSS = """body{font:14px system-ui,sans-serif;margin:1.2em;color:#222}table{border-collapse:collapse}
 td,th{padding:2px 8px;border-bottom:1px solid #ddd;text-align:left;vertical-align:top}
@@ -139,21 +144,30 @@ def _rel(path: str | None, base: Path) -> str | None:
         return path
 
 
+# what a point of a history is: a commit, or a day (``history_dates``)
+WORDS = {"commit": ("commit", "commits", "per-commit"), "date": ("day", "days", "per-day")}
+
+
 def render_index(history: History, changes: Sequence[Change], out: Path, reports: dict[str, str],
-                 metrics: Sequence[str] = ()) -> str:
-    """The page (see the module docstring); links relative to ``out``."""
+                 metrics: Sequence[str] = (), by: str = "commit") -> str:
+    """The page (see the module docstring); links relative to ``out``. ``by="date"``: a history over days."""
     e = html.escape
+    one, many, per = WORDS[by]
+    over = " over the days it ran" if by == "date" else ""
     name = next((str(s.get("suite")) for s in history.status.values() if s.get("suite")), "suite")
     body = [f"<!doctype html><html><head><meta charset='utf-8'><title>slamreplay history: {e(name)}</title>"
-            f"<style>{CSS}</style></head><body><h1>History of suite {e(name)}</h1>",
-            f"<p>{len(history.commits)} commit(s)"
+            f"<style>{CSS}</style></head><body><h1>History of suite {e(name)}{over}</h1>",
+            f"<p>{len(history.commits)} {one}(s)"
             + (f", {e(history.commits[0].short)} .. {e(history.commits[-1].short)}" if history.commits else "")
-            + f"; {len(changes)} change(s). Each plot: per-commit mean (line) and the seeds' range (whisker), "
+            + f"; {len(changes)} change(s). Each plot: {per} mean (line) and the seeds' range (whisker), "
               "changes dashed (<span class='regression'>worse</span>, <span class='improvement'>better</span>, "
-              "grey: changed). Click a point for its commit's runs and the comparison with the commit before.</p>",
+              f"grey: changed). Click a point for its {one}'s runs"
+            + (" and the comparison with the commit before.</p>" if by == "commit" else
+               f" and the code versions that ran. Series \"{ALL_RECORDINGS}\": per seed, the mean over a day's "
+               "recordings.</p>"),
             "<h2>Changes</h2>"]
     if changes:
-        body.append("<table><tr><th>commit</th><th>cell</th><th>metric</th><th>before</th><th>after</th>"
+        body.append(f"<table><tr><th>{one}</th><th>cell</th><th>metric</th><th>before</th><th>after</th>"
                     "<th>change</th><th>verdict</th><th>p</th><th>report</th></tr>")
         for ch in changes:
             c = history.commits[ch.index]
@@ -167,7 +181,7 @@ def render_index(history: History, changes: Sequence[Change], out: Path, reports
         body.append("</table>")
     else:
         body.append("<p>No metric changed beyond seed noise and its tolerance.</p>")
-    body.append("<h2>Metrics over commits</h2>")
+    body.append(f"<h2>Metrics over {many}</h2>")
     by_group = series(history)
     for group, by_metric in sorted(by_group.items()):
         names = [m for m in sorted(by_metric) if not metrics or m in metrics]
@@ -176,17 +190,17 @@ def render_index(history: History, changes: Sequence[Change], out: Path, reports
             marks = [ch for ch in changes if (ch.recording, ch.pipeline, ch.variant) == group and ch.metric == m]
             if i and i % 4 == 0:
                 body.append("</tr><tr>")
-            plot = plot_svg(by_metric[m], marks, label=f"{m} of {'/'.join(group)} over commits",
+            plot = plot_svg(by_metric[m], marks, label=f"{m} of {'/'.join(group)} over {many}",
                             bounds=axis_bounds(m))
             body.append(f"<td><div class='small'>{e(m)}</div>{plot}</td>")
         body.append("</tr></table>")
-    body.append("<h2>Commits</h2><table><tr><th>#</th><th>commit</th><th>date</th><th>status</th><th>runs</th>"
-                "<th>against the commit before</th></tr>")
+    body.append(f"<h2>{many.capitalize()}</h2><table><tr><th>#</th><th>{one}</th><th>date</th><th>status</th>"
+                f"<th>runs</th><th>against the {one} before</th></tr>")
     for k, c in enumerate(history.commits):
         st = history.status.get(c.sha, {})
         status = str(st.get("status", "running"))
         runs = []
-        for r in sorted(history.cells(c.sha), key=lambda r: str(r.get("run_dir"))):
+        for r in sorted((r for r in history.cells(c.sha) if not r.get("pooled")), key=lambda r: str(r.get("run_dir"))):
             label = Path(str(r.get("run_dir"))).name.rsplit("-", 1)[0]
             href = _rel(str(Path(str(r["run_dir"])) / "run.rrd"), out) if r.get("run_dir") else None
             if r["status"] == "succeeded" and href:
@@ -204,9 +218,11 @@ def render_index(history: History, changes: Sequence[Change], out: Path, reports
 
 
 def render_markdown(history: History, changes: Sequence[Change], base: Path, out: Path,
-                    base_url: str | None = None) -> str:
+                    base_url: str | None = None, by: str = "commit") -> str:
     """The changes as a markdown table for a CI job summary; links relative to ``base`` (the summary's folder),
-    or ``base_url`` + that path; files outside ``base`` are named, not linked."""
+    or ``base_url`` + that path; files outside ``base`` are named, not linked. ``by="date"``: a history over days."""
+    one, _many, _per = WORDS[by]
+    page = REPORT[by]
     prefix = base_url.rstrip("/") + "/" if base_url else ""
 
     def link(path: Path, text: str) -> str:
@@ -218,10 +234,10 @@ def render_markdown(history: History, changes: Sequence[Change], base: Path, out
     name = next((str(s.get("suite")) for s in history.status.values() if s.get("suite")), "suite")
     worse = sum(1 for ch in changes if ch.verdict in ("regression", "lost"))
     lines = [f"### History of suite {name}: {len(changes)} change(s), {worse} for the worse, over "
-             f"{len(history.commits)} commit(s) ({link(out / 'index.html', 'report')})", ""]
+             f"{len(history.commits)} {one}(s) ({link(out / page, 'report')})", ""]
     if not changes:
         return "\n".join(lines + ["No metric changed beyond seed noise and its tolerance.", ""])
-    lines += ["| commit | cell | metric | before | after | change | verdict | report |",
+    lines += [f"| {one} | cell | metric | before | after | change | verdict | report |",
               "| --- | --- | --- | ---: | ---: | ---: | --- | --- |"]
     icon = {"regression": "🔴 ", "lost": "🔴 ", "improvement": "🟢 ", "changed": ""}
     for ch in changes:
@@ -250,13 +266,14 @@ def format_changes(history: History, changes: Sequence[Change]) -> str:
 
 
 def write_history_reports(history: History, changes: Sequence[Change], out: Path, markdown: str | Path | None = None,
-                          base_url: str | None = None, metrics: Sequence[str] = ()) -> list[Change]:
+                          base_url: str | None = None, metrics: Sequence[str] = (), by: str = "commit") -> list[Change]:
     """``out/index.html``, the compare reports it links, ``out/changes.json`` and, with ``markdown``, the summary;
-    the changes with their report paths (relative to ``out``)."""
-    reports, linked = pair_reports(history, changes, out)
-    atomic_write(out / "index.html", render_index(history, linked, out, reports, metrics))
-    atomic_write(out / "changes.json", json.dumps([ch.to_json() for ch in linked], indent=1, default=str) + "\n")
+    the changes with their report paths (relative to ``out``). ``by="date"`` (a history over days,
+    ``history_dates``): ``out/by-date.html`` and ``out/changes-by-date.json``, without compare reports."""
+    reports, linked = pair_reports(history, changes, out) if by == "commit" else ({}, list(changes))
+    atomic_write(out / REPORT[by], render_index(history, linked, out, reports, metrics, by))
+    atomic_write(out / CHANGES[by], json.dumps([ch.to_json() for ch in linked], indent=1, default=str) + "\n")
     if markdown is not None:
         md = Path(markdown)
-        atomic_write(md, render_markdown(history, linked, md.resolve().parent, out.resolve(), base_url))
+        atomic_write(md, render_markdown(history, linked, md.resolve().parent, out.resolve(), base_url, by))
     return linked
