@@ -15,6 +15,7 @@ import re
 import shutil
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 from typing import Annotated, Any
 from urllib.parse import urlencode
 
@@ -33,9 +34,13 @@ from slamreplay.api.pages import PAGE_ERRORS, duration_text, suite_key, web_sess
 from slamreplay.api.pages import error_response as _error
 from slamreplay.api.pages import page_lists as _lists
 from slamreplay.api.pages import page_response as _page
+from slamreplay.api.runs_groups import Stat, best_means, group_runs, runs_of
 from slamreplay.api.runs_query import (
+    COLUMNS,
+    GROUP_KEYS,
     PAGE_SIZES,
     RunsView,
+    best_first,
     metric_specs,
     order_sql,
     parse_view,
@@ -47,6 +52,7 @@ from slamreplay.replay.errors import ReplayError
 
 JobPath = Annotated[str, PathParam(pattern=JOB_ID)]
 router = APIRouter(dependencies=[Depends(web_session)], include_in_schema=False)
+PREVIEW_RUNS = 10  # the runs listed in a group's row (all of them: its link)
 
 
 def _when(t: float | None) -> str:
@@ -89,14 +95,33 @@ def _duration(r: RunRow) -> float | None:
     return (j.finished if j.finished is not None else time.time()) - j.started
 
 
-def _cells(r: RunRow, cols: tuple[str, ...], config_keys: list[str]) -> dict[str, Any]:
+def made_by_text(j: Any) -> str:
+    """Who made a run: the person who submitted it, and for a pushed run where it was made."""
+    if j.source:
+        src = j.source
+        host = src.get("origin") or src.get("host") or src.get("address") or "elsewhere"  # api/push.py's source
+        who = j.made_by or src.get("pushed_by")
+        return f"{who + ', ' if who else ''}pushed from {host}"
+    return j.made_by or ""
+
+
+def and_where(view: RunsView, condition: str) -> str:
+    """The view's condition and ``condition`` (both must hold)."""
+    return f"({view.where}) and {condition}" if view.where else condition
+
+
+def _cells(r: RunRow, view: RunsView, config_keys: list[str]) -> dict[str, Any]:
     j = r.job
+    commit = j.git_commit or ""
     return {"job": j, "recording": r.recording_name or j.recording_id[:8], "variant": r.variant or "",
             "created": _when(j.created)[:16], "started": _clock(j.started, j.created),
             "finished": _clock(j.finished, j.created), "when": _when(j.created),
             "duration": duration_text(_duration(r)), "error": first_line(j.error), "active": j.status in ACTIVE,
-            "metrics": [(j.metrics or {}).get(c) for c in cols],
-            "config": [j.config.get(k) for k in config_keys]}
+            "metrics": [(j.metrics or {}).get(c) for c in view.cols],
+            "config": [j.config.get(k) for k in config_keys],
+            "commit": commit[:8] + ("-dirty" if commit.endswith("-dirty") else ""),
+            "commit_url": view.url(where=and_where(view, f"commit = {commit}"), page=1) if commit else "",
+            "made_by": made_by_text(j)}
 
 
 def metric_heading(name: str) -> dict[str, str]:
@@ -113,22 +138,71 @@ def metric_heading(name: str) -> dict[str, str]:
             "title": f"{spec.description}; {better}"}
 
 
+def stat_cell(metric: str, s: Stat | None, n: int, best: float | None) -> dict[str, Any]:
+    """A group's metric cell: mean (4 digits) ± standard deviation (2), the count, minimum and maximum on hover."""
+    if s is None:
+        return {"name": metric, "mean": "", "std": "", "title": f"none of the {n} runs reports it", "best": False}
+    return {"name": metric, "mean": f"{s.mean:.4g}", "std": "" if s.std is None else f"{s.std:.2g}",
+            "title": f"{s.n} of {n} runs: mean {s.mean:.6g}, std {'-' if s.std is None else f'{s.std:.6g}'}, "
+                     f"min {s.lo:.6g}, max {s.hi:.6g}", "best": best is not None and s.mean == best}
+
+
+def _menu(chosen: tuple[str, ...], available: list[str]) -> list[tuple[str, bool]]:
+    """A column menu's entries: the chosen, in their order, then the others by name; (name, chosen)."""
+    return [(c, True) for c in chosen] + [(c, False) for c in sorted(set(available) - set(chosen))]
+
+
+def sort_choices(view: RunsView) -> list[tuple[str, str]]:
+    """The sort menu's choices (a phone shows no column headings): (sort key, label)."""
+    out = [("-created", "newest first"), ("created", "oldest first")]
+    for m in view.cols:
+        best = best_first(m)
+        worst = best[1:] if best.startswith("-") else f"-{best}"
+        out += [(best, f"{m}: best first"), (worst, f"{m}: worst first")]
+    out += [("n", "fewest runs first"), ("-n", "most runs first"), ("group", "by group")] if view.group else [
+        ("name", "by name")]
+    if view.sort not in dict(out):
+        out.append((view.sort, f"by {view.sort.lstrip('-')}{' (descending)' if view.sort.startswith('-') else ''}"))
+    return out
+
+
 def runs_ctx(request: Request, view: RunsView) -> dict[str, Any]:
-    """What ``_runs.html`` draws: one page of the view, its headings, pager and the filter choices."""
+    """What ``_runs.html`` draws: one page of the view (runs, or groups of runs), its headings, pager, column menu
+    and the filter choices."""
     jobs = get_jobs(request)
     backfill_metrics(jobs)
     where, args = where_sql(view)
-    order = order_sql(view)
-    rows, total = jobs.store.select_runs(where, args, order, view.per, (view.page - 1) * view.per)
-    pages = max(1, -(-total // view.per))
-    if view.page > pages:  # past the end (runs deleted since the link was made): the last page
-        view = RunsView(**{**view.__dict__, "page": pages})
+    ctx: dict[str, Any] = {}
+    if view.group:
+        groups = group_runs(jobs.store.select_group_rows(where, args), view)
+        total = len(groups)
+        pages = max(1, -(-total // view.per))
+        if view.page > pages:
+            view = replace(view, page=pages)
+        shown = groups[(view.page - 1) * view.per: view.page * view.per]
+        best = best_means(shown, view.cols)
+        ctx = {"groups": [{"g": g, "link": runs_of(view, g), "preview": g.runs[:PREVIEW_RUNS],
+                           "cells": [stat_cell(m, g.stats.get(m), g.n, best.get(m)) for m in view.cols]}
+                          for g in shown], "runs_total": sum(g.n for g in groups), "rows": []}
+        config_keys: list[str] = []
+    else:
+        order = order_sql(view)
         rows, total = jobs.store.select_runs(where, args, order, view.per, (view.page - 1) * view.per)
-    config_keys = differing_config(rows)
+        pages = max(1, -(-total // view.per))
+        if view.page > pages:  # past the end (runs deleted since the link was made): the last page
+            view = replace(view, page=pages)
+            rows, total = jobs.store.select_runs(where, args, order, view.per, (view.page - 1) * view.per)
+        config_keys = differing_config(rows) if "config" in view.show else []
+        ctx = {"rows": [_cells(r, view, config_keys) for r in rows], "groups": None}
     recs = jobs.store.list_recordings()
-    return {"view": view, "rows": [_cells(r, view.cols, config_keys) for r in rows], "total": total,
-            "pages": pages, "config_keys": config_keys, "metric_cols": [metric_heading(c) for c in view.cols],
-            "all_metrics": list(metric_specs()), "page_sizes": PAGE_SIZES, "statuses": JOB_STATUSES,
+    listed_metrics = jobs.store.json_keys("metrics", where, args)
+    listed_config = jobs.store.json_keys("config", where, args)
+    group_choices = list(GROUP_KEYS) + [f"config.{k}" for k in listed_config]
+    return {**ctx, "view": view, "total": total, "pages": pages, "config_keys": config_keys,
+            "metric_cols": [metric_heading(c) for c in view.cols], "metric_menu": _menu(view.cols, listed_metrics),
+            "column_menu": [(c, COLUMNS[c], on) for c, on in _menu(view.show, list(COLUMNS))],
+            "group_menu": _menu(view.group, group_choices), "sort_choices": sort_choices(view),
+            "page_sizes": PAGE_SIZES, "statuses": JOB_STATUSES,
             "filter_recordings": recs, "filter_pipelines": jobs.store.pipelines_used(),
             "filter_tags": jobs.store.tag_counts(), "csv_url": view.url("/runs.csv", page=1),
             "here": view.url("/runs")}
@@ -204,14 +278,18 @@ def runs_csv(request: Request) -> Response:
     jobs = get_jobs(request)
     backfill_metrics(jobs)
     where, args = where_sql(view)
-    rows, _ = jobs.store.select_runs(where, args, order_sql(view))
     heads = [metric_heading(c) for c in view.cols]
+    headers = {"Content-Disposition": f'attachment; filename="{"groups" if view.group else "runs"}.csv"'}
+    if view.group:
+        return StreamingResponse(_group_lines(view, jobs.store.select_group_rows(where, args), heads),
+                                 media_type="text/csv; charset=utf-8", headers=headers)
+    rows, _ = jobs.store.select_runs(where, args, order_sql(view))
 
     def lines() -> Iterator[str]:
         buf = io.StringIO()
         w = csv.writer(buf)
         w.writerow(["id", "name", "tags", "note", "recording", "recording_id", "pipeline", "variant", "seed",
-                    "created", "started", "finished", "duration_s", "status", "error", "config",
+                    "created", "started", "finished", "duration_s", "status", "error", "config", "commit", "made_by",
                     *[h["name"] + (f" [{h['unit']}]" if h["unit"] else "") for h in heads]])
         for r in rows:
             j = r.job
@@ -220,13 +298,34 @@ def runs_csv(request: Request) -> Response:
                         j.recording_id, j.pipeline, r.variant or "", j.seed, _when(j.created), _when(j.started),
                         _when(j.finished), "" if d is None else f"{d:.3f}", j.status,
                         _csv_text(first_line(j.error, 10_000)), json.dumps(j.config, sort_keys=True),
+                        j.git_commit or "", _csv_text(made_by_text(j)),
                         *["" if (j.metrics or {}).get(c) is None else repr((j.metrics or {})[c]) for c in view.cols]])
             yield buf.getvalue()
             buf.seek(0)
             buf.truncate()
 
-    return StreamingResponse(lines(), media_type="text/csv; charset=utf-8",
-                             headers={"Content-Disposition": 'attachment; filename="runs.csv"'})
+    return StreamingResponse(lines(), media_type="text/csv; charset=utf-8", headers=headers)
+
+
+def _group_lines(view: RunsView, rows: list[Any], heads: list[dict[str, str]]) -> Iterator[str]:
+    """The groups of a grouped view as CSV lines: the group keys, the number of runs, and per metric its mean,
+    standard deviation, minimum, maximum and how many runs report it."""
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow([*view.group, "runs", *[f"{h['name']} {s}" + (f" [{h['unit']}]" if h["unit"] and s != "n" else "")
+                                       for h in heads for s in ("mean", "std", "min", "max", "n")]])
+    for g in group_runs(rows, view):
+        cells: list[str] = [_csv_text(lab) if k == "recording" else _csv_text(v if v is not None else "")
+                            for k, v, lab in zip(view.group, g.values, g.labels, strict=True)]
+        cells.append(str(g.n))
+        for m in view.cols:
+            st = g.stats.get(m)
+            cells += ["", "", "", "", "0"] if st is None else [
+                repr(st.mean), "" if st.std is None else repr(st.std), repr(st.lo), repr(st.hi), str(st.n)]
+        w.writerow(cells)
+        yield buf.getvalue()
+        buf.seek(0)
+        buf.truncate()
 
 
 def _next(raw: Any) -> str:
@@ -315,9 +414,9 @@ async def delete_job(request: Request, job_id: JobPath, jobs: JobsDep) -> Respon
 @router.get("/ui/runs/compare")
 def compare_selected(request: Request, jobs: JobsDep,
                      sel: Annotated[list[str] | None, Query(max_length=32)] = None) -> Response:
-    """The selected runs: two succeeded runs of one recording, pipeline and seed open the paired comparison page;
-    any others a page leading to their comparison at its stable URL (``/ui/compare?runs=...``: two as a diff,
-    more side by side) and, for two, the API's diff."""
+    """The selected runs, straight to their comparison: two succeeded runs of one recording, pipeline and seed to
+    the paired comparison (``/ui/compare?a=...&b=...``), any others to their comparison at its stable URL
+    (``/ui/compare?runs=...``: two as a diff, more side by side)."""
     from slamreplay.api.compare_runs import MAX_RUNS
 
     ids = list(dict.fromkeys(s for s in sel or [] if re.fullmatch(JOB_ID, s)))
@@ -334,7 +433,4 @@ def compare_selected(request: Request, jobs: JobsDep,
     if (len(chosen) == 2 and all(j.status == "succeeded" for j in chosen) and a.recording_id == b.recording_id
             and a.pipeline == b.pipeline and a.seed == b.seed):
         return RedirectResponse("/ui/compare?" + urlencode({"a": a.id, "b": b.id}), 303)
-    rec_names = {r.id: r.filename for r in jobs.store.list_recordings()}
-    return _page(request, "runs_compare.html", chosen=chosen, runs_url="/ui/compare?runs=" + ",".join(ids),
-                 diff_url=f"/diff?a={a.id}&b={b.id}" if len(chosen) == 2 else None, rec_names=rec_names,
-                 all_succeeded=all(j.status == "succeeded" for j in chosen))
+    return RedirectResponse("/ui/compare?runs=" + ",".join(ids), 303)

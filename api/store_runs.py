@@ -112,6 +112,24 @@ class RunRow:
     variant: str | None
 
 
+@dataclass(frozen=True, slots=True)
+class GroupRow:
+    """What a grouped view of the runs table reads of a job: its keys and metric values."""
+
+    seq: int
+    id: str
+    name: str | None
+    status: str
+    pipeline: str
+    seed: int
+    recording_id: str
+    recording_name: str | None
+    variant: str | None
+    git_commit: str | None
+    config: dict[str, Any]
+    metrics: dict[str, float]
+
+
 # A job's suite variant: the first cell naming it (the suites tables are made by api/suites.py, which a bare
 # store may not have run: then no job has a variant).
 VARIANTS = ("LEFT JOIN (SELECT job_id, MIN(json_extract(cell, '$.variant')) AS variant FROM suite_cells "
@@ -203,6 +221,26 @@ class RunsTableMixin:
                                 f"WHERE {where} ORDER BY {order} LIMIT ? OFFSET ?",
                                 (*args, -1 if limit is None else limit, offset)).fetchall()
         return [RunRow(job_row(r), r["recording_name"], r["variant"]) for r in rows], total
+
+    def json_keys(self, column: Literal["metrics", "config"], where: str, args: list[Any]) -> list[str]:
+        """The keys of ``column`` (metric names or config keys) of the jobs matching ``where`` (as `select_runs`),
+        by name."""
+        if column not in ("metrics", "config"):
+            raise ValueError(f"column {column!r}: metrics or config")
+        with self._read() as conn:
+            joins = f"FROM jobs j LEFT JOIN recordings r ON r.id = j.recording_id {self._variants(conn)}"
+            rows = conn.execute(f"SELECT DISTINCT e.key FROM (SELECT j.{column} AS doc {joins} WHERE {where} "
+                                f"AND j.{column} IS NOT NULL) m, json_each(m.doc) e ORDER BY e.key", args).fetchall()
+        return [r[0] for r in rows]
+
+    def select_group_rows(self, where: str, args: list[Any]) -> list[GroupRow]:
+        """Every job matching ``where`` (as `select_runs`), newest first, with what a grouped view reads of it."""
+        with self._read() as conn:
+            joins = f"FROM jobs j LEFT JOIN recordings r ON r.id = j.recording_id {self._variants(conn)}"
+            rows = conn.execute(f"SELECT j.seq, j.id, j.name, j.status, j.pipeline, j.seed, j.recording_id, "
+                                f"r.filename, v.variant, j.git_commit, j.config, j.metrics {joins} WHERE {where} "
+                                "ORDER BY j.seq DESC", args).fetchall()
+        return [GroupRow(*r[:10], json.loads(r[10]), json.loads(r[11]) if r[11] else {}) for r in rows]
 
     def jobs_page(self, where: str, args: list[Any], limit: int,
                   before: int | None = None) -> tuple[list[JobRow], int, int | None]:

@@ -20,12 +20,14 @@ with warnings.catch_warnings():
     from fastapi.testclient import TestClient
 
 from slamreplay.api.app import create_app
+from slamreplay.api.runs_grammar import Clause, Condition, parse_where
 from slamreplay.api.runs_query import RunsView, parse_conditions, parse_view
 from slamreplay.api.settings import Settings
 from slamreplay.api.store import RecordingRow, Store
 from slamreplay.api.store_runs import Labels
 
 SIM, HALL = "a" * 64, "b" * 64
+COMMITS = ("abcd" + "1" * 36, "ef01" + "2" * 36)
 # The jobs table as the first release made it: a database from then must open and work.
 OLD_SCHEMA = """
 CREATE TABLE IF NOT EXISTS recordings (
@@ -73,7 +75,8 @@ def write_metrics(run_dir: Path, values: dict[str, float]) -> None:
 @pytest.fixture
 def table(tmp_path: Path) -> tuple[TestClient, Store]:
     """Nine jobs: 0-5 succeeded (ape_rmse_m 0.0, 0.1 ... 0.5, odometry on sim.mcap for even seeds, dslam on
-    hall.mcap for odd), 6 failed, 7 running, 8 queued; job 3 has the config {"range_sigma_m": 0.2}."""
+    hall.mcap for odd; 0-2 on COMMITS[0], 3-5 on COMMITS[1]), 6 failed, 7 running, 8 queued; job 3 has the config
+    {"range_sigma_m": 0.2}; job i was created on 2024-05-(i+1)."""
     client = app_for(tmp_path)
     store: Store = client.app.state.jobs.store  # type: ignore[attr-defined]
     store.add_recording(RecordingRow(SIM, "sim.mcap", 10, [], 0, 0, 0, 0.0))
@@ -84,9 +87,13 @@ def table(tmp_path: Path) -> tuple[TestClient, Store]:
         if i < 8:
             assert store.claim_next() is not None
         if i < 6:
-            store.finish_job(jid(i), "succeeded", None, {"ape_rmse_m": i / 10, "poses_scored": 100.0 - i})
+            store.finish_job(jid(i), "succeeded", None, {"ape_rmse_m": i / 10, "poses_scored": 100.0 - i},
+                             COMMITS[i // 3])
         elif i == 6:
             store.finish_job(jid(i), "failed", "sim.mcap: topic /camera/image is missing\nsecond line", None)
+    with sqlite3.connect(store.path) as conn:
+        conn.executemany("UPDATE jobs SET created = ? WHERE id = ?",
+                         [(1714521600.0 + i * 86400 + 3600, jid(i)) for i in range(9)])
     return client, store
 
 
@@ -234,15 +241,75 @@ def test_other_bad_parameters_are_messages(table: tuple[TestClient, Store]) -> N
 
 
 def test_parse_conditions_strictly() -> None:
-    """Each operator parses; the number may be signed or in exponent form."""
+    """Each operator parses; the number may be signed or in exponent form; and/or/parentheses nest as written."""
     known = {"a_m": None, "b": None}
     got = parse_conditions("a_m < 1 and b>=-2.5e-3 AND a_m != .5", known)
     assert [(c.metric, c.op, c.value) for c in got] == [("a_m", "<", 1.0), ("b", ">=", -2.5e-3), ("a_m", "!=", 0.5)]
     for op in ("<", "<=", ">", ">=", "=", "!="):
         assert parse_conditions(f"b {op} 1", known)[0].op == op
-    for bad in ("b == 1", "b < 1 or a_m > 2", "b < nan", "b <", "1 < b"):
+    for bad in ("b == 1", "b < nan", "b <", "1 < b", "b < 1; drop table jobs"):
         with pytest.raises(ValueError, match="cannot read the condition"):
             parse_conditions(bad, known)
+
+
+def test_grammar_precedence_and_fields() -> None:
+    """``and`` binds tighter than ``or``; parentheses group; config keys, seed, commit, dates and text fields
+    each read their kind of value."""
+    known = {"a_m": None, "b": None}
+    expr = parse_where("a_m < 1 or b > 2 and a_m = 3", known)
+    assert str(expr) == "a_m < 1 or (b > 2 and a_m = 3)"
+    assert isinstance(expr, Clause) and expr.join == "or" and isinstance(expr.parts[1], Clause)
+    expr = parse_where("(a_m < 1 OR b > 2) and (seed = 3)", known)
+    assert str(expr) == "(a_m < 1 or b > 2) and seed = 3"
+    cases = {"config.range_sigma_m <= 0.1": ("config.range_sigma_m", "<=", 0.1),
+             "config.association = nn": ("config.association", "=", "nn"),
+             "config.association != 'joint compatibility'": ("config.association", "!=", "joint compatibility"),
+             "config.sparsify = true": ("config.sparsify", "=", True),
+             "config.range_sigma_m = default": ("config.range_sigma_m", "=", None),
+             "seed != 2": ("seed", "!=", 2), "commit = 1A2b3C4": ("commit", "=", "1a2b3c4"),
+             "commit = none": ("commit", "=", None),
+             "created >= 2024-05-01": ("created", ">=", 1714521600.0),
+             "recording = 'hall 2.mcap'": ("recording", "=", "hall 2.mcap"), "variant = none": ("variant", "=", None),
+             "pipeline=dslam": ("pipeline", "=", "dslam")}
+    for text, want in cases.items():
+        c = parse_where(text, known, {"range_sigma_m", "association", "sparsify"})
+        assert isinstance(c, Condition) and (c.field, c.op, c.value) == want, text
+        assert parse_where(str(c), known, {"range_sigma_m", "association", "sparsify"}) == c  # written back
+
+
+BAD_GRAMMAR = {
+    "(ape_rmse_m < 1": "a ( without its )",
+    "ape_rmse_m < 1)": "a ) without its (",
+    "ape_rmse_m < 1 and": "a comparison is missing after 'and'",
+    "or ape_rmse_m < 1": "a comparison is missing at the start",
+    "ape_rmse_m < 1 and or seed = 2": "a comparison is missing after 'and'",
+    "() ": "a comparison is missing after '('",
+    "config.range_sigm < 1": "unknown config key 'range_sigm': did you mean range_sigma_m",
+    "config.range_sigma_m < abc": "config.range_sigma_m takes a number with <",
+    "commit < abcd": "commit takes = or != only",
+    "commit = xyz1": "commit takes 4 to 40 hex digits",
+    "created > 2024-13-01": "created takes a day YYYY-MM-DD",
+    "finished = yesterday": "finished takes a day YYYY-MM-DD",
+    "seed = 1.5": "seed takes a whole number",
+    "status = done": "unknown status 'done'",
+    "pipeline < dslam": "pipeline takes = or != only",
+    "recording = 'hall.mcap": "is not closed",
+}
+
+
+def test_bad_grammar_is_one_line_on_the_page_and_the_api(table: tuple[TestClient, Store]) -> None:
+    """A condition that does not parse: the page says so in one line above the unfiltered table (422), and the
+    JSON API (GET /jobs?where=) answers 422 with the same line."""
+    client, _ = table
+    for where, message in BAD_GRAMMAR.items():
+        r = client.get("/runs", params={"where": where})
+        assert r.status_code == 422
+        errors = re.findall(r'<p class="error" id="view-error">(.*?)</p>', r.text, re.S)
+        assert len(errors) == 1 and message in html.unescape(errors[0]) and "\n" not in errors[0], (where, errors)
+        assert len(row_ids(r.text)) == 9
+        api = client.get("/jobs", params={"where": where})
+        detail = api.json()["detail"]
+        assert api.status_code == 422 and message in detail and "\n" not in detail and "not applied" not in detail
 
 
 def test_url_state_round_trip(table: tuple[TestClient, Store]) -> None:
@@ -341,8 +408,8 @@ def test_cancel_and_delete_ask_first(table: tuple[TestClient, Store], tmp_path: 
 
 
 def test_compare_selected(table: tuple[TestClient, Store]) -> None:
-    """Two succeeded runs of one recording and pipeline open the comparison page; others get /compare?runs=
-    and, for two, the API's diff; fewer than two is a message."""
+    """Compare selected goes straight to the comparison: two succeeded runs of one recording, pipeline and seed to
+    the paired page, any others to /ui/compare?runs=; fewer than two is a message."""
     client, store = table
     store.cancel_job(jid(8))  # so that the next claim is the new job
     store.add_job(jid(20), SIM, "odometry", {"x": 1}, 0)
@@ -350,11 +417,10 @@ def test_compare_selected(table: tuple[TestClient, Store]) -> None:
     store.finish_job(jid(20), "succeeded", None, {})
     r = client.get("/ui/runs/compare", params={"sel": [jid(0), jid(20)]}, follow_redirects=False)
     assert r.status_code == 303 and r.headers["location"] == f"/ui/compare?a={jid(0)}&b={jid(20)}"
-    r = client.get("/ui/runs/compare", params={"sel": [jid(0), jid(1)]})
-    assert r.status_code == 200 and f'href="/ui/compare?runs={jid(0)},{jid(1)}"' in r.text
-    assert f'href="/diff?a={jid(0)}&amp;b={jid(1)}"' in r.text
-    r = client.get("/ui/runs/compare", params={"sel": [jid(0), jid(1), jid(2)]})
-    assert f"/compare?runs={jid(0)},{jid(1)},{jid(2)}" in r.text and "/diff?" not in r.text
+    r = client.get("/ui/runs/compare", params={"sel": [jid(0), jid(1)]}, follow_redirects=False)
+    assert r.status_code == 303 and r.headers["location"] == f"/ui/compare?runs={jid(0)},{jid(1)}"
+    r = client.get("/ui/runs/compare", params={"sel": [jid(0), jid(1), jid(2)]}, follow_redirects=False)
+    assert r.headers["location"] == f"/ui/compare?runs={jid(0)},{jid(1)},{jid(2)}"
     r = client.get("/ui/runs/compare", params={"sel": [jid(0)]})
     assert r.status_code == 422 and "select at least two runs" in r.text
 
@@ -422,3 +488,179 @@ def test_finished_job_stores_its_metrics(tmp_path: Path) -> None:
         assert job.metrics == {k: v["value"] for k, v in on_disk.items()} and job.metrics
         html = client.get("/runs").text
         assert "tiny.mcap" in html and row_ids(html) == [int(job_id, 16)]
+
+
+@pytest.mark.parametrize(("params", "expected"), [
+    ({"where": "ape_rmse_m < 0.15 or ape_rmse_m > 0.45"}, [5, 1, 0]),
+    ({"where": "(pipeline = dslam or seed = 0) and ape_rmse_m < 0.35"}, [3, 1, 0]),
+    ({"where": "pipeline = dslam or seed = 0 and ape_rmse_m < 0.35"}, [7, 5, 3, 1, 0]),  # and binds tighter
+    ({"where": "config.range_sigma_m = 0.2"}, [3]),
+    ({"where": "config.range_sigma_m < 0.3"}, [3]),
+    ({"where": "config.range_sigma_m = default and pipeline = dslam"}, [7, 5, 1]),
+    ({"where": "seed >= 7 or seed = 1"}, [8, 7, 1]),
+    ({"where": "commit = abcd"}, [2, 1, 0]),
+    ({"where": f"commit = {COMMITS[1]}"}, [5, 4, 3]),
+    ({"where": "commit != ABCD1"}, [5, 4, 3]),
+    ({"where": "commit = none"}, [8, 7, 6]),
+    ({"where": "status = failed or status = queued"}, [8, 6]),
+    ({"where": "recording = hall.mcap and not_a_word = 1"}, list(range(8, -1, -1))),  # 422: unknown, not applied
+    ({"where": "recording = hall.mcap and seed < 4"}, [3, 1]),
+    ({"where": "created >= 2024-05-04"}, [8, 7, 6, 5, 4, 3]),
+    ({"where": "created = 2024-05-02"}, [1]),
+    ({"where": "created < 2024-05-03 or created > 2024-05-08"}, [8, 1, 0]),
+    ({"since": "2024-05-03", "until": "2024-05-04"}, [3, 2]),
+    ({"since": "2024-05-08"}, [8, 7]),
+    ({"until": "2024-05-01"}, [0]),
+])
+def test_grammar_and_dates_filter(table: tuple[TestClient, Store], params: dict[str, str],
+                                  expected: list[int]) -> None:
+    """or, parentheses, config keys, seed, commit prefixes, text fields and days filter the runs as written."""
+    client, _ = table
+    assert row_ids(client.get("/runs", params=params).text) == expected
+
+
+def test_bad_dates_are_messages(table: tuple[TestClient, Store]) -> None:
+    """A date filter that is not a day is a one-line message, and not applied."""
+    client, _ = table
+    r = client.get("/runs", params={"since": "2024-02-30"})
+    assert r.status_code == 422 and "since must be a day YYYY-MM-DD" in html.unescape(r.text)
+    assert len(row_ids(r.text)) == 9
+
+
+def test_first_click_on_a_metric_sorts_best_first(table: tuple[TestClient, Store]) -> None:
+    """A lower-is-better metric's heading sorts ascending first, a higher-is-better one descending, a target one by
+    its distance from the target; the second click flips."""
+    view = parse_view({"cols": ["ape_rmse_m,landmarks_mapped,landmark_nees_mean"]})
+    assert "sort=m.ape_rmse_m" in view.sort_url("m.ape_rmse_m")
+    assert "sort=-m.landmarks_mapped" in view.sort_url("m.landmarks_mapped")
+    assert "sort=m.landmark_nees_mean" in view.sort_url("m.landmark_nees_mean")
+    sorted_view = parse_view({"sort": ["m.ape_rmse_m"]})
+    assert "sort=-m.ape_rmse_m" in sorted_view.sort_url("m.ape_rmse_m")
+    assert sorted_view.sort_title("m.ape_rmse_m") == "sorted best first: click for worst first"
+    client, store = table
+    html_text = client.get("/runs").text
+    link = re.search(r'<a href="([^"]+)" title="sort best first">ape_rmse_m</a>', html_text)
+    assert link is not None and "sort=m.ape_rmse_m" in link.group(1)
+    assert row_ids(client.get(link.group(1).replace("&amp;", "&")).text)[:6] == [0, 1, 2, 3, 4, 5]
+    with sqlite3.connect(store.path) as conn:  # NEES target 2: 2.1 is best, then 1.5 (ratio 1.33), then 3.5
+        for i, nees in ((0, 3.5), (1, 1.5), (2, 2.1)):
+            conn.execute("UPDATE jobs SET metrics = json_set(metrics, '$.landmark_nees_mean', ?) WHERE id = ?",
+                         (nees, jid(i)))
+    assert row_ids(client.get("/runs", params={"sort": "m.landmark_nees_mean"}).text)[:3] == [2, 1, 0]
+    assert row_ids(client.get("/runs", params={"sort": "-m.landmark_nees_mean"}).text)[:3] == [0, 1, 2]
+
+
+def headings(page: str) -> list[str]:
+    """The column headings of the runs table, in order, as text."""
+    head = page.split('id="runs-table"')[1].split("</thead>")[0]
+    return [re.sub(r"<[^>]+>|[▲▼↓↑]|≈\S+", "", h).strip() for h in re.findall(r"<th[^>]*>(.*?)</th>", head, re.S)]
+
+
+def test_columns_results_first_and_chosen_in_the_url(table: tuple[TestClient, Store]) -> None:
+    """The run's name first (pinned), the metric columns next, then the others; ``cols`` and ``show`` choose and
+    order them; the metric menu lists the metrics of the listed runs only."""
+    client, _ = table
+    first = headings(client.get("/runs").text)
+    assert first[:3] == ["run", "ape_rmse_m", "status"] and "commit" in first and "made by" in first
+    assert "started" not in first  # hidden by default, in the menu
+    page = client.get("/runs", params={"cols": "poses_scored,ape_rmse_m", "show": "seed,commit"}).text
+    assert headings(page) == ["run", "poses_scored", "ape_rmse_m", "seed", "commit"]
+    assert '<th class="name pin">' in page and '<td class="name pin">' in page
+    menu = page.split('id="metric-menu"')[1].split("</ol>")[0]
+    assert re.findall(r'name="cols" value="(\w+)"', menu) == ["poses_scored", "ape_rmse_m"]  # chosen first
+    assert "landmark_rmse_m" not in menu  # no listed run reports it
+    others = page.split('id="other-menu"')[1].split("</ol>")[0]
+    assert re.findall(r'name="show" value="(\w+)"', others)[:2] == ["seed", "commit"]
+    again = parse_view({"cols": ["", "poses_scored", "ape_rmse_m"], "show": ["", "seed", "commit"]})  # the form
+    assert again.url() == "/runs?cols=poses_scored%2Cape_rmse_m&show=seed%2Ccommit"
+    r = client.get("/runs", params={"show": "colour"})
+    assert r.status_code == 422 and "unknown column 'colour'" in html.unescape(r.text)
+
+
+def test_commit_made_by_and_long_names(table: tuple[TestClient, Store]) -> None:
+    """The commit column shows a short sha linked to its runs; made by names the person, and for a pushed run
+    where it came from; a long name is cut by the page's style, whole in its tooltip; the CSV has both."""
+    client, store = table
+    long_name = "a sweep of the range noise " * 4
+    store.set_labels(jid(2), Labels(long_name.strip()))
+    with sqlite3.connect(store.path) as conn:
+        conn.execute("UPDATE jobs SET made_by = 'ana' WHERE id = ?", (jid(1),))
+        conn.execute("UPDATE jobs SET made_by = 'ci', source = ? WHERE id = ?",
+                     (json.dumps({"pushed_by": "ci", "origin": "lab-pc-3", "address": "10.0.0.7"}), jid(0)))
+    page = client.get("/runs").text
+    row0 = page.split(f'id="run-{jid(0)}"')[1].split("</tr>")[0]
+    assert ">abcd1111</a>" in row0 and "ci, pushed from lab-pc-3" in row0
+    link = re.search(r'<a class="sha" href="([^"]+)"', row0)
+    assert link is not None and row_ids(client.get(html.unescape(link.group(1))).text) == [2, 1, 0]
+    row1 = page.split(f'id="run-{jid(1)}"')[1].split("</tr>")[0]
+    assert ">ana</td>" in row1
+    assert f'class="run-name" href="/ui/jobs/{jid(2)}" title="{long_name.strip()}"' in page
+    rows = list(csv.reader(io.StringIO(client.get("/runs.csv").text)))
+    assert rows[0][16:18] == ["commit", "made_by"]
+    assert [(x[16], x[17]) for x in rows if x[0] == jid(0)] == [(COMMITS[0], "ci, pushed from lab-pc-3")]
+    job_page = client.get(f"/ui/jobs/{jid(2)}").text
+    assert long_name.strip() in job_page  # the whole name on the job's page
+
+
+def group_rows(page: str) -> list[tuple[str, str, list[str]]]:
+    """The groups table: (group name, runs, metric cells as text), in order."""
+    body = page.split('id="groups-table"')[1].split("</tbody>")[0]
+    out = []
+    for row in re.findall(r'<tr class="group".*?</tr>', body, re.S):
+        name = re.search(r'<span class="group-name"[^>]*>(.*?)</span>', row, re.S)
+        cells = re.findall(r"<td[^>]*>(.*?)</td>", row, re.S)
+        assert name is not None
+        text = [re.sub(r"<[^>]+>", "", c).strip() for c in cells]
+        out.append((html.unescape(name.group(1)), text[1], text[2:]))
+    return out
+
+
+def test_groups_have_known_mean_spread_and_count(table: tuple[TestClient, Store]) -> None:
+    """group=pipeline: odometry (runs 0, 2, 4, 6, 8; ape 0, 0.2, 0.4) and dslam (1, 3, 5, 7; 0.1, 0.3, 0.5) with
+    n, mean ± sample standard deviation, min and max on hover; sorted best first; each links to its runs."""
+    client, _ = table
+    page = client.get("/runs", params={"group": "pipeline", "cols": "ape_rmse_m,poses_scored",
+                                       "sort": "m.ape_rmse_m"}).text
+    assert group_rows(page) == [("odometry", "5", ["0.2 ± 0.2", "98 ± 2"]), ("dslam", "4", ["0.3 ± 0.2", "97 ± 2"])]
+    assert 'title="3 of 5 runs: mean 0.2, std 0.2, min 0, max 0.4"' in page
+    assert "2 groups of 9 runs" in page
+    assert row_ids(page) == []  # groups, not runs
+    worst = client.get("/runs", params={"group": "pipeline", "sort": "-m.ape_rmse_m"}).text
+    assert [g[0] for g in group_rows(worst)] == ["dslam", "odometry"]
+    links = re.findall(r'<a class="all-runs" href="([^"]+)"', page)
+    assert [sorted(row_ids(client.get(html.unescape(u)).text)) for u in links] == [[0, 2, 4, 6, 8], [1, 3, 5, 7]]
+    assert row_ids(client.get(html.unescape(links[0])).text)[:3] == [0, 2, 4]  # in the view's sort
+    by_n = client.get("/runs", params={"group": "pipeline", "sort": "-n"}).text
+    assert [g[1] for g in group_rows(by_n)] == ["5", "4"]
+
+
+def test_groups_by_config_commit_and_two_keys(table: tuple[TestClient, Store]) -> None:
+    """A config key's groups (its default one included), commits' groups, two keys at once, and filters applying
+    before grouping."""
+    client, _ = table
+    page = client.get("/runs", params={"group": "config.range_sigma_m", "sort": "group"}).text
+    assert [(g[0], g[1], g[2]) for g in group_rows(page)] == [("range_sigma_m=0.2", "1", ["0.3"]),
+                                                             ("range_sigma_m=default", "8", ["0.24 ± 0.21"])]
+    commits = client.get("/runs", params={"group": "commit", "sort": "m.ape_rmse_m"}).text
+    assert [(g[0], g[2]) for g in group_rows(commits)] == [("abcd1111", ["0.1 ± 0.1"]), ("ef012222", ["0.4 ± 0.1"]),
+                                                           ("commit unknown", [""])]
+    two = client.get("/runs", params={"group": "pipeline,commit", "sort": "m.ape_rmse_m",
+                                      "where": "status = succeeded"}).text
+    assert [(g[0], g[1], g[2]) for g in group_rows(two)] == [
+        ("dslam, abcd1111", "1", ["0.1"]), ("odometry, abcd1111", "2", ["0.1 ± 0.14"]),  # ties by name
+        ("dslam, ef012222", "2", ["0.4 ± 0.14"]), ("odometry, ef012222", "1", ["0.4"])]
+    bad = client.get("/runs", params={"group": "colour"})
+    assert bad.status_code == 422 and "cannot group by 'colour'" in html.unescape(bad.text)
+
+
+def test_groups_export_as_csv(table: tuple[TestClient, Store]) -> None:
+    """A grouped view's CSV: one line per group, the keys, n, and mean, std, min, max and n of each metric."""
+    client, _ = table
+    page = client.get("/runs", params={"group": "pipeline,recording", "sort": "m.ape_rmse_m"}).text
+    href = re.search(r'id="export-csv" href="([^"]+)"', page)
+    assert href is not None
+    rows = list(csv.reader(io.StringIO(client.get(html.unescape(href.group(1))).text)))
+    assert rows[0] == ["pipeline", "recording", "runs", "ape_rmse_m mean", "ape_rmse_m std", "ape_rmse_m min",
+                       "ape_rmse_m max", "ape_rmse_m n"]
+    assert rows[1][:3] == ["odometry", "sim.mcap", "5"] and rows[2][:3] == ["dslam", "hall.mcap", "4"]
+    assert [float(x) for x in rows[1][3:7]] == pytest.approx([0.2, 0.2, 0.0, 0.4]) and rows[1][7] == "3"
