@@ -7,7 +7,9 @@ damaged file); 2 bad input (one line on stderr saying what is wrong and what to 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
 import sys
 import traceback
 from collections.abc import Sequence
@@ -595,6 +597,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         _eprint("slamreplay: interrupted")
         return 130
+    except BrokenPipeError:  # `slamreplay ... | head`: the reader left; end quietly, as git does (128 + SIGPIPE)
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the exit's flush must not fail again
+        return 141
     except Exception as err:  # noqa: BLE001 -- never a traceback to a user unless asked
         if args.debug:
             traceback.print_exc()

@@ -43,6 +43,9 @@ from typing import Any
 
 import httpx
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # patience: deadlines scaled by load
+from patience import deadline as give_up_at
+
 REPO = Path(__file__).resolve().parents[1]
 SLAMREPLAY = [sys.executable, "-c", "import sys; from slamreplay.api.cli import main; sys.exit(main(sys.argv[1:]))"]
 SUITE = """seeds = [0, 1]
@@ -123,7 +126,7 @@ def _rows(out: Path) -> list[dict[str, Any]]:
 
 def _wait_for_rows(proc: subprocess.Popen[bytes], out: Path, rows: int, timeout_s: float = 120.0) -> None:
     """Return once ``out/results.jsonl`` holds ``rows`` rows (or the process ended, or ``timeout_s`` passed)."""
-    deadline = time.monotonic() + timeout_s
+    deadline = give_up_at(timeout_s)
     while proc.poll() is None and len(_rows(out)) < rows and time.monotonic() < deadline:
         time.sleep(0.01)
 
@@ -153,7 +156,7 @@ def suite_trial(work: Path, recording: Path, baseline: Path, k: int, delay_s: fl
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
         t["finished"] = False
-    deadline = time.monotonic() + 5
+    deadline = give_up_at(5)
     while any(alive(w) for w in workers) and time.monotonic() < deadline:
         time.sleep(0.1)
     if any(alive(w) for w in workers):
@@ -239,7 +242,7 @@ def server(data: Path, log: Path, workers: int = 2, env: dict[str, str] | None =
         proc = subprocess.Popen(cmd, cwd=REPO, env=_env() | (env or {}), stdout=f, stderr=subprocess.STDOUT)
     base = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 60
+        deadline = give_up_at(60)
         while True:
             if proc.poll() is not None:
                 raise RuntimeError(f"server exited with {proc.returncode}: {log.read_text()[-2000:]}")
@@ -315,7 +318,7 @@ def check_job(data: Path, job: dict[str, Any]) -> list[str]:
 
 
 def wait_jobs(client: httpx.Client, ids: list[str], timeout_s: float = 300) -> dict[str, dict[str, Any]]:
-    deadline, done = time.monotonic() + timeout_s, {}
+    deadline, done = give_up_at(timeout_s), {}
     while len(done) < len(ids) and time.monotonic() < deadline:
         for job_id in set(ids) - set(done):
             job = client.get(f"/jobs/{job_id}").json()
@@ -356,7 +359,7 @@ def serve_trial(work: Path, data: Path, rid: str, base: str, upload: bytes, k: i
     t["at_kill"] = {s: list(before.values()).count(s) for s in sorted(set(before.values()))}
     t["upload"] = up.get("status")
     t["partial_uploads_left"] = len(list((data / "recordings").glob(".upload-*.partial")))
-    deadline = time.monotonic() + 5
+    deadline = give_up_at(5)
     while any(alive(w) for w in workers) and time.monotonic() < deadline:
         time.sleep(0.1)
     if any(alive(w) for w in workers):

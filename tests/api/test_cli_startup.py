@@ -96,3 +96,18 @@ def test_graph_choices_match_the_solver() -> None:
 
     assert (graph_cli.SOLVERS, graph_cli.INITS, graph_cli.ROBUST) == (graph_io.SOLVERS, graph_io.INITS,
                                                                        graph_io.ROBUST)
+
+
+def test_a_closed_pipe_ends_a_command_quietly() -> None:
+    """`slamreplay pipelines | head -1` once said "internal error: BrokenPipeError ... please report it": a reader
+    that left ends the command with no word on stderr and git's exit status (128 + SIGPIPE)."""
+    import os
+
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # the reader has gone before the first line
+    try:
+        done = subprocess.run([sys.executable, "-m", "slamreplay.api.cli", "pipelines"], stdout=write_end,
+                              stderr=subprocess.PIPE, timeout=120)
+    finally:
+        os.close(write_end)
+    assert (done.returncode, done.stderr.decode()) == (141, ""), done.stderr.decode()

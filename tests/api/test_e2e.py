@@ -17,6 +17,7 @@ from typing import Any
 import httpx
 import pytest
 from conftest import write_tiny_recording
+from patience import deadline as give_up_at
 
 TOKEN = "e2e-token"
 
@@ -40,7 +41,7 @@ def server(data_dir: Path, log: Path) -> Iterator[httpx.Client]:
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env)
     base = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 60
+        deadline = give_up_at(60)
         while True:
             assert proc.poll() is None, f"server exited with {proc.returncode}:\n{log.read_text()}"
             try:

@@ -16,6 +16,8 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore", DeprecationWarning)
     from fastapi.testclient import TestClient
 
+from patience import deadline as give_up_at
+
 from slamreplay.api.app import create_app
 from slamreplay.api.cli import main
 from slamreplay.api.settings import Settings
@@ -132,7 +134,7 @@ def test_a_suite_of_external_and_builtin_pipelines_in_the_service(declared: Path
                  "[pipelines.steady]\n[pipelines.noisy]\n[pipelines.odometry]\n")
         r = client.post("/suites", content=suite, headers={"content-type": "application/toml"})
         assert r.status_code == 202, r.text
-        deadline = time.monotonic() + 60
+        deadline = give_up_at(60)
         while (doc := client.get(f"/suites/{r.json()['id']}").json())["progress"]["ended"] < 6:
             assert time.monotonic() < deadline, doc
             time.sleep(0.05)

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+from patience import deadline as give_up_at
 from pydantic import ValidationError
 
 from slamreplay.api.settings import Settings
@@ -37,7 +38,7 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, int,
         proc = subprocess.Popen([sys.executable, "-m", "slamreplay.api.cli", "serve", "--workers", "1", "--port",
                                  str(port), "--data-dir", str(data)], stdout=out, stderr=subprocess.STDOUT, env=ENV)
     base = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 60
+    deadline = give_up_at(60)
     while True:
         assert proc.poll() is None, log.read_text()
         try:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 from conftest import write_tiny_recording
+from patience import deadline as give_up_at
 from test_cli import run_cli
 
 from slamreplay.api.client import Client, ClientError
@@ -40,7 +41,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, dict
     srv = uvicorn.Server(uvicorn.Config(app, log_level="warning"))
     thread = threading.Thread(target=srv.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
-    deadline = time.monotonic() + 60
+    deadline = give_up_at(60)
     while not srv.started:
         assert thread.is_alive() and time.monotonic() < deadline, "the server did not start"
         time.sleep(0.05)

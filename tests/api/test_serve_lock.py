@@ -17,6 +17,7 @@ from typing import Any
 
 import httpx
 import pytest
+from patience import deadline as give_up_at
 
 from slamreplay.api.cli import main
 from slamreplay.api.datalock import LOCK_NAME, DataDirLock
@@ -40,7 +41,7 @@ def start(data: Path, log: Path) -> tuple[subprocess.Popen[bytes], str]:
         proc = subprocess.Popen([*SERVE, "--port", str(port), "--data-dir", str(data)], stdout=out,
                                 stderr=subprocess.STDOUT, env=ENV)
     base = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 60
+    deadline = give_up_at(60)
     while True:
         assert proc.poll() is None, f"server exited with {proc.returncode}:\n{log.read_text()}"
         try:
@@ -66,7 +67,7 @@ def running_job(base: str, recording: Path) -> str:
     """Upload ``recording``, submit a long ekfslam job and wait until a worker has started it."""
     rid = httpx.post(f"{base}/recordings", content=recording.read_bytes(), timeout=60).json()["id"]
     job_id = str(httpx.post(f"{base}/jobs", json={"recording_id": rid, "pipeline": "ekfslam"}).json()["id"])
-    deadline = time.monotonic() + 180  # a worker process's start-up: 60 s was exceeded at a load average of 10
+    deadline = give_up_at(180)  # a worker process's start-up: 60 s was exceeded at a load average of 10
     while (job := httpx.get(f"{base}/jobs/{job_id}").json())["progress"] <= 0:
         assert job["status"] in ("queued", "running") and time.monotonic() < deadline, job
         time.sleep(0.1)
@@ -172,7 +173,7 @@ def test_killed_server_is_taken_over_once_its_workers_are_gone(tmp_path: Path, r
         for w in workers:
             os.kill(w, signal.SIGCONT)  # it sees its server gone and exits
         base2 = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 60
+        deadline = give_up_at(60)
         while True:
             owner = json.loads((data / LOCK_NAME).read_text() or "{}")
             if owner.get("pid") == second.pid:
@@ -181,7 +182,7 @@ def test_killed_server_is_taken_over_once_its_workers_are_gone(tmp_path: Path, r
             assert second.poll() is None and time.monotonic() < deadline, log.read_text()
             time.sleep(0.05)
         assert owner["address"] == base2
-        deadline = time.monotonic() + 120
+        deadline = give_up_at(120)
         while (end := job(base2, job_id) if _up(base2) else {"status": "starting"})["status"] in (
                 "starting", "queued", "running"):
             assert time.monotonic() < deadline, end

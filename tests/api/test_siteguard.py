@@ -4,7 +4,6 @@ another origin is a 403 and changes nothing; the server's own pages and clients 
 from __future__ import annotations
 
 import re
-
 import warnings
 from pathlib import Path
 

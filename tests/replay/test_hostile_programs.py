@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 from conftest import write_tiny_recording
+from patience import deadline as give_up_at
 
 from slamreplay.recorder.plugins import refresh
 from slamreplay.replay.engine.declared import DECLARATIONS_ENV
@@ -277,7 +278,7 @@ def test_a_cancelled_job_leaves_nothing(tmp_path: Path, rec: Path, monkeypatch: 
         out: list[Outcome] = []
         thread = threading.Thread(target=lambda: out.append(executor.run(task)))
         thread.start()
-        deadline = time.monotonic() + 60
+        deadline = give_up_at(60)
         while not any("sleep " + mark in p for p in left_behind(mark)):
             assert time.monotonic() < deadline, "the program never started its sleeper"
             time.sleep(0.05)
@@ -301,7 +302,7 @@ def test_an_interrupted_run_leaves_nothing(tmp_path: Path, rec: Path, monkeypatc
     declare(tmp_path, monkeypatch, CASES["sigterm-ignored-setsid"][0], mark, timeout_s=120)
 
     def interrupt() -> None:
-        deadline = time.monotonic() + 60
+        deadline = give_up_at(60)
         while not any("sleep " + mark in p for p in left_behind(mark)) and time.monotonic() < deadline:
             time.sleep(0.05)
         os.kill(os.getpid(), signal.SIGINT)

@@ -22,6 +22,7 @@ from typing import Any
 
 import pytest
 from conftest import write_tiny_recording
+from patience import deadline as give_up_at
 
 pytestmark = pytest.mark.browser
 CHROMIUM = os.environ.get("SLAMREPLAY_CHROMIUM", "/usr/bin/chromium")
@@ -48,7 +49,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
                              "--workers", "1"], env=env, stdout=log, stderr=subprocess.STDOUT)
     base = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 60
+        deadline = give_up_at(60)
         while True:
             try:
                 urllib.request.urlopen(base + "/healthz", timeout=2)

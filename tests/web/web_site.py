@@ -21,6 +21,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from patience import deadline as give_up_at
+
 from slamreplay.api.executor import Outcome, Report, Task, run_task
 
 CHROMIUM = os.environ.get("SLAMREPLAY_CHROMIUM", "/usr/bin/chromium")
@@ -68,7 +70,7 @@ def served(data_dir: Path, workers: int = 2) -> Iterator[str]:
     thread.start()
     base = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 60
+        deadline = give_up_at(60)
         while not server.started:
             if not thread.is_alive() or time.monotonic() > deadline:
                 raise AssertionError("the server did not start")
