@@ -63,7 +63,7 @@ def test_argument_errors_are_one_line_with_a_suggestion() -> None:
     assert result["err"].strip() == (  # type: ignore[union-attr]
         "slamreplay: error: argument COMMAND: invalid choice: 'rn' (did you mean 'run'?) (choose from record, "
         "inspect, recover, pipelines, run, navigate, diff, trajectory, snapshot, demo, serve, graph, suite, compare, "
-        "bisect, history, cache, evaluate, export, users) (see `slamreplay --help`)")
+        "bisect, history, cache, evaluate, export, users, push) (see `slamreplay --help`)")
     result = probe(["run", "x.mcap", "--pipeline", "dslam", "--out", "r", "--sed", "1"])
     assert result["code"] == 2
     assert result["err"] == ("slamreplay run: error: unrecognized arguments: --sed 1 (did you mean --seed?) "
