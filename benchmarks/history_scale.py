@@ -97,9 +97,12 @@ def old_approach(clone: Path, shas: list[str], root: Path) -> list[dict[str, flo
         tic = time.perf_counter()
         subprocess.run(["git", "-C", str(clone), "worktree", "add", "-q", "--detach", str(where / "src"), sha],
                        check=True)
-        subprocess.run([sys.executable, "-m", "venv", str(where / "venv")], check=True)
-        subprocess.run([str(where / "venv" / "bin" / "python"), "-m", "pip", "install", "--quiet",
-                        "--disable-pip-version-check", "-e", str(where / "src")], check=True)
+        with open(root / "old-build.log", "a") as log:  # pip's warnings stay out of the table
+            subprocess.run([sys.executable, "-m", "venv", str(where / "venv")], check=True, stdout=log,
+                           stderr=subprocess.STDOUT)
+            subprocess.run([str(where / "venv" / "bin" / "python"), "-m", "pip", "install", "--quiet",
+                            "--disable-pip-version-check", "-e", str(where / "src")], check=True, stdout=log,
+                           stderr=subprocess.STDOUT)
         seconds = time.perf_counter() - tic
         from slamreplay.replay.runs.rev_cache import disk_usage
 
@@ -181,8 +184,8 @@ def report(f: dict[str, Any]) -> None:
         mb = statistics.median(o["disk_mb"] for o in old)
         print(f"{'old: venv per commit':22}{med:>13.2f} s{'':>9}{max(o['prepare_s'] for o in old):>7.1f} s"
               f"{'':>19}{mb:>10.1f} MB{mb * n / 1024:>8.2f} GB (x{n}, projected)")
-        warm = statistics.median(f["cold"]["prepare_s"])
-        print(f"ratios (old / shared, cold median): time x{med / max(warm, 1e-9):.0f}, disk per commit "
+        cold = statistics.median(f["cold"]["prepare_s"])
+        print(f"ratios (old / shared, cold median): time x{med / max(cold, 1e-9):.0f}, disk per commit "
               f"x{mb / max(f['cold']['disk']['revision_mb_median'], 1e-9):.0f}")
     d = f["cold"]["disk"]
     print(f"environments: {d['environments']} ({', '.join(f'{m / 1024:.2f} GB' for m in d['environment_mb'])}); "

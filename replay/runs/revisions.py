@@ -47,7 +47,15 @@ from slamreplay.recorder.files import atomic_write
 from slamreplay.recorder.version import SOURCE_ROOT
 from slamreplay.replay.engine.declared import DECLARATIONS_ENV, declaration_files
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.runs.rev_cache import Hold, build_lock, format_size, prune, total_size
+from slamreplay.replay.runs.rev_cache import (
+    Hold,
+    build_lock,
+    estimated_size,
+    format_size,
+    prune,
+    record_size,
+    total_size,
+)
 from slamreplay.replay.runs.rev_envs import (
     ENV_STEP_NOTES,
     DependencySpec,
@@ -247,6 +255,7 @@ def _ensure_env(spec: DependencySpec, cache: Path, src: Path, log: Path, hold: H
                 shutil.rmtree(env, ignore_errors=True)
                 raise
             shutil.copy(log, env / "build.log")
+            record_size(env)
         hold.take(env)
     return env
 
@@ -324,13 +333,14 @@ def _build(repo: Path, sha: str, root: Path, cache: Path, program: bool, note: C
         info.update(env=spec.key, dependencies=spec.to_json(), site={"path": list(site.path),
                                                                        "program": site.program})
     atomic_write(root / "revision.json", json.dumps(info, indent=2) + "\n")
+    record_size(root)
     return info
 
 
 def _prune_over_limit(cache: Path, note: Callable[[str], None]) -> None:
     """Prune the cache to its limit when it holds more (``slamreplay.replay.runs.rev_cache``)."""
     limit = cache_limit()
-    if total_size(cache) <= limit:
+    if estimated_size(cache) <= 0.9 * limit or total_size(cache) <= limit:  # the margin: __pycache__ since
         return
     done = prune(cache, limit, note)
     if done.after > limit:
