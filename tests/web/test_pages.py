@@ -30,6 +30,7 @@ PAGES: dict[str, Callable[[dict[str, str]], str]] = {
     "job-edit": lambda ids: f"/ui/jobs/{ids['baseline']}/edit",
     "suite": lambda ids: f"/ui/suites/{ids['suite']}",
     "suite-history": lambda ids: "/ui/history/nightly%20odometry",  # the suite's metrics over the versions it ran on
+    "suite-history-by-date": lambda ids: "/ui/history/nightly%20odometry?by=date",  # ... over the days it ran
     "compare": lambda ids: f"/ui/compare?a={ids['baseline']}&b={ids['worn']}",
     "compare-runs": lambda ids: f"/ui/compare?runs={ids['baseline']},{ids['worn']}",
     "compare-selected": lambda ids: f"/ui/runs/compare?sel={ids['baseline']}&sel={ids['dslam']}",
