@@ -187,6 +187,8 @@ def _succeeded(history: History) -> dict[tuple[str, str, str], list[bool]]:
     out: dict[tuple[str, str, str], list[bool]] = {}
     for k, c in enumerate(history.commits):
         for r in history.cells(c.sha):
+            if r.get("alone"):  # drawn only in a pool (history_dates)
+                continue
             g = (str(r["recording"]), str(r["pipeline"]), str(r["variant"]))
             out.setdefault(g, [False] * len(history.commits))[k] |= r.get("status") == "succeeded"
     return out

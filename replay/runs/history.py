@@ -419,10 +419,12 @@ def _run_pending(pending: list[_Pending], suite: Suite, out: Path, repo: Path, c
 def series(history: History) -> dict[tuple[str, str, str], dict[str, list[dict[int, float]]]]:
     """Per group (recording, pipeline, variant) and metric, one mapping a commit (in history order):
     replicate index -> value, of the cells that succeeded. Replicates are (recording seed, run seed)
-    pairs, numbered in sorted order."""
+    pairs, numbered in sorted order. Rows marked ``alone`` (``history_dates``) are in no series of their own."""
     reps: dict[tuple[str, str, str], list[tuple[int, int]]] = {}
     for sha in (c.sha for c in history.commits):
         for r in history.cells(sha):
+            if r.get("alone"):
+                continue
             g = (str(r["recording"]), str(r["pipeline"]), str(r["variant"]))
             rep = (-1 if r.get("recording_seed") is None else int(r["recording_seed"]), int(r.get("seed") or 0))
             if rep not in reps.setdefault(g, []):
@@ -433,7 +435,8 @@ def series(history: History) -> dict[tuple[str, str, str], dict[str, list[dict[i
         by_metric: dict[str, list[dict[int, float]]] = {}
         for k, c in enumerate(history.commits):
             for r in history.cells(c.sha):
-                if (str(r["recording"]), str(r["pipeline"]), str(r["variant"])) != g or r["status"] != "succeeded":
+                if (str(r["recording"]), str(r["pipeline"]), str(r["variant"])) != g or r["status"] != "succeeded" \
+                        or r.get("alone"):
                     continue
                 rep = (-1 if r.get("recording_seed") is None else int(r["recording_seed"]), int(r.get("seed") or 0))
                 for name, v in r.get("metrics", {}).items():

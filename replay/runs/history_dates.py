@@ -110,8 +110,9 @@ def history_by_date(rows: Iterable[dict[str, Any]], version: str | None = None, 
     commits, status, out_rows = [], {}, {}
     for d in days:
         rs = by_day[d]
-        keep = [r for r in rs if len(recordings[(str(r["pipeline"]), str(r["variant"]))]) == 1
-                or len(seen_on[(str(r["recording"]), str(r["pipeline"]), str(r["variant"]))]) > 1]
+        # a recording met on one day only, beside others: its runs are listed, drawn only in the pool
+        alone = [len(recordings[(str(r["pipeline"]), str(r["variant"]))]) > 1
+                 and len(seen_on[(str(r["recording"]), str(r["pipeline"]), str(r["variant"]))]) == 1 for r in rs]
         pooled = [_pooled(d, pv, [r for r in rs if (str(r["pipeline"]), str(r["variant"])) == pv])
                   for pv in sorted(recordings) if len(recordings[pv]) > 1]
         versions = list(dict.fromkeys(str(r["code_version"]) for r in rs))
@@ -121,7 +122,8 @@ def history_by_date(rows: Iterable[dict[str, Any]], version: str | None = None, 
         status[d] = {"type": "commit", "commit": d, "date": d, "subject": subject, "versions": versions,
                      "suites": suites, "cells": len(rs), "suite": suite,
                      "status": "succeeded" if all(r.get("status") == "succeeded" for r in rs) else "partial"}
-        out_rows[d] = keep + [r for rows_ in pooled for r in rows_]
+        out_rows[d] = [{**r, "alone": True} if one else r for r, one in zip(rs, alone, strict=True)]
+        out_rows[d] += [r for rows_ in pooled for r in rows_]
     return History(commits, status, out_rows)
 
 

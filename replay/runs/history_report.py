@@ -194,24 +194,29 @@ def render_index(history: History, changes: Sequence[Change], out: Path, reports
                             bounds=axis_bounds(m))
             body.append(f"<td><div class='small'>{e(m)}</div>{plot}</td>")
         body.append("</tr></table>")
-    body.append(f"<h2>{many.capitalize()}</h2><table><tr><th>#</th><th>{one}</th><th>date</th><th>status</th>"
+    date_th = "<th>date</th>" if by == "commit" else ""
+    body.append(f"<h2>{many.capitalize()}</h2><table><tr><th>#</th><th>{one}</th>{date_th}<th>status</th>"
                 f"<th>runs</th><th>against the {one} before</th></tr>")
     for k, c in enumerate(history.commits):
         st = history.status.get(c.sha, {})
         status = str(st.get("status", "running"))
         runs = []
         for r in sorted((r for r in history.cells(c.sha) if not r.get("pooled")), key=lambda r: str(r.get("run_dir"))):
-            label = Path(str(r.get("run_dir"))).name.rsplit("-", 1)[0]
+            label = (Path(str(r["run_dir"])).name.rsplit("-", 1)[0] if r.get("run_dir") else
+                     f"{r.get('recording')}-{r.get('pipeline')}-{r.get('variant')}-seed{r.get('seed')}")
             href = _rel(str(Path(str(r["run_dir"])) / "run.rrd"), out) if r.get("run_dir") else None
             if r["status"] == "succeeded" and href:
                 runs.append(f"<a href='{e(href)}'>{e(label)}</a>")
+            elif r["status"] == "succeeded":
+                runs.append(e(label))
             else:
                 runs.append(f"<span class='failed' title='{e(str(r.get('error')))}'>{e(label)} failed</span>")
         err = f"<div class='failed small'>{e(str(st.get('error')))}</div>" if st.get("error") else ""
         cmp_link = f"<a href='{e(reports[c.sha])}'>compare</a>" if c.sha in reports else ""
         note = f"<div class='small'>{e(c.note)}</div>" if c.note else ""
         body.append(f"<tr id='c{k}'><td>{k + 1}</td><td><code>{e(c.short)}</code> {e(c.subject[:80])}{note}</td>"
-                    f"<td>{e(c.date[:19])}</td><td class='{'failed' if 'failed' in status else ''}'>{e(status)}"
+                    + (f"<td>{e(c.date[:19])}</td>" if by == "commit" else "")
+                    + f"<td class='{'failed' if 'failed' in status else ''}'>{e(status)}"
                     f"{err}</td><td class='small'>{' '.join(runs)}</td><td>{cmp_link}</td></tr>")
     body.append("</table></body></html>\n")
     return "\n".join(body)

@@ -39,6 +39,8 @@ def test_nightly_recordings_pooled_and_the_harder_night_found() -> None:
     h = history_by_date(nights(10, 6), suite="nightly")
     assert [c.sha for c in h.commits] == [f"2024-05-{i + 1:02d}" for i in range(10)]
     assert list(series(h)) == [(ALL_RECORDINGS, "dslam", "default")]  # each recording met once: only the pool
+    assert sorted((r["recording"], bool(r.get("alone"))) for r in h.cells("2024-05-01")) == [
+        (ALL_RECORDINGS, False)] * 3 + [("night-00", True)] * 3  # its runs still listed with their day
     assert h.commits[0].subject == f"code {CODE[:10]}" and h.status["2024-05-01"]["versions"] == [CODE]
     changes = detect_changes(h)
     assert [(ch.previous, ch.commit, ch.verdict) for ch in changes] == [("2024-05-06", "2024-05-07", "regression")]
