@@ -2,29 +2,28 @@
 value of the group keys, with the number of runs and, for each chosen metric, mean, spread (sample standard
 deviation), minimum and maximum over the runs that report it.
 
-The view's filters and condition choose the runs (in SQL); grouping, statistics and the groups' order are done
-here, in one pass over the matching runs (a few milliseconds for thousands). Each group links to the flat view
-of its runs: the view's condition and'ed with the group's keys, in the condition grammar.
+The view's filters and condition choose the runs, and SQL groups them and sums them up
+(`Store.select_groups`: counts, means, extremes, sums of squared deviations, and each group's newest runs),
+so that a page of groups reads a row per group rather than every run. Here: labels, standard deviations and
+the groups' order. Each group links to the flat view of its runs: the view's condition and'ed with the group's
+keys, in the condition grammar.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import statistics
 from dataclasses import dataclass, replace
 from typing import Any
 
 from slamreplay.api.runs_grammar import value_text
 from slamreplay.api.runs_query import DEFAULT_SORT, SORTS, RunsView, metric_specs
-from slamreplay.api.store_runs import GroupRow
-
-PREVIEW = 10  # runs listed inside a group's row; all of them are a link away
+from slamreplay.api.store_runs import GroupRow, GroupSums
 
 
 @dataclass(frozen=True)
 class Stat:
-    """A metric over a group's runs that report it (``std`` None below two values)."""
+    """A metric over a group's runs that report it (``std``: the sample standard deviation, None below two)."""
 
     n: int
     mean: float
@@ -35,10 +34,16 @@ class Stat:
     @classmethod
     def of(cls, values: list[float]) -> Stat | None:
         """The statistics of ``values`` (the finite ones); None when there is none."""
-        vs = [v for v in values if isinstance(v, (int, float)) and math.isfinite(v)]
+        vs = [float(v) for v in values if isinstance(v, (int, float)) and math.isfinite(v)]
         if not vs:
             return None
-        return cls(len(vs), statistics.fmean(vs), statistics.stdev(vs) if len(vs) > 1 else None, min(vs), max(vs))
+        mean = math.fsum(vs) / len(vs)
+        return cls.from_sums(len(vs), mean, min(vs), max(vs), math.fsum((v - mean) ** 2 for v in vs))
+
+    @classmethod
+    def from_sums(cls, n: int, mean: float, lo: float, hi: float, squares: float) -> Stat:
+        """The statistics of ``n`` values from their mean, extremes and sum of squared deviations from the mean."""
+        return cls(n, mean, math.sqrt(max(squares, 0.0) / (n - 1)) if n > 1 else None, lo, hi)
 
 
 @dataclass(frozen=True)
@@ -48,13 +53,10 @@ class Group:
     keys: tuple[str, ...]
     values: tuple[Any, ...]
     labels: tuple[str, ...]
-    runs: tuple[GroupRow, ...]  # newest first
+    n: int  # how many runs
+    newest: int  # the sequence number of its newest run
     stats: dict[str, Stat | None]
-
-    @property
-    def n(self) -> int:
-        """How many runs the group holds."""
-        return len(self.runs)
+    runs: tuple[GroupRow, ...] = ()  # its newest runs (at most the store's preview), newest first
 
     @property
     def label(self) -> str:
@@ -76,21 +78,9 @@ class Group:
         return " and ".join(parts)
 
 
-def _key_value(row: GroupRow, key: str) -> Any:
+def _label(key: str, value: Any, recording_name: str | None) -> str:
     if key == "recording":
-        return row.recording_id
-    if key == "pipeline":
-        return row.pipeline
-    if key == "variant":
-        return row.variant
-    if key == "commit":
-        return row.git_commit
-    return row.config.get(key.removeprefix("config."))
-
-
-def _label(key: str, value: Any, row: GroupRow) -> str:
-    if key == "recording":
-        return row.recording_name or str(value)[:8]
+        return recording_name or str(value)[:8]
     if value is None:
         return {"variant": "no variant", "commit": "commit unknown"}.get(key, "default")
     if key == "commit":
@@ -100,23 +90,22 @@ def _label(key: str, value: Any, row: GroupRow) -> str:
     return json.dumps(value, sort_keys=True)
 
 
-def _hashable(value: Any) -> Any:
-    return json.dumps(value, sort_keys=True) if isinstance(value, (list, dict)) else value
+def _hashable(values: tuple[Any, ...]) -> tuple[Any, ...]:
+    return tuple(json.dumps(v, sort_keys=True) if isinstance(v, (list, dict)) else (type(v), v) for v in values)
 
 
-def group_runs(rows: list[GroupRow], view: RunsView) -> list[Group]:
-    """The groups of ``rows`` (newest first) by the view's group keys, in the view's order, each with the
-    statistics of the view's metric columns."""
-    by_key: dict[tuple[Any, ...], list[GroupRow]] = {}
-    for row in rows:
-        by_key.setdefault(tuple(_hashable(_key_value(row, k)) for k in view.group), []).append(row)
+def group_runs(sums: list[GroupSums], runs: list[GroupRow], view: RunsView) -> list[Group]:
+    """The groups of a grouped view from the store's sums (`Store.select_groups`) and newest runs of each, in the
+    view's order, each with the statistics of the view's metric columns."""
+    newest: dict[tuple[Any, ...], list[GroupRow]] = {}
+    for r in runs:
+        newest.setdefault(_hashable(r.keys), []).append(r)
     groups = []
-    for members in by_key.values():
-        first = members[0]
-        values = tuple(_key_value(first, k) for k in view.group)
-        labels = tuple(_label(k, v, first) for k, v in zip(view.group, values, strict=True))
-        stats = {m: Stat.of([r.metrics[m] for r in members if m in r.metrics]) for m in view.cols}
-        groups.append(Group(view.group, values, labels, tuple(members), stats))
+    for g in sums:
+        labels = tuple(_label(k, v, g.recording_name) for k, v in zip(view.group, g.keys, strict=True))
+        stats = {m: Stat.from_sums(*g.sums[m]) if m in g.sums else None for m in view.cols}
+        groups.append(Group(view.group, g.keys, labels, g.n, g.newest, stats,
+                            tuple(newest.get(_hashable(g.keys), ()))))
     return sort_groups(groups, view.sort)
 
 
@@ -170,7 +159,7 @@ def sort_groups(groups: list[Group], sort: str) -> list[Group]:
             return _order_value(g.values[i] if g.values[i] is not None and wanted != "recording" else g.labels[i])
 
         return sorted(by_label, key=order, reverse=desc)
-    return sorted(by_label, key=lambda g: g.runs[0].seq, reverse=True)  # newest run first
+    return sorted(by_label, key=lambda g: g.newest, reverse=True)  # newest run first
 
 
 def runs_of(view: RunsView, group: Group) -> str | None:

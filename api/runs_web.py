@@ -34,7 +34,7 @@ from slamreplay.api.pages import PAGE_ERRORS, duration_text, suite_key, web_sess
 from slamreplay.api.pages import error_response as _error
 from slamreplay.api.pages import page_lists as _lists
 from slamreplay.api.pages import page_response as _page
-from slamreplay.api.runs_groups import Stat, best_means, group_runs, runs_of
+from slamreplay.api.runs_groups import Group, Stat, best_means, group_runs, runs_of
 from slamreplay.api.runs_query import (
     COLUMNS,
     GROUP_KEYS,
@@ -52,7 +52,7 @@ from slamreplay.replay.errors import ReplayError
 
 JobPath = Annotated[str, PathParam(pattern=JOB_ID)]
 router = APIRouter(dependencies=[Depends(web_session)], include_in_schema=False)
-PREVIEW_RUNS = 10  # the runs listed in a group's row (all of them: its link)
+PREVIEW_RUNS = 5  # the newest runs listed in a group's row (all of them: its link)
 
 
 def _when(t: float | None) -> str:
@@ -138,6 +138,12 @@ def metric_heading(name: str) -> dict[str, str]:
             "title": f"{spec.description}; {better}"}
 
 
+def select_groups(jobs: JobService, view: RunsView, where: str, args: list[Any]) -> list[Group]:
+    """The groups of a grouped view, in its order (each with its newest runs)."""
+    sums, runs = jobs.store.select_groups(where, args, view.group, view.cols, PREVIEW_RUNS)
+    return group_runs(sums, runs, view)
+
+
 def stat_cell(metric: str, s: Stat | None, n: int, best: float | None) -> dict[str, Any]:
     """A group's metric cell: mean (4 digits) ± standard deviation (2), the count, minimum and maximum on hover."""
     if s is None:
@@ -174,14 +180,14 @@ def runs_ctx(request: Request, view: RunsView) -> dict[str, Any]:
     where, args = where_sql(view)
     ctx: dict[str, Any] = {}
     if view.group:
-        groups = group_runs(jobs.store.select_group_rows(where, args), view)
+        groups = select_groups(jobs, view, where, args)
         total = len(groups)
         pages = max(1, -(-total // view.per))
         if view.page > pages:
             view = replace(view, page=pages)
         shown = groups[(view.page - 1) * view.per: view.page * view.per]
         best = best_means(shown, view.cols)
-        ctx = {"groups": [{"g": g, "link": runs_of(view, g), "preview": g.runs[:PREVIEW_RUNS],
+        ctx = {"groups": [{"g": g, "link": runs_of(view, g), "preview": g.runs,
                            "cells": [stat_cell(m, g.stats.get(m), g.n, best.get(m)) for m in view.cols]}
                           for g in shown], "runs_total": sum(g.n for g in groups), "rows": []}
         config_keys: list[str] = []
@@ -195,8 +201,7 @@ def runs_ctx(request: Request, view: RunsView) -> dict[str, Any]:
         config_keys = differing_config(rows) if "config" in view.show else []
         ctx = {"rows": [_cells(r, view, config_keys) for r in rows], "groups": None}
     recs = jobs.store.list_recordings()
-    listed_metrics = jobs.store.json_keys("metrics", where, args)
-    listed_config = jobs.store.json_keys("config", where, args)
+    listed_metrics, listed_config = jobs.store.json_keys(where, args)
     group_choices = list(GROUP_KEYS) + [f"config.{k}" for k in listed_config]
     return {**ctx, "view": view, "total": total, "pages": pages, "config_keys": config_keys,
             "metric_cols": [metric_heading(c) for c in view.cols], "metric_menu": _menu(view.cols, listed_metrics),
@@ -281,7 +286,7 @@ def runs_csv(request: Request) -> Response:
     heads = [metric_heading(c) for c in view.cols]
     headers = {"Content-Disposition": f'attachment; filename="{"groups" if view.group else "runs"}.csv"'}
     if view.group:
-        return StreamingResponse(_group_lines(view, jobs.store.select_group_rows(where, args), heads),
+        return StreamingResponse(_group_lines(view, select_groups(jobs, view, where, args), heads),
                                  media_type="text/csv; charset=utf-8", headers=headers)
     rows, _ = jobs.store.select_runs(where, args, order_sql(view))
 
@@ -307,14 +312,14 @@ def runs_csv(request: Request) -> Response:
     return StreamingResponse(lines(), media_type="text/csv; charset=utf-8", headers=headers)
 
 
-def _group_lines(view: RunsView, rows: list[Any], heads: list[dict[str, str]]) -> Iterator[str]:
+def _group_lines(view: RunsView, groups: list[Group], heads: list[dict[str, str]]) -> Iterator[str]:
     """The groups of a grouped view as CSV lines: the group keys, the number of runs, and per metric its mean,
     standard deviation, minimum, maximum and how many runs report it."""
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow([*view.group, "runs", *[f"{h['name']} {s}" + (f" [{h['unit']}]" if h["unit"] and s != "n" else "")
                                        for h in heads for s in ("mean", "std", "min", "max", "n")]])
-    for g in group_runs(rows, view):
+    for g in groups:
         cells: list[str] = [_csv_text(lab) if k == "recording" else _csv_text(v if v is not None else "")
                             for k, v, lab in zip(view.group, g.values, g.labels, strict=True)]
         cells.append(str(g.n))

@@ -14,7 +14,7 @@ import sqlite3
 import time
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled", "interrupted"]
 JOB_STATUSES: tuple[JobStatus, ...] = ("queued", "running", "succeeded", "failed", "cancelled", "interrupted")
@@ -112,22 +112,34 @@ class RunRow:
     variant: str | None
 
 
-@dataclass(frozen=True, slots=True)
-class GroupRow:
-    """What a grouped view of the runs table reads of a job: its keys and metric values."""
+class GroupRow(NamedTuple):
+    """One of the newest runs of a group of the runs table: what its row in the group lists."""
 
     seq: int
     id: str
     name: str | None
     status: str
-    pipeline: str
     seed: int
-    recording_id: str
-    recording_name: str | None
-    variant: str | None
-    git_commit: str | None
-    config: dict[str, Any]
-    metrics: dict[str, float]
+    keys: tuple[Any, ...]  # its values of the group keys
+    metrics: dict[str, float]  # of the chosen metrics, those it reports
+
+
+class GroupSums(NamedTuple):
+    """A group of the runs table as SQL sums it up: its key values, and per metric (count, mean, min, max, sum of
+    squared deviations from the mean) over the runs that report it."""
+
+    keys: tuple[Any, ...]
+    recording_name: str | None  # the file name of its recording, when it is grouped by recording
+    n: int
+    newest: int  # the largest sequence number of its runs
+    sums: dict[str, tuple[int, float, float, float, float]]
+
+
+# SQLite computes a common table expression once when told (3.35+), not once per reference of its columns
+MATERIALIZED = "MATERIALIZED" if sqlite3.sqlite_version_info >= (3, 35) else ""
+# The group keys that are job columns (and config.KEY), as SQL over j, r and v
+GROUP_COLUMNS = {"recording": "j.recording_id", "pipeline": "j.pipeline", "variant": "v.variant",
+                 "commit": "j.git_commit"}
 
 
 # A job's suite variant: the first cell naming it (the suites tables are made by api/suites.py, which a bare
@@ -222,25 +234,73 @@ class RunsTableMixin:
                                 (*args, -1 if limit is None else limit, offset)).fetchall()
         return [RunRow(job_row(r), r["recording_name"], r["variant"]) for r in rows], total
 
-    def json_keys(self, column: Literal["metrics", "config"], where: str, args: list[Any]) -> list[str]:
-        """The keys of ``column`` (metric names or config keys) of the jobs matching ``where`` (as `select_runs`),
-        by name."""
-        if column not in ("metrics", "config"):
-            raise ValueError(f"column {column!r}: metrics or config")
+    def json_keys(self, where: str, args: list[Any]) -> tuple[list[str], list[str]]:
+        """The metric names and the config keys of the jobs matching ``where`` (as `select_runs`), each by name:
+        one pass over the matching jobs."""
         with self._read() as conn:
             joins = f"FROM jobs j LEFT JOIN recordings r ON r.id = j.recording_id {self._variants(conn)}"
-            rows = conn.execute(f"SELECT DISTINCT e.key FROM (SELECT j.{column} AS doc {joins} WHERE {where} "
-                                f"AND j.{column} IS NOT NULL) m, json_each(m.doc) e ORDER BY e.key", args).fetchall()
-        return [r[0] for r in rows]
+            rows = conn.execute(f"WITH m AS (SELECT j.metrics AS metrics, j.config AS config {joins} WHERE {where}) "
+                                "SELECT DISTINCT 'm', e.key FROM m, json_each(m.metrics) e WHERE m.metrics IS NOT NULL "
+                                "UNION SELECT DISTINCT 'c', e.key FROM m, json_each(m.config) e ORDER BY 1, 2",
+                                args).fetchall()
+        return [r[1] for r in rows if r[0] == "m"], [r[1] for r in rows if r[0] == "c"]
 
-    def select_group_rows(self, where: str, args: list[Any]) -> list[GroupRow]:
-        """Every job matching ``where`` (as `select_runs`), newest first, with what a grouped view reads of it."""
+    def select_groups(self, where: str, args: list[Any], keys: tuple[str, ...], metrics: tuple[str, ...],
+                      preview: int = 10) -> tuple[list[GroupSums], list[GroupRow]]:
+        """The jobs matching ``where`` (as `select_runs`) grouped by ``keys`` (``recording``, ``pipeline``,
+        ``variant``, ``commit`` or ``config.KEY``), summed up in SQL: per group its key values, the file name of its
+        recording, how many runs, its newest run's sequence number, and per metric of ``metrics`` how many runs
+        report it, their mean, minimum, maximum and sum of squared deviations; and the ``preview`` newest runs of
+        each group (names as ``NAME_RE`` of `slamreplay.api.runs_grammar`). A config key's value is its JSON
+        value (True and 1 differ; None: not submitted)."""
+        name_re = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+        bad = [n for n in (*metrics, *(k.removeprefix("config.") for k in keys)) if not name_re.fullmatch(n)]
+        bad += [k for k in keys if k not in GROUP_COLUMNS and not k.startswith("config.")]
+        if bad or not keys:
+            raise ValueError(f"cannot group by {keys} with metrics {metrics}")
+        cols = []
+        for i, k in enumerate(keys):
+            if k in GROUP_COLUMNS:
+                cols += [f"NULL AS t{i}", f"{GROUP_COLUMNS[k]} AS k{i}"]
+            else:
+                path = f"'$.\"{k.removeprefix('config.')}\"'"
+                cols += [f"json_type(j.config, {path}) AS t{i}", f"json_extract(j.config, {path}) AS k{i}"]
+        cols += [f"json_extract(j.metrics, '$.\"{m}\"') AS m{i}" for i, m in enumerate(metrics)]
+        key_cols = [f"{c}{i}" for i in range(len(keys)) for c in ("t", "k")]
+        keys_sql = ", ".join(key_cols)
+        sums = [f"COUNT(m{i}) AS c{i}, AVG(m{i}) AS a{i}, MIN(m{i}) AS lo{i}, MAX(m{i}) AS hi{i}, "
+                f"SUM(d{i} * d{i}) AS ss{i}" for i in range(len(metrics))]
+        # deviations from the group's mean by a window over the group: one pass, no cancellation of sum(x^2)
+        devs = "".join(f", m{i} - AVG(m{i}) OVER w AS d{i}" for i in range(len(metrics)))
         with self._read() as conn:
-            joins = f"FROM jobs j LEFT JOIN recordings r ON r.id = j.recording_id {self._variants(conn)}"
-            rows = conn.execute(f"SELECT j.seq, j.id, j.name, j.status, j.pipeline, j.seed, j.recording_id, "
-                                f"r.filename, v.variant, j.git_commit, j.config, j.metrics {joins} WHERE {where} "
-                                "ORDER BY j.seq DESC", args).fetchall()
-        return [GroupRow(*r[:10], json.loads(r[10]), json.loads(r[11]) if r[11] else {}) for r in rows]
+            base = (f"WITH base AS {MATERIALIZED} (SELECT j.seq AS seq, j.id AS id, j.name AS name, "
+                    f"j.status AS status, j.seed AS seed, r.filename AS filename, {', '.join(cols)} "
+                    f"FROM jobs j LEFT JOIN recordings r ON r.id = j.recording_id {self._variants(conn)} "
+                    f"WHERE {where})")
+            groups = conn.execute(
+                f"{base}, d AS (SELECT *{devs} FROM base WINDOW w AS (PARTITION BY {keys_sql})) "
+                f"SELECT {keys_sql}, COUNT(*) AS n, MAX(seq) AS newest, MIN(filename) AS filename"
+                f"{''.join(', ' + x for x in sums)} FROM d GROUP BY {keys_sql}", args).fetchall()
+            runs = conn.execute(
+                f"{base} SELECT * FROM (SELECT b.*, ROW_NUMBER() OVER (PARTITION BY {keys_sql} "
+                f"ORDER BY seq DESC) AS rn FROM base b) WHERE rn <= ? ORDER BY seq DESC", (*args, preview)).fetchall()
+        nk = len(keys)
+
+        def values(row: sqlite3.Row, offset: int) -> tuple[Any, ...]:
+            out = []
+            for i in range(nk):
+                kind, value = row[offset + 2 * i], row[offset + 2 * i + 1]
+                out.append(kind == "true" if kind in ("true", "false") else
+                           json.loads(value) if kind in ("object", "array") else value)
+            return tuple(out)
+
+        sums_out = [GroupSums(values(g, 0), g["filename"], g["n"], g["newest"],
+                              {m: (g[f"c{i}"], g[f"a{i}"], g[f"lo{i}"], g[f"hi{i}"], g[f"ss{i}"] or 0.0)
+                               for i, m in enumerate(metrics) if g[f"c{i}"]}) for g in groups]
+        rows = [GroupRow(r["seq"], r["id"], r["name"], r["status"], r["seed"], values(r, 6),
+                         {m: r[6 + 2 * nk + i] for i, m in enumerate(metrics) if r[6 + 2 * nk + i] is not None})
+                for r in runs]
+        return sums_out, rows
 
     def jobs_page(self, where: str, args: list[Any], limit: int,
                   before: int | None = None) -> tuple[list[JobRow], int, int | None]:

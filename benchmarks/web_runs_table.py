@@ -10,8 +10,10 @@
    sorted page (pipeline and status filters, metric columns, a metric condition, sorted by a
    metric), a free-text search, and the CSV export of the filtered view (every page).
    With ``--busy N``, N processes spin on the CPU meanwhile (as N workers replaying would).
+   Then grouped views (issue 41): by pipeline and recording with three metrics, by pipeline, a config key
+   and the commit under an ``or`` condition, and the grouped CSV.
 3. Prints p50/p95/max in ms per view and writes them with ``--json PATH``; exit 1 when a p95 of the
-   two pages is over ``--target-ms`` (300, issue 25).
+   pages (first, filtered and sorted, both grouped) is over ``--target-ms`` (300, issues 25 and 41).
 
 Run: `.venv/bin/python benchmarks/web_runs_table.py [--jobs 2000] [--requests 100] [--json out.json]`.
 """
@@ -42,6 +44,7 @@ PIPELINES = {"odometry": ("ape_rmse_m", "rpe_step_trans_rmse_m"),
              "ekfslam": ("ape_rmse_m", "landmark_rmse_m", "landmark_nees_mean"),
              "topometric": ("ape_rmse_m", "loop_closures", "loop_closure_precision"),
              "ifmi": ("ate_rmse_px", "registrations", "pnr_median")}
+COMMITS = [f"{k:07x}" + "0" * 33 for k in (0x3F2A9C1, 0x8BE41D7, 0x1C0FFEE, 0xDEC0DE5)] + [None]
 STATUSES = ["succeeded"] * 16 + ["failed", "failed", "cancelled", "interrupted"]
 VIEWS = {
     "first_page": "/runs",
@@ -51,7 +54,13 @@ VIEWS = {
     "text_search": "/runs?q=baseline&sort=-m.ape_rmse_m",
     "csv_filtered": "/runs.csv?pipeline=dslam&status=succeeded&cols=ape_rmse_m,landmark_rmse_m"
                     "&where=landmark_rmse_m+<+0.1&sort=-m.landmark_rmse_m",
+    # groups (issue 41): every matching run read, grouped and summed up per request
+    "grouped": "/runs?group=pipeline,recording&cols=ape_rmse_m,landmark_rmse_m,landmark_nees_mean&sort=m.ape_rmse_m",
+    "grouped_config": "/runs?group=pipeline,config.range_sigma_m,commit&cols=ape_rmse_m,landmark_rmse_m"
+                      "&where=status+%3D+succeeded+or+seed+%3C+3&sort=m.landmark_rmse_m",
+    "csv_grouped": "/runs.csv?group=pipeline,recording&cols=ape_rmse_m,landmark_rmse_m,landmark_nees_mean",
 }
+PAGES = ("first_page", "filtered_sorted", "grouped", "grouped_config")  # the views held to --target-ms
 
 
 class IdleExecutor:
@@ -101,14 +110,14 @@ def fill(db: Path, n: int, rng: random.Random) -> None:
             note = "before the data-association fix" if rng.random() < 0.1 else None
             jobs.append((job_id, rng.choice(recs)[0], pipeline, json.dumps(config), rng.randrange(10), status,
                          1.0 if status == "succeeded" else 0.4, error, note, 1, created, started, finished,
-                         None if name is None else f"{name} {i}", metrics))
+                         None if name is None else f"{name} {i}", metrics, rng.choice(COMMITS)))
             for tag in rng.sample(["paper", "nightly", "v1", "v2", "regression", "mrclam"], rng.randrange(3)):
                 tags.append((job_id, tag))
             if rng.random() < 0.3:
                 cells.append((f"{i % 20:032x}", i, json.dumps({"variant": rng.choice(["default", "tuned"])}), job_id))
         conn.executemany("INSERT INTO jobs (id, recording_id, pipeline, config, seed, status, progress, error, note, "
-                         "attempts, created, started, finished, name, metrics) "
-                         "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", jobs)
+                         "attempts, created, started, finished, name, metrics, git_commit) "
+                         "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", jobs)
         conn.executemany("INSERT INTO job_tags VALUES (?, ?)", tags)
         conn.executemany("INSERT INTO suite_cells VALUES (?, ?, ?, ?, 0)", cells)
         conn.executemany("INSERT INTO suites VALUES (?, ?, 'toml', '', ?)",
@@ -188,7 +197,8 @@ def main() -> int:
                     r = client.get(url)
                     times.append((time.perf_counter() - t0) * 1e3)
                     assert r.status_code == 200
-                rows = r.text.count('<tr id="run-') if not url.startswith("/runs.csv") else r.text.count("\n") - 1
+                rows = (r.text.count("\n") - 1 if url.startswith("/runs.csv")
+                        else r.text.count('<tr class="group"') or r.text.count('<tr id="run-'))
                 figures["views"][view] = {"url": url, "rows": rows, "bytes": len(r.content),
                                           "p50_ms": round(statistics.median(times), 2),
                                           "p95_ms": round(percentile(times, 95), 2), "max_ms": round(max(times), 2)}
@@ -204,10 +214,10 @@ def main() -> int:
     for view, f in figures["views"].items():
         print(f"  {view:16s} p50 {f['p50_ms']:7.1f} ms  p95 {f['p95_ms']:7.1f} ms  max {f['max_ms']:7.1f} ms  "
               f"({f['rows']} rows, {f['bytes'] / 1024:.0f} KiB)")
-    worst = max(figures["views"][v]["p95_ms"] for v in ("first_page", "filtered_sorted"))
+    worst = max(figures["views"][v]["p95_ms"] for v in PAGES)
     figures["pass"] = worst < args.target_ms
-    print(f"p95 of the two pages: {worst:.1f} ms against a target of {args.target_ms:.0f} ms: "
-          f"{'met' if figures['pass'] else 'MISSED'}")
+    print(f"p95 of the {len(PAGES)} pages ({', '.join(PAGES)}): {worst:.1f} ms against a target of "
+          f"{args.target_ms:.0f} ms: {'met' if figures['pass'] else 'MISSED'}")
     if args.json:
         write_json(args.json, figures)
     return 0 if figures["pass"] else 1
