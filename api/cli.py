@@ -24,6 +24,7 @@ from slamreplay.api.external_cli import add_external_parsers
 from slamreplay.api.graph_cli import add_graph_parser
 from slamreplay.api.hints import spell_commands, tool, view_hint
 from slamreplay.api.history_cli import add_history_parsers
+from slamreplay.api.live_cli import add_live_parser
 from slamreplay.api.pipelines_cli import add_pipelines_parser
 from slamreplay.api.progress import progress_bar
 from slamreplay.api.push_cli import add_push_parser
@@ -398,6 +399,7 @@ def build_parser(command: str | None = None) -> SuggestingParser:
     rsub = rec.add_subparsers(dest="source", required=True, metavar="SOURCE")
     if command in (None, "record"):
         _add_record_parsers(rsub, quiet)
+        add_live_parser(rsub, quiet)  # record live: a stream, until stopped (api/live_cli.py)
 
     ins = sub.add_parser("inspect", help="topics, schemas, counts, time span and health of a recording")
     ins.add_argument("file", help="an .mcap recording or a ROS 2 bag directory")

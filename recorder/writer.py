@@ -128,12 +128,13 @@ class Recorder:
         self._file.flush()
 
     def write(self, topic: str, msg: Message, *, log_time_ns: int | None = None,
-              publish_time_ns: int | None = None) -> None:
+              publish_time_ns: int | None = None, encoded: tuple[bytes, bytes] | None = None) -> None:
         """Append one message.
 
         ``log_time_ns`` (the replay clock) defaults to the message's ``stamp_ns``;
         ``publish_time_ns`` defaults to ``log_time_ns``. Both are always written explicitly.
-        A topic keeps the schema of its first message.
+        A topic keeps the schema of its first message. ``encoded``: (schema data, bytes) of ``msg`` as received in
+        the protobuf schema slamreplay writes it with, kept as they came (``record live``) instead of re-encoded.
         """
         if self._writer is None:
             raise RecorderError("recorder is not open: use it as `with Recorder(...) as rec:`")
@@ -149,7 +150,8 @@ class Recorder:
         if channel is None:
             schema_id = self._schemas.get(name)
             if schema_id is None:
-                schema_id = self._writer.register_schema(name, "protobuf", codec.schema_data(msg))
+                data = encoded[0] if encoded is not None else codec.schema_data(msg)
+                schema_id = self._writer.register_schema(name, "protobuf", data)
                 self._schemas[name] = schema_id
             channel = (self._writer.register_channel(topic, "protobuf", schema_id), name)
             self._channels[topic] = channel
@@ -158,11 +160,30 @@ class Recorder:
         seq = self._sequence.get(topic, 0)
         self._sequence[topic] = seq + 1
         try:
-            self._writer.add_message(channel[0], log_time, codec.encode(msg), publish_time, seq)
+            data = encoded[1] if encoded is not None else codec.encode(msg)
+            self._writer.add_message(channel[0], log_time, data, publish_time, seq)
         except OSError as err:  # a full disk, a quota, an I/O error: the file holds what was flushed before
             self._failed = True
             raise self._write_error(err) from err
         self.message_count += 1
+
+    def flush(self) -> None:
+        """End the chunk in progress and hand the file's bytes to the OS: a process killed later (kill -9) leaves a
+        ``.partial`` holding every message written before (``record live`` calls it every second)."""
+        if self._writer is None:
+            raise RecorderError("recorder is not open: use it as `with Recorder(...) as rec:`")
+        try:
+            self._writer.flush()  # type: ignore[no-untyped-call]  # unannotated in mcap (since 1.5)
+        except OSError as err:
+            self._failed = True
+            raise self._write_error(err) from err
+
+    def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        """Append an MCAP metadata record ``name`` and flush (``record live`` writes one per gap in the stream)."""
+        if self._writer is None:
+            raise RecorderError("recorder is not open: use it as `with Recorder(...) as rec:`")
+        self._writer.add_metadata(name, {str(k): str(v) for k, v in data.items()})
+        self.flush()
 
     def _write_error(self, err: OSError) -> RecorderError:
         what = "no space left on the device" if err.errno == errno.ENOSPC else (err.strerror or str(err))

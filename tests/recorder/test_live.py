@@ -1,0 +1,268 @@
+"""`record live`: a Foxglove SDK server (tests/recorder/live_peer.py, a subprocess) recorded over WebSocket."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from mcap.reader import make_reader
+
+from slamreplay.api.cli import main as cli_main
+from slamreplay.recorder.importers.foxglove_live import GAP_METADATA, LIVE_METADATA, LiveOptions, LiveRecording
+from slamreplay.recorder.importers.ros2bag import import_ros2_bag
+from slamreplay.recorder.messages import TOPIC_RANGE_BEARING, assert_msg_equal
+from slamreplay.recorder.recover import recover
+from slamreplay.recorder.sensor_model import SensorModel
+from slamreplay.recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
+from slamreplay.recorder.sim.ros2bag import write_bag
+from slamreplay.replay.engine.reader import RecordingReader
+
+pytest.importorskip("foxglove", reason="the Foxglove SDK (foxglove-sdk, in the dev extra) serves the test stream")
+PEER = Path(__file__).with_name("live_peer.py")
+REPO = Path(__file__).resolve().parents[2]
+
+
+class Peer:
+    """A live_peer.py subprocess: its URL once it listens, and the counts it sent once it is done."""
+
+    def __init__(self, tmp: Path, mcap: Path, *args: str) -> None:
+        self.port_file, self.sent_file = tmp / "peer.port", tmp / "peer.sent"
+        self.proc = subprocess.Popen([sys.executable, str(PEER), str(mcap), "--port-file", str(self.port_file),
+                                      "--sent-file", str(self.sent_file), *args], stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 20
+        while not self.port_file.exists():
+            assert self.proc.poll() is None, self.proc.stderr.read() if self.proc.stderr else ""
+            assert time.monotonic() < deadline, "the peer did not start"
+            time.sleep(0.02)
+        self.url = f"ws://127.0.0.1:{self.port_file.read_text()}"
+
+    def sent(self, timeout_s: float = 30) -> dict[str, int]:
+        deadline = time.monotonic() + timeout_s
+        while not self.sent_file.exists():
+            assert self.proc.poll() is None, self.proc.stderr.read() if self.proc.stderr else ""
+            assert time.monotonic() < deadline, "the peer did not finish publishing"
+            time.sleep(0.02)
+        counts: dict[str, int] = json.loads(self.sent_file.read_text())
+        return counts
+
+    def close(self) -> None:
+        self.proc.kill()
+        self.proc.wait()
+
+
+@pytest.fixture
+def peers(tmp_path: Path) -> Iterator[list[Peer]]:
+    made: list[Peer] = []
+    yield made
+    for p in made:
+        p.close()
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 30 s sim-landmarks recording (301 odometry and ground-truth poses, 151 scans, the landmark map)."""
+    path = tmp_path_factory.mktemp("live") / "sim.mcap"
+    simulate_landmarks(path, LandmarkSimConfig(duration_s=30.0), seed=3)
+    return path
+
+
+def _model(path: Path) -> SensorModel:
+    with open(path, "rb") as f:
+        record = next(m for m in make_reader(f).iter_metadata() if m.name == "slamreplay.recording")
+    model = SensorModel.from_record(record.metadata)
+    assert model is not None
+    return model
+
+
+def _record_all(peer: Peer, out: Path, **options: object) -> tuple[LiveRecording, list[str], object]:
+    """Record until every message the peer sent on a recorded channel arrived; the recording, its lines, summary."""
+    lines: list[str] = []
+    live = LiveRecording(LiveOptions(url=peer.url, out=out, **options), say=lines.append)  # type: ignore[arg-type]
+    done: dict[str, object] = {}
+    thread = threading.Thread(target=lambda: done.setdefault("summary", live.run()))
+    thread.start()
+    try:
+        sent = peer.sent()
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            got = {c.topic: c.received for c in live.status().topics}
+            if got and all(got[t] >= sent.get(t, 0) for t in got):
+                break
+            time.sleep(0.02)
+    finally:
+        live.stop()
+        thread.join(30)
+    return live, lines, done["summary"]
+
+
+def _sequence(path: Path) -> list[tuple[str, int]]:
+    return [(e.topic, e.log_time_ns) for e in RecordingReader(path).messages()]
+
+
+@pytest.fixture(scope="module")
+def live_sim(sim: Path, tmp_path_factory: pytest.TempPathFactory
+             ) -> Iterator[tuple[Path, list[str], Any, dict[str, int]]]:
+    """``sim`` served by the peer and recorded live: the recording, the lines said, the summary, the counts sent."""
+    tmp = tmp_path_factory.mktemp("live-sim")
+    peer = Peer(tmp, sim)
+    try:
+        _, lines, summary = _record_all(peer, tmp / "live.mcap", sensor_model=_model(sim))
+        yield tmp / "live.mcap", lines, summary, peer.sent()
+    finally:
+        peer.close()
+
+
+def test_live_protobuf_stream_records_every_message_as_the_direct_recording(
+        sim: Path, live_sim: tuple[Path, list[str], Any, dict[str, int]]) -> None:
+    """Foxglove protobuf channels come out as the simulation wrote them: every message the server sent, in order,
+    byte for byte."""
+    out, lines, summary, sent = live_sim
+    assert out.exists() and not Path(f"{out}.partial").exists()
+    assert {c.topic: c.written for c in summary.topics} == sent
+    assert _sequence(out) == _sequence(sim)
+    topics = sorted(sent)
+    for a, b in zip(RecordingReader(sim).raw(topics), RecordingReader(out).raw(topics), strict=True):
+        assert (a[0].topic, a[1], a[3]) == (b[0].topic, b[1], b[3])  # log time and bytes (publish time: received)
+    for a, b in zip(RecordingReader(sim).messages(), RecordingReader(out).messages(), strict=True):
+        assert_msg_equal(a.msg, b.msg)
+    assert any("/diagnostics" in line and "skipped: schema my_robot.Diagnostics" in line for line in lines)
+    with open(out, "rb") as f:
+        live_meta = next(m.metadata for m in make_reader(f).iter_metadata() if m.name == LIVE_METADATA)
+    assert json.loads(live_meta["topics"])["/odom"]["written"] == sent["/odom"]
+    assert "/diagnostics" in json.loads(live_meta["skipped"])
+
+
+def _metrics(recording: Path, pipeline: str, run: Path) -> dict[str, float]:
+    assert cli_main(["run", str(recording), "--pipeline", pipeline, "--out", str(run), "-q"]) == 0
+    return {k: v["value"] for k, v in json.loads((run / "metrics.json").read_text())["metrics"].items()}
+
+
+def test_live_recording_replays_through_odometry_as_the_direct_recording(
+        sim: Path, live_sim: tuple[Path, list[str], Any, dict[str, int]], tmp_path: Path) -> None:
+    """`slamreplay run FILE --pipeline odometry` gives the metrics of the simulation recorded directly."""
+    assert _metrics(live_sim[0], "odometry", tmp_path / "a") == _metrics(sim, "odometry", tmp_path / "b")
+
+
+@pytest.mark.slow
+def test_live_recording_replays_through_dslam_as_the_direct_recording(
+        sim: Path, live_sim: tuple[Path, list[str], Any, dict[str, int]], tmp_path: Path) -> None:
+    """D-SLAM on the live recording gives the metrics of the simulation recorded directly (issue 42)."""
+    assert _metrics(live_sim[0], "dslam", tmp_path / "a") == _metrics(sim, "dslam", tmp_path / "b")
+
+
+def test_live_ros2_cdr_channels_convert_as_record_ros2_does(tmp_path: Path, peers: list[Peer]) -> None:
+    """CDR channels (odometry, IMU, laser scans, camera, tf_static) become what `record ros2` makes of the same bag."""
+    bag = tmp_path / "bag"
+    write_bag(bag, "mcap", seed=0, seconds=6.0)
+    imported = tmp_path / "imported.mcap"
+    import_ros2_bag(bag, imported)
+    peers.append(peer := Peer(tmp_path, bag / "bag.mcap"))
+    out = tmp_path / "live.mcap"
+    _, _, summary = _record_all(peer, out)
+    by_topic: dict[str, list[object]] = {}
+    for e in RecordingReader(imported).messages():
+        by_topic.setdefault(e.topic, []).append(e.msg)
+    live: dict[str, list[object]] = {}
+    for e in RecordingReader(out).messages():
+        live.setdefault(e.topic, []).append(e.msg)
+    assert sorted(live) == sorted(by_topic) and TOPIC_RANGE_BEARING in live
+    for topic, msgs in by_topic.items():
+        assert len(live[topic]) == len(msgs), topic
+        for a, b in zip(msgs, live[topic], strict=True):
+            assert_msg_equal(a, b)  # type: ignore[arg-type]
+    skipped = {p.channel.topic: p.note for p in summary.skipped}  # type: ignore[attr-defined]
+    assert "my_msgs/msg/Blob is not read" in skipped["/diagnostics_blob"]
+    assert "/camera/image comes from /camera/compressed" in skipped["/camera/image_raw"]
+    assert _model(out) == _model(imported)  # the pole extractor's noise floors, as the import states them
+
+
+def test_live_kill9_leaves_a_partial_that_recover_salvages(sim: Path, tmp_path: Path, peers: list[Peer]) -> None:
+    """kill -9 of `slamreplay record live` mid-way: FILE.partial, and `recover` keeps every message flushed."""
+    peers.append(peer := Peer(tmp_path, sim, "--speed", "10"))  # 30 s of simulation in 3 s
+    out = tmp_path / "live.mcap"
+    env = {**os.environ, "SLAMREPLAY_PROGRESS_INTERVAL_S": "0"}
+    proc = subprocess.Popen([sys.executable, "-m", "slamreplay.api.cli", "record", "live", peer.url, "--out", str(out)],
+                            stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+    assert proc.stderr is not None
+    flushed = 0
+    for line in proc.stderr:  # a status line comes after each flush: what it counts is on disk
+        if line.startswith("record live") and " messages" in line:
+            flushed = int(line.split(", ")[1].split()[0].replace(",", ""))
+            if flushed >= 300:
+                break
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    partial = Path(f"{out}.partial")
+    assert partial.exists() and not out.exists()
+    report = recover(partial, tmp_path / "fixed.mcap")
+    assert report.messages >= flushed >= 300
+    got = _sequence(tmp_path / "fixed.mcap")
+    assert got == _sequence(sim)[:len(got)]  # a prefix of what was sent, nothing damaged
+
+
+def test_live_dropped_connection_is_one_gap_in_the_file_and_said(sim: Path, tmp_path: Path,
+                                                                  peers: list[Peer]) -> None:
+    """The server goes away for 1.5 s: the recording goes on after it, with one gap record, and every message."""
+    peers.append(peer := Peer(tmp_path, sim, "--drop-after", "400", "--drop-for", "1.5"))
+    out = tmp_path / "live.mcap"
+    _, lines, summary = _record_all(peer, out, sensor_model=_model(sim))
+    assert {c.topic: c.written for c in summary.topics} == peer.sent()  # type: ignore[attr-defined]
+    assert _sequence(out) == _sequence(sim)
+    with open(out, "rb") as f:
+        gaps = [m.metadata for m in make_reader(f).iter_metadata() if m.name == GAP_METADATA]
+    assert len(gaps) == 1 and len(summary.gaps) == 1  # type: ignore[attr-defined]
+    gap = gaps[0]
+    assert 1.4 < float(gap["duration_s"]) < 10
+    assert 0 < int(gap["start_ns"]) <= int(gap["end_ns"])  # the log times of the messages around it
+    assert sum(line.startswith("connection lost") for line in lines) == 1
+    assert sum(line.startswith("gap: ") for line in lines) == 1
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.mark.parametrize(("url", "extra", "expected"), [
+    ("http://127.0.0.1:8765", [], r"is not a WebSocket URL: give ws://HOST:PORT"),
+    ("ws://", [], r"is not a WebSocket URL"),
+    ("ws://127.0.0.1:{free}", [], r"cannot connect to ws://127\.0\.0\.1:\d+: .*is foxglove_bridge"),
+])
+def test_live_bad_url_or_unreachable_server_exits_2_with_one_line(
+        url: str, extra: list[str], expected: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A URL that is not ws:// or a server that is not there: exit 2, one line, no file."""
+    out = tmp_path / "live.mcap"
+    code = cli_main(["record", "live", url.format(free=_free_port()), "--out", str(out), *extra])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1
+    import re
+
+    assert re.search(expected, err[0]), err[0]
+    assert not out.exists() and not Path(f"{out}.partial").exists()
+
+
+def test_live_no_matching_topic_exits_2_naming_the_channels(sim: Path, tmp_path: Path, peers: list[Peer],
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """--topics that match nothing, or only a channel slamreplay cannot read: exit 2, one line naming the channels."""
+    peers.append(peer := Peer(tmp_path, sim, "--linger-s", "60"))
+    out = tmp_path / "live.mcap"
+    assert cli_main(["record", "live", peer.url, "--out", str(out), "--topics", "/nothing/*", "--wait-s", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no channel of ws://" in err[0] and "matches --topics /nothing/*" in err[0]
+    assert "/odom (protobuf foxglove.PoseInFrame)" in err[0]
+    assert cli_main(["record", "live", peer.url, "--out", str(out), "--topics", "re:/diag.*", "--wait-s", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "can be recorded" in err[0]
+    assert "my_robot.Diagnostics is not one slamreplay reads" in err[0]
+    assert not out.exists() and not Path(f"{out}.partial").exists()
