@@ -103,7 +103,7 @@ def group_runs(sums: list[GroupSums], runs: list[GroupRow], view: RunsView) -> l
     groups = []
     for g in sums:
         labels = tuple(_label(k, v, g.recording_name) for k, v in zip(view.group, g.keys, strict=True))
-        stats = {m: Stat.from_sums(*g.sums[m]) if m in g.sums else None for m in view.cols}
+        stats = {m: Stat.from_sums(*g.sums[m]) if m in g.sums else None for m in (*view.cols, view.chart) if m}
         groups.append(Group(view.group, g.keys, labels, g.n, g.newest, stats,
                             tuple(newest.get(_hashable(g.keys), ()))))
     return sort_groups(groups, view.sort)

@@ -59,6 +59,7 @@ COLUMNS = {"status": "status", "recording": "recording", "pipeline": "pipeline",
 DEFAULT_SHOW = ("status", "recording", "pipeline", "variant", "seed", "config", "commit", "made_by", "tags", "note",
                 "created", "duration")
 GROUP_KEYS = ("recording", "pipeline", "variant", "commit")  # and config.KEY
+CHART_X = ("seed", "created", "commit")  # and config.KEY
 MAX_GROUP_KEYS = 4
 TIME_SORTS = ("created", "started", "finished", "duration")
 
@@ -113,6 +114,8 @@ class RunsView:
     cols: tuple[str, ...] = DEFAULT_COLS  # metric columns, in order
     show: tuple[str, ...] = DEFAULT_SHOW  # the other columns, in order (COLUMNS)
     group: tuple[str, ...] = ()  # GROUP_KEYS or config.KEY
+    chart: str = ""  # a metric drawn per group (grouped) or against ``x`` (api/runs_charts.py)
+    x: str = ""  # CHART_X or config.KEY: a scatter of ``chart`` against it
     sort: str = DEFAULT_SORT
     page: int = 1
     per: int = 50
@@ -122,8 +125,8 @@ class RunsView:
     def params(self, **changes: Any) -> dict[str, str]:
         """The URL query of this view (with ``changes``), leaving out what is at its default."""
         v = replace(self, **changes)
-        out = {k: getattr(v, k) for k in ("q", "recording", "pipeline", "status", "tag", "where", "since", "until")
-               if getattr(v, k)}
+        out = {k: getattr(v, k) for k in ("q", "recording", "pipeline", "status", "tag", "where", "since", "until",
+                                          "chart", "x") if getattr(v, k)}
         if v.cols != DEFAULT_COLS:
             out["cols"] = ",".join(v.cols)
         if v.show != DEFAULT_SHOW:
@@ -235,6 +238,14 @@ def parse_view(query: Mapping[str, list[str]], config_keys: frozenset[str] = fro
         if len(group) > MAX_GROUP_KEYS:
             errors.append(f"group by at most {MAX_GROUP_KEYS} keys")
             group = group[:MAX_GROUP_KEYS]
+    chart, x = one("chart"), one("x")
+    if chart and chart not in known:
+        errors.append(f"chart: {unknown_metric(chart, known)}")
+        chart = ""
+    if x and not (x in CHART_X or (x.startswith("config.") and x.removeprefix("config.") in keys)):
+        errors.append(f"cannot chart against {x!r}: against {', '.join(CHART_X)} or config.KEY (a pipeline's "
+                      "config key)")
+        x = ""
     where = one("where")
     condition: Expr | None = None
     if where:
@@ -256,8 +267,8 @@ def parse_view(query: Mapping[str, list[str]], config_keys: frozenset[str] = fro
         per = min(PAGE_SIZES, key=lambda p: abs(p - per))
     page = max(1, _int(one("page"), 1, "page", errors))
     return RunsView(q=one("q"), recording=one("recording"), pipeline=one("pipeline"), status=status, tag=one("tag"),
-                    where=where, since=since, until=until, cols=cols, show=show, group=group, sort=sort, page=page,
-                    per=per, condition=condition, errors=tuple(errors))
+                    where=where, since=since, until=until, cols=cols, show=show, group=group, chart=chart, x=x,
+                    sort=sort, page=page, per=per, condition=condition, errors=tuple(errors))
 
 
 def strict_view(query: Mapping[str, list[str]]) -> RunsView:

@@ -140,8 +140,44 @@ def metric_heading(name: str) -> dict[str, str]:
 
 def select_groups(jobs: JobService, view: RunsView, where: str, args: list[Any]) -> list[Group]:
     """The groups of a grouped view, in its order (each with its newest runs)."""
-    sums, runs = jobs.store.select_groups(where, args, view.group, view.cols, PREVIEW_RUNS)
+    metrics = view.cols if not view.chart or view.chart in view.cols else (*view.cols, view.chart)
+    sums, runs = jobs.store.select_groups(where, args, view.group, metrics, PREVIEW_RUNS)
     return group_runs(sums, runs, view)
+
+
+def chart_ctx(jobs: JobService, view: RunsView, where: str, args: list[Any], groups: list[Any] | None) -> str:
+    """The view's chart as SVG ("" when it asks for none or has nothing to draw): its metric per group on a grouped
+    view, or against ``x`` (a scatter of the listed runs)."""
+    from slamreplay.api.runs_charts import GroupMark, Point, group_chart_svg, scatter_svg
+    from slamreplay.api.runs_grammar import value_text
+
+    if not view.chart:
+        return ""
+    head = metric_heading(view.chart)
+    y_label = view.chart + (f" ({head['unit']})" if head["unit"] else "")
+    if not view.x:
+        if groups is None:
+            return ""
+        marks = [GroupMark(e["g"].label, e["link"], s.n, s.mean, s.std, s.lo, s.hi)
+                 for e in groups if (s := e["g"].stats.get(view.chart)) is not None]
+        return group_chart_svg(marks, view.chart, head["unit"], head["title"].rsplit("; ", 1)[-1])
+    rows = jobs.store.chart_points(where, args, view.chart, view.x)
+    if view.x == "commit":
+        rows.reverse()  # commits from the oldest, left, to the newest
+    kind = {"seed": "number", "created": "time", "commit": "category"}.get(view.x, "number")
+    if view.x.startswith("config.") and not all(isinstance(r[3], (int, float)) and not isinstance(r[3], bool)
+                                                for r in rows):
+        kind = "category"
+
+    def x_of(value: Any) -> Any:
+        if view.x == "commit":
+            return (value or "unknown")[:7]
+        if kind == "category":
+            return value_text(value, view.x) if not isinstance(value, (list, dict)) else str(value)
+        return value
+
+    points = [Point(x_of(x), y, f"/ui/jobs/{i}", name or f"{i[:8]} seed {seed}") for i, name, seed, x, y in rows]
+    return scatter_svg(points, view.x, y_label, kind)
 
 
 def stat_cell(metric: str, s: Stat | None, n: int, best: float | None) -> dict[str, Any]:
@@ -200,6 +236,7 @@ def runs_ctx(request: Request, view: RunsView) -> dict[str, Any]:
             rows, total = jobs.store.select_runs(where, args, order, view.per, (view.page - 1) * view.per)
         config_keys = differing_config(rows) if "config" in view.show else []
         ctx = {"rows": [_cells(r, view, config_keys) for r in rows], "groups": None}
+    chart = chart_ctx(jobs, view, where, args, ctx["groups"])
     recs = jobs.store.list_recordings()
     listed_metrics, listed_config = jobs.store.json_keys(where, args)
     group_choices = list(GROUP_KEYS) + [f"config.{k}" for k in listed_config]
@@ -207,6 +244,8 @@ def runs_ctx(request: Request, view: RunsView) -> dict[str, Any]:
             "metric_cols": [metric_heading(c) for c in view.cols], "metric_menu": _menu(view.cols, listed_metrics),
             "column_menu": [(c, COLUMNS[c], on) for c, on in _menu(view.show, list(COLUMNS))],
             "group_menu": _menu(view.group, group_choices), "sort_choices": sort_choices(view),
+            "chart_svg": chart, "chart_x": ["seed", "created", "commit", *[f"config.{k}" for k in listed_config]],
+            "chart_metrics": sorted({*listed_metrics, *view.cols, *([view.chart] if view.chart else [])}),
             "page_sizes": PAGE_SIZES, "statuses": JOB_STATUSES,
             "filter_recordings": recs, "filter_pipelines": jobs.store.pipelines_used(),
             "filter_tags": jobs.store.tag_counts(), "csv_url": view.url("/runs.csv", page=1),

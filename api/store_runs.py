@@ -302,6 +302,26 @@ class RunsTableMixin:
                 for r in runs]
         return sums_out, rows
 
+    def chart_points(self, where: str, args: list[Any], metric: str, x: str,
+                     limit: int = 1000) -> list[tuple[str, str | None, int, Any, float]]:
+        """The newest ``limit`` jobs matching ``where`` (as `select_runs`) that report ``metric``: (id, name, seed,
+        value of ``x``, value of the metric), ``x`` one of seed, created, commit or config.KEY (its JSON value; None:
+        not submitted)."""
+        name_re = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+        key = x.removeprefix("config.")
+        if not name_re.fullmatch(metric) or not (x in ("seed", "created", "commit") or
+                                                 (x.startswith("config.") and name_re.fullmatch(key))):
+            raise ValueError(f"cannot chart {metric!r} against {x!r}")
+        path = f"'$.\"{key}\"'"
+        x_sql = {"seed": "NULL, j.seed", "created": "NULL, j.created", "commit": "NULL, j.git_commit"}.get(
+            x, f"json_type(j.config, {path}), json_extract(j.config, {path})")
+        y_sql = f"json_extract(j.metrics, '$.\"{metric}\"')"
+        with self._read() as conn:
+            joins = f"FROM jobs j LEFT JOIN recordings r ON r.id = j.recording_id {self._variants(conn)}"
+            rows = conn.execute(f"SELECT j.id, j.name, j.seed, {x_sql}, {y_sql} {joins} WHERE ({where}) AND "
+                                f"{y_sql} IS NOT NULL ORDER BY j.seq DESC LIMIT ?", (*args, limit)).fetchall()
+        return [(r[0], r[1], r[2], r[4] if r[3] not in ("true", "false") else r[3] == "true", r[5]) for r in rows]
+
     def jobs_page(self, where: str, args: list[Any], limit: int,
                   before: int | None = None) -> tuple[list[JobRow], int, int | None]:
         """Jobs matching ``where`` (as `select_runs`), newest first, after the cursor ``before`` (a job's sequence

@@ -664,3 +664,46 @@ def test_groups_export_as_csv(table: tuple[TestClient, Store]) -> None:
                        "ape_rmse_m max", "ape_rmse_m n"]
     assert rows[1][:3] == ["odometry", "sim.mcap", "5"] and rows[2][:3] == ["dslam", "hall.mcap", "4"]
     assert [float(x) for x in rows[1][3:7]] == pytest.approx([0.2, 0.2, 0.0, 0.4]) and rows[1][7] == "3"
+
+
+def test_scatter_of_a_sweep_shows_a_column_per_value(table: tuple[TestClient, Store]) -> None:
+    """A sweep of range_sigma_m over 5 values x 3 seeds: the scatter of landmark_rmse_m against it draws 15 dots
+    at 5 x positions, each linked to its run; commit and seed scatters too."""
+    client, store = table
+    store.cancel_job(jid(8))  # so that each claim is the new job
+    k = 100
+    for sigma in (0.05, 0.1, 0.2, 0.4, 0.8):
+        for seed in (1, 2, 3):
+            store.add_job(jid(k), HALL, "ekfslam", {"range_sigma_m": sigma}, seed)
+            assert store.claim_next() is not None
+            store.finish_job(jid(k), "succeeded", None, {"landmark_rmse_m": sigma / 4 + seed / 100}, COMMITS[0])
+            k += 1
+    page = client.get("/runs", params={"pipeline": "ekfslam", "chart": "landmark_rmse_m",
+                                       "x": "config.range_sigma_m"}).text
+    svg = page.split('id="runs-chart"')[1].split("</svg>")[0]
+    dots = re.findall(r'<a href="/ui/jobs/([0-9a-f]{32})" class="mark">.*?<circle cx="([\d.]+)"', svg, re.S)
+    assert len(dots) == 15 and {int(i, 16) for i, _ in dots} == set(range(100, 115))
+    assert len({x for _, x in dots}) == 5
+    assert "range_sigma_m 0.8, landmark_rmse_m 0.23" in html.unescape(svg)
+    by_commit = client.get("/runs", params={"chart": "ape_rmse_m", "x": "commit"}).text
+    assert by_commit.split('id="runs-chart"')[1].count("<circle") == 6  # the six runs with the metric
+    by_day = client.get("/runs", params={"chart": "ape_rmse_m", "x": "created"}).text
+    assert ">05-02</text>" in by_day or ">05-03</text>" in by_day  # days on the axis
+    for params, message in (({"chart": "nope"}, "chart: unknown metric 'nope'"),
+                            ({"chart": "ape_rmse_m", "x": "colour"}, "cannot chart against 'colour'")):
+        r = client.get("/runs", params=params)
+        assert r.status_code == 422 and message in html.unescape(r.text)
+
+
+def test_group_chart_has_a_row_per_group(table: tuple[TestClient, Store]) -> None:
+    """chart=METRIC on a grouped view: a row per group in the table's order (mean, spread, min-max), each linked
+    to the group's runs; without groups or x, a line saying what to choose."""
+    client, _ = table
+    page = client.get("/runs", params={"group": "pipeline", "chart": "ape_rmse_m", "sort": "m.ape_rmse_m"}).text
+    svg = page.split('id="runs-chart"')[1].split("</svg>")[0]
+    rows = re.findall(r'<a href="([^"]+)" class="mark"><title>([^<]+)</title>', svg)
+    assert [html.unescape(t).split(":")[0] for _, t in rows] == ["odometry", "dslam"]
+    assert "mean 0.2 ± 0.2 over 3 runs; min 0, max 0.4" in html.unescape(rows[0][1])  # 3 of 5 report it
+    assert sorted(row_ids(client.get(html.unescape(rows[1][0])).text)) == [1, 3, 5, 7]
+    alone = client.get("/runs", params={"chart": "ape_rmse_m"}).text
+    assert 'id="runs-chart-empty"' in alone and "Group the runs" in alone

@@ -23,6 +23,8 @@ pytestmark = pytest.mark.browser
 SIGMAS = (0.05, 0.1, 0.2, 0.4, 0.8)
 COMMITS = ("3f2a9c1" + "0" * 33, "8be41d7" + "1" * 33)
 GROUPED = "/runs?group=pipeline,recording&cols=ape_rmse_m,landmark_rmse_m,landmark_nees_mean&sort=m.ape_rmse_m"
+GROUP_CHART = GROUPED + "&chart=ape_rmse_m"
+SCATTER = "/runs?pipeline=ekfslam&recording=corridor-loop.mcap&chart=landmark_rmse_m&x=config.range_sigma_m"
 FLAT = "/runs?pipeline=dslam&cols=ape_rmse_m,landmark_rmse_m&show=status,recording,seed,config,commit,made_by,tags,note"
 
 
@@ -191,6 +193,36 @@ def test_phone_shows_a_card_per_run(page: Any, site: tuple[str, dict[str, str]])
     assert page.problems == [], page.problems
 
 
+def test_charts_across_runs(page: Any, site: tuple[str, dict[str, str]]) -> None:
+    """A metric per group (a row each, linked to its runs) and a scatter of range_sigma_m against
+    landmark_rmse_m over the 5 x 3 sweep (5 columns of dots, each linked to its run), readable at 390 px: the
+    chart as wide as the screen, its text at least 9 px, nothing scrolling sideways."""
+    base, _ = site
+    page.goto(base + GROUP_CHART)
+    assert page.locator("#runs-chart a.mark").count() == 5
+    shot(page, "group-chart-laptop", full=True)
+    page.goto(base + SCATTER)
+    dots = page.eval_on_selector_all("#runs-chart circle", "els => els.map(e => e.getAttribute('cx'))")
+    assert len(dots) == 15 and len(set(dots)) == 5
+    href = page.get_attribute("#runs-chart a.mark", "href")
+    assert href is not None and re.fullmatch(r"/ui/jobs/[0-9a-f]{32}", href)
+    shot(page, "scatter-laptop")
+    page.set_viewport_size(PHONE)
+    for path, name in ((SCATTER, "scatter"), (GROUP_CHART, "group-chart")):
+        page.goto(base + path)
+        assert page.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
+        box = page.locator("#runs-chart svg").bounding_box()
+        assert box is not None and box["width"] >= 300 and box["x"] + box["width"] <= PHONE["width"]
+        size = page.evaluate("""() => Math.min(...[...document.querySelectorAll('#runs-chart svg text')]
+                                .map(t => t.getBoundingClientRect().height))""")
+        assert size >= 9, (name, size)
+        page.locator("#runs-chart").scroll_into_view_if_needed()
+        shot(page, f"{name}-phone")
+    page.click("#runs-chart a.mark")  # a group's row: its runs
+    page.wait_for_url(re.compile(r"/runs\?.*where="))
+    assert page.problems == [], page.problems
+
+
 @pytest.mark.parametrize("scheme", ["dark", "light"])
 def test_axe_clean_in_both_schemes(browser: Any, site: tuple[str, dict[str, str]], scheme: str) -> None:
     """No serious or critical axe violation (contrast included) on the runs views, a job page with plots and a
@@ -202,7 +234,8 @@ def test_axe_clean_in_both_schemes(browser: Any, site: tuple[str, dict[str, str]
     problems: list[str] = []
     pg.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
     try:
-        for name, path in (("flat", FLAT), ("grouped", GROUPED), ("job", f"/ui/jobs/{ids['dslam']}"),
+        for name, path in (("flat", FLAT), ("grouped", GROUP_CHART), ("scatter", SCATTER),
+                           ("job", f"/ui/jobs/{ids['dslam']}"),
                            ("compare", f"/ui/compare?runs={ids['odometry']},{ids['dslam']}")):
             pg.goto(base + path)
             pg.evaluate("document.querySelectorAll('[data-live]').forEach(el => el.removeAttribute('data-live'))")
