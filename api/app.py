@@ -31,6 +31,7 @@ from slamreplay.api.docs_pages import install_docs
 from slamreplay.api.errors import ApiError, disk_full_error, is_disk_full
 from slamreplay.api.executor import Executor, LocalExecutor
 from slamreplay.api.jobs import JobService
+from slamreplay.api.live_routes import install_live_routes
 from slamreplay.api.models import (
     JOB_ID,
     SHA256,
@@ -371,6 +372,7 @@ def create_app(settings: Settings | None = None, executor: Executor | None = Non
     app.add_middleware(SiteGuard, hosts=settings.allowed_hosts)  # outermost: before any route or error handler
     for exc in (ApiError, ReplayError, RecorderError, OSError, sqlite3.Error):
         app.add_exception_handler(exc, handle_error)
+    install_live_routes(app)  # /recordings/live, before /recordings/{id} would read "live" as an id
     app.include_router(public)
     app.include_router(router)
     install_record_routes(app)  # POST /recordings/record/NAME per importer the server may run

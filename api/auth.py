@@ -41,6 +41,8 @@ RULES: dict[tuple[str, str], tuple[Role, str]] = {
     ("POST", "/recordings"): ("runner", "upload recordings"),
     ("POST", "/recordings/{recording_id}/recover"): ("runner", "recover damaged uploads"),
     ("DELETE", "/recordings/{recording_id}"): ("admin", "delete recordings"),
+    ("POST", "/recordings/live"): ("runner", "record live streams"),  # api/live_routes.py
+    ("POST", "/recordings/live/{task_id}/stop"): ("runner", "stop live recordings"),
     ("POST", "/jobs"): ("runner", "submit jobs"),
     ("DELETE", "/jobs/{job_id}"): ("runner", "cancel jobs"),
     ("PATCH", "/jobs/{job_id}"): ("runner", "name, tag and annotate runs"),

@@ -28,9 +28,10 @@ from slamreplay.api.store import Store
 Scope = MutableMapping[str, Any]
 ASGIApp = Callable[[Scope, Any, Any], Awaitable[None]]
 # Path segments that hold an id: (pattern with the group "id", kinds it may be). Words that are routes of their
-# own (/recordings/importers, /recordings/record/NAME) are not ids.
+# own (/recordings/importers, /recordings/record/NAME, /recordings/live) are not ids.
 PATHS = (
-    (re.compile(r"^/recordings/(?P<id>(?!importers$|record$)[^/]+)(?:/(?:recover|download))?$"), ("recording",)),
+    (re.compile(r"^/recordings/(?P<id>(?!importers$|record$|live$)[^/]+)(?:/(?:recover|download))?$"),
+     ("recording",)),
     (re.compile(r"^/jobs/(?P<id>[^/]+)(?:/(?:rrd|metrics|manifest|log))?$"), ("job",)),
     (re.compile(r"^/suites/(?P<id>[^/]+)$"), ("suite",)),
     (re.compile(r"^/ui/(?:part/)?jobs/(?P<id>[^/]+)(?:/.*)?$"), ("job",)),

@@ -28,6 +28,8 @@
 | | | after the request's start, else 408 (0: no rate) |
 | ``SLAMREPLAY_ALLOW_EXTERNAL_PIPELINES`` | ``false`` | run jobs of external pipelines (programs declared in TOML by |
 | | | the operator, ``SLAMREPLAY_PIPELINES``: docs/external.md); otherwise such a job is refused with 403 |
+| ``SLAMREPLAY_ALLOW_LIVE_RECORDING`` | ``false`` | let clients start recordings of live Foxglove WebSocket streams |
+| | | from the server (``POST /recordings/live``: it connects to the URL a client names); otherwise 403 |
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ from slamreplay.api.timeouts import BODY_TIMEOUT_S, HEADER_TIMEOUT_S, MIN_BODY_R
 ENV_PREFIX = "SLAMREPLAY_"
 ENV_FIELDS = ("data_dir", "token", "workers", "max_upload_bytes", "executor", "ray_address", "storage_url",
               "job_memory_mib", "job_timeout_s", "allowed_hosts", "header_timeout_s", "body_timeout_s",
-              "min_body_rate", "allow_external_pipelines")
+              "min_body_rate", "allow_external_pipelines", "allow_live_recording")
 LIST_FIELDS = ("allowed_hosts",)  # comma-separated in the environment
 
 
@@ -69,6 +71,7 @@ class Settings(BaseModel):
     body_timeout_s: float = Field(default=BODY_TIMEOUT_S, gt=0)
     min_body_rate: int = Field(default=MIN_BODY_RATE, ge=0)
     allow_external_pipelines: bool = False  # programs declared in TOML run only when the operator says so
+    allow_live_recording: bool = False  # the server connects to a client's ws:// URL only when the operator says so
 
     @field_validator("allowed_hosts")
     @classmethod
