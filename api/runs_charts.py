@@ -5,7 +5,7 @@
 - `scatter_svg`: the runs' value of a metric against a config key, the commit, the seed or the day it was made
   (``chart=METRIC&x=config.KEY|commit|seed|created``), a dot per run.
 
-Every dot or row links to its runs (a run's page; a group's filtered view) and says its values in a tooltip.
+`view_chart` draws the one a view of the runs table asks for. Every dot or row links to its runs (a run's page; a group's filtered view) and says its values in a tooltip.
 Labels sit above the marks rather than beside them, so that a chart stays readable at 390 px: the viewBox is
 narrow (420 units) and scales down little. Colours are the palette's estimate blue (`slamreplay.api.svg_plots`);
 the plot area and grid use the attribute values the page's dark mode restyles.
@@ -20,6 +20,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from slamreplay.api.runs_grammar import value_text
+from slamreplay.api.runs_query import RunsView, metric_heading
+from slamreplay.api.store_runs import RunsTableMixin
 from slamreplay.api.svg_plots import ESTIMATE, nice_ticks
 
 WIDTH = 420
@@ -184,3 +187,36 @@ def scatter_svg(points: Sequence[Point], x_label: str, y_label: str, kind: str =
                    f'fill="{ESTIMATE}" fill-opacity="0.7" stroke="{ESTIMATE}"/></a>')
     more = f" (the newest {MAX_POINTS})" if len(points) > MAX_POINTS else ""
     return _svg(height, f"{y_label} against {x_label}, {len(pts)} runs{more}", "".join(out), "scatter")
+
+
+def view_chart(store: RunsTableMixin, view: RunsView, where: str, args: list[Any],
+               groups: list[dict[str, Any]] | None) -> str:
+    """The view's chart as SVG ("" when it asks for none or has nothing to draw): its metric per group on a grouped
+    view, or against ``x`` (a scatter of the listed runs)."""
+    if not view.chart:
+        return ""
+    head = metric_heading(view.chart)
+    y_label = view.chart + (f" ({head['unit']})" if head["unit"] else "")
+    if not view.x:
+        if groups is None:
+            return ""
+        marks = [GroupMark(e["g"].label, e["link"], s.n, s.mean, s.std, s.lo, s.hi)
+                 for e in groups if (s := e["g"].stats.get(view.chart)) is not None]
+        return group_chart_svg(marks, view.chart, head["unit"], head["title"].rsplit("; ", 1)[-1])
+    rows = store.chart_points(where, args, view.chart, view.x)
+    if view.x == "commit":
+        rows.reverse()  # commits from the oldest, left, to the newest
+    kind = {"seed": "number", "created": "time", "commit": "category"}.get(view.x, "number")
+    if view.x.startswith("config.") and not all(isinstance(r[3], (int, float)) and not isinstance(r[3], bool)
+                                                for r in rows):
+        kind = "category"
+
+    def x_of(value: Any) -> Any:
+        if view.x == "commit":
+            return (value or "unknown")[:7]
+        if kind == "category":
+            return value_text(value, view.x) if not isinstance(value, (list, dict)) else str(value)
+        return value
+
+    points = [Point(x_of(x), y, f"/ui/jobs/{i}", name or f"{i[:8]} seed {seed}") for i, name, seed, x, y in rows]
+    return scatter_svg(points, view.x, y_label, kind)

@@ -18,7 +18,7 @@ from typing import Any
 
 from slamreplay.api.runs_grammar import value_text
 from slamreplay.api.runs_query import DEFAULT_SORT, SORTS, RunsView, metric_specs
-from slamreplay.api.store_runs import GroupRow, GroupSums
+from slamreplay.api.store_runs import GroupRow, GroupSums, RunsTableMixin
 
 
 @dataclass(frozen=True)
@@ -182,3 +182,19 @@ def best_means(groups: list[Group], metrics: tuple[str, ...]) -> dict[str, float
         if len(means) > 1:
             out[m] = min(means, key=lambda v: metric_rank(m, v))
     return out
+
+
+def select_groups(store: RunsTableMixin, view: RunsView, where: str, args: list[Any], preview: int) -> list[Group]:
+    """The groups of a grouped view, in its order (each with its newest runs)."""
+    metrics = view.cols if not view.chart or view.chart in view.cols else (*view.cols, view.chart)
+    sums, runs = store.select_groups(where, args, view.group, metrics, preview)
+    return group_runs(sums, runs, view)
+
+
+def stat_cell(metric: str, s: Stat | None, n: int, best: float | None) -> dict[str, Any]:
+    """A group's metric cell: mean (4 digits) ± standard deviation (2), the count, minimum and maximum on hover."""
+    if s is None:
+        return {"name": metric, "mean": "", "std": "", "title": f"none of the {n} runs reports it", "best": False}
+    return {"name": metric, "mean": f"{s.mean:.4g}", "std": "" if s.std is None else f"{s.std:.2g}",
+            "title": f"{s.n} of {n} runs: mean {s.mean:.6g}, std {'-' if s.std is None else f'{s.std:.6g}'}, "
+                     f"min {s.lo:.6g}, max {s.hi:.6g}", "best": best is not None and s.mean == best}

@@ -352,3 +352,17 @@ def order_sql(view: RunsView) -> str:
     expr = sort_expr(key)
     direction = "DESC" if view.sort.startswith("-") else "ASC"
     return f"({expr}) IS NULL, {expr} {direction}, j.seq DESC"
+
+
+def metric_heading(name: str) -> dict[str, str]:
+    """A metric column's heading: its name, unit (unless the name ends with it), direction arrow and meaning."""
+    spec = metric_specs().get(name)
+    if spec is None:
+        return {"name": name, "unit": "", "arrow": "", "title": name}
+    target = getattr(spec, "target", None)  # the consistent value of a NEES, closest is best
+    arrow = {"lower": "↓", "higher": "↑"}.get(spec.better, f"≈{target:g}" if target is not None else "")
+    better = {"lower": "lower is better", "higher": "higher is better"}.get(
+        spec.better, f"closest to {target:g} is best" if target is not None else "describes the run")
+    unit = spec.unit
+    return {"name": name, "unit": "" if not unit or name.endswith(f"_{unit}") else unit, "arrow": arrow,
+            "title": f"{spec.description}; {better}"}

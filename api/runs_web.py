@@ -34,14 +34,15 @@ from slamreplay.api.pages import PAGE_ERRORS, duration_text, suite_key, web_sess
 from slamreplay.api.pages import error_response as _error
 from slamreplay.api.pages import page_lists as _lists
 from slamreplay.api.pages import page_response as _page
-from slamreplay.api.runs_groups import Group, Stat, best_means, group_runs, runs_of
+from slamreplay.api.runs_charts import view_chart
+from slamreplay.api.runs_groups import Group, best_means, runs_of, select_groups, stat_cell
 from slamreplay.api.runs_query import (
     COLUMNS,
     GROUP_KEYS,
     PAGE_SIZES,
     RunsView,
     best_first,
-    metric_specs,
+    metric_heading,
     order_sql,
     parse_view,
     where_sql,
@@ -124,71 +125,6 @@ def _cells(r: RunRow, view: RunsView, config_keys: list[str]) -> dict[str, Any]:
             "made_by": made_by_text(j)}
 
 
-def metric_heading(name: str) -> dict[str, str]:
-    """A metric column's heading: its name, unit (unless the name ends with it), direction arrow and meaning."""
-    spec = metric_specs().get(name)
-    if spec is None:
-        return {"name": name, "unit": "", "arrow": "", "title": name}
-    target = getattr(spec, "target", None)  # the consistent value of a NEES, closest is best
-    arrow = {"lower": "↓", "higher": "↑"}.get(spec.better, f"≈{target:g}" if target is not None else "")
-    better = {"lower": "lower is better", "higher": "higher is better"}.get(
-        spec.better, f"closest to {target:g} is best" if target is not None else "describes the run")
-    unit = spec.unit
-    return {"name": name, "unit": "" if not unit or name.endswith(f"_{unit}") else unit, "arrow": arrow,
-            "title": f"{spec.description}; {better}"}
-
-
-def select_groups(jobs: JobService, view: RunsView, where: str, args: list[Any]) -> list[Group]:
-    """The groups of a grouped view, in its order (each with its newest runs)."""
-    metrics = view.cols if not view.chart or view.chart in view.cols else (*view.cols, view.chart)
-    sums, runs = jobs.store.select_groups(where, args, view.group, metrics, PREVIEW_RUNS)
-    return group_runs(sums, runs, view)
-
-
-def chart_ctx(jobs: JobService, view: RunsView, where: str, args: list[Any], groups: list[Any] | None) -> str:
-    """The view's chart as SVG ("" when it asks for none or has nothing to draw): its metric per group on a grouped
-    view, or against ``x`` (a scatter of the listed runs)."""
-    from slamreplay.api.runs_charts import GroupMark, Point, group_chart_svg, scatter_svg
-    from slamreplay.api.runs_grammar import value_text
-
-    if not view.chart:
-        return ""
-    head = metric_heading(view.chart)
-    y_label = view.chart + (f" ({head['unit']})" if head["unit"] else "")
-    if not view.x:
-        if groups is None:
-            return ""
-        marks = [GroupMark(e["g"].label, e["link"], s.n, s.mean, s.std, s.lo, s.hi)
-                 for e in groups if (s := e["g"].stats.get(view.chart)) is not None]
-        return group_chart_svg(marks, view.chart, head["unit"], head["title"].rsplit("; ", 1)[-1])
-    rows = jobs.store.chart_points(where, args, view.chart, view.x)
-    if view.x == "commit":
-        rows.reverse()  # commits from the oldest, left, to the newest
-    kind = {"seed": "number", "created": "time", "commit": "category"}.get(view.x, "number")
-    if view.x.startswith("config.") and not all(isinstance(r[3], (int, float)) and not isinstance(r[3], bool)
-                                                for r in rows):
-        kind = "category"
-
-    def x_of(value: Any) -> Any:
-        if view.x == "commit":
-            return (value or "unknown")[:7]
-        if kind == "category":
-            return value_text(value, view.x) if not isinstance(value, (list, dict)) else str(value)
-        return value
-
-    points = [Point(x_of(x), y, f"/ui/jobs/{i}", name or f"{i[:8]} seed {seed}") for i, name, seed, x, y in rows]
-    return scatter_svg(points, view.x, y_label, kind)
-
-
-def stat_cell(metric: str, s: Stat | None, n: int, best: float | None) -> dict[str, Any]:
-    """A group's metric cell: mean (4 digits) ± standard deviation (2), the count, minimum and maximum on hover."""
-    if s is None:
-        return {"name": metric, "mean": "", "std": "", "title": f"none of the {n} runs reports it", "best": False}
-    return {"name": metric, "mean": f"{s.mean:.4g}", "std": "" if s.std is None else f"{s.std:.2g}",
-            "title": f"{s.n} of {n} runs: mean {s.mean:.6g}, std {'-' if s.std is None else f'{s.std:.6g}'}, "
-                     f"min {s.lo:.6g}, max {s.hi:.6g}", "best": best is not None and s.mean == best}
-
-
 def _menu(chosen: tuple[str, ...], available: list[str]) -> list[tuple[str, bool]]:
     """A column menu's entries: the chosen, in their order, then the others by name; (name, chosen)."""
     return [(c, True) for c in chosen] + [(c, False) for c in sorted(set(available) - set(chosen))]
@@ -216,7 +152,7 @@ def runs_ctx(request: Request, view: RunsView) -> dict[str, Any]:
     where, args = where_sql(view)
     ctx: dict[str, Any] = {}
     if view.group:
-        groups = select_groups(jobs, view, where, args)
+        groups = select_groups(jobs.store, view, where, args, PREVIEW_RUNS)
         total = len(groups)
         pages = max(1, -(-total // view.per))
         if view.page > pages:
@@ -236,7 +172,7 @@ def runs_ctx(request: Request, view: RunsView) -> dict[str, Any]:
             rows, total = jobs.store.select_runs(where, args, order, view.per, (view.page - 1) * view.per)
         config_keys = differing_config(rows) if "config" in view.show else []
         ctx = {"rows": [_cells(r, view, config_keys) for r in rows], "groups": None}
-    chart = chart_ctx(jobs, view, where, args, ctx["groups"])
+    chart = view_chart(jobs.store, view, where, args, ctx["groups"])
     recs = jobs.store.list_recordings()
     listed_metrics, listed_config = jobs.store.json_keys(where, args)
     group_choices = list(GROUP_KEYS) + [f"config.{k}" for k in listed_config]
@@ -325,7 +261,7 @@ def runs_csv(request: Request) -> Response:
     heads = [metric_heading(c) for c in view.cols]
     headers = {"Content-Disposition": f'attachment; filename="{"groups" if view.group else "runs"}.csv"'}
     if view.group:
-        return StreamingResponse(_group_lines(view, select_groups(jobs, view, where, args), heads),
+        return StreamingResponse(_group_lines(view, select_groups(jobs.store, view, where, args, PREVIEW_RUNS), heads),
                                  media_type="text/csv; charset=utf-8", headers=headers)
     rows, _ = jobs.store.select_runs(where, args, order_sql(view))
 
