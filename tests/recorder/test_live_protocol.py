@@ -62,8 +62,8 @@ def test_topic_patterns_are_names_globs_or_regular_expressions() -> None:
 def test_channels_map_as_named_first_then_by_type_and_the_rest_are_skipped_with_a_reason() -> None:
     """A channel named as a logical topic keeps it; another pose goes to the next free one only by --topic-map."""
     chans = [_ch(1, "/a_pose", "protobuf", "foxglove.PoseInFrame"),
-             _ch(2, "/odom", "protobuf", "foxglove.PoseInFrame"), _ch(3, "/markers", "protobuf", "foxglove.SceneUpdate"),
-             _ch(4, "/tf", "cdr", "tf2_msgs/msg/TFMessage"),
+             _ch(2, "/odom", "protobuf", "foxglove.PoseInFrame"),
+             _ch(3, "/markers", "protobuf", "foxglove.SceneUpdate"), _ch(4, "/tf", "cdr", "tf2_msgs/msg/TFMessage"),
              _ch(5, "/blob", "flatbuffer", "x.Blob"), _ch(6, "/scan", "cdr", "sensor_msgs/msg/LaserScan", "ros2idl")]
     plans = {p.channel.topic: p for p in plan_channels(chans, compile_patterns([]), {}, {})}
     assert plans["/odom"].maps_to == "/odom" and plans["/odom"].note == "as named"
