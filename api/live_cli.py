@@ -93,9 +93,14 @@ def live_options(args: argparse.Namespace) -> Any:
                        wait_s=args.wait_s, give_up_s=args.give_up_s)
 
 
+def _count(c: Any) -> str:
+    """Messages written from a channel, or read from it when it writes none (/tf_static: the transform tree)."""
+    return f"{c.written:,}" if c.written or c.maps_to != "transform tree" else f"{c.received:,} read"
+
+
 def status_text(s: Any) -> str:
     """One line of a LiveStatus: time, messages, rate per topic, bytes, connection."""
-    topics = ", ".join(f"{c.topic} {c.written:,}" + (" stopped" if c.stopped else f" {c.rate_hz:.1f} Hz")
+    topics = ", ".join(f"{c.topic} {_count(c)}" + (" stopped" if c.stopped else f" {c.rate_hz:.1f} Hz")
                        for c in s.topics)
     state = "" if s.connected else ", reconnecting"
     gaps = f", {s.gaps} gap{'s' if s.gaps != 1 else ''}" if s.gaps else ""
@@ -173,7 +178,7 @@ def cmd_record_live(args: argparse.Namespace) -> int:
         finally:
             printer.end()
     if not args.quiet:
-        counts = ", ".join(f"{c.written:,} {c.maps_to} from {c.topic}" + (f" ({c.bad} bad)" if c.bad else "")
+        counts = ", ".join(f"{_count(c)} {c.maps_to} from {c.topic}" + (f" ({c.bad} bad)" if c.bad else "")
                            for c in s.topics)
         gaps = (f"; {len(s.gaps)} gap{'s' if len(s.gaps) != 1 else ''} ({sum(g.duration_s for g in s.gaps):.1f} s "
                 f"without data)") if s.gaps else ""

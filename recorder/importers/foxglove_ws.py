@@ -216,12 +216,14 @@ def _closed(err: Any) -> str:
 
 
 @contextmanager
-def connect(url: str, *, open_timeout_s: float = 5.0, ping_interval_s: float = 2.0,
-            ping_timeout_s: float = 5.0) -> Iterator[Session]:
+def connect(url: str, *, open_timeout_s: float = 5.0, ping_interval_s: float = 5.0,
+            ping_timeout_s: float = 20.0) -> Iterator[Session]:
     """An open session with the server at ``url``; ConnectError, one line, when there is none.
 
     Pings every ``ping_interval_s`` find a link that died without a close (a cable, Wi-Fi) within about
-    ``ping_timeout_s``.
+    ``ping_timeout_s``. The server's pong waits behind the messages it has queued for us, so the timeout is the
+    backlog tolerated when the recorder falls behind a burst: at 5 s, a stream of ROS 2 laser scans faster than
+    the pole extractor dropped a connection that was alive.
     """
     from websockets.exceptions import InvalidHandshake, InvalidURI
     from websockets.sync.client import connect as ws_connect
