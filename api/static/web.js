@@ -20,7 +20,7 @@ setInterval(async () => {
 function addMoves(root) {
   for (const li of root.querySelectorAll("ol.colorder li")) {
     const box = li.querySelector("input[type=checkbox]");
-    if (!box || li.querySelector("button.move") || box.name === "group") continue;
+    if (!box || li.querySelector("button.move")) continue;
     const name = li.textContent.trim();
     for (const [dir, text] of [["up", "↑"], ["down", "↓"]]) {
       const b = document.createElement("button");

@@ -182,6 +182,7 @@ def test_column_menu_orders_columns_in_the_url(page: Any, site: tuple[str, dict[
     for _ in range(items.count()):  # to the top, above ape_rmse_m
         page.click("#metric-menu button[aria-label='move landmark_rmse_m up']")
     assert items.first.inner_text().startswith("landmark_rmse_m")
+    shot(page, "column-menu")
     page.click("#runs-filter button[type=submit]")
     page.wait_for_url(re.compile(r"cols=.*landmark_rmse_m.*ape_rmse_m"))
     heads = page.eval_on_selector_all("#runs-table thead th", "els => els.map(e => e.innerText.trim())")
