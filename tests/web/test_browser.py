@@ -103,7 +103,7 @@ def upload_and_run(page: Any, server: str, recording: Path) -> str:
     page.wait_for_url(re.compile(r"/ui/jobs/[0-9a-f]{32}$"))
     job_id = page.url.rsplit("/", 1)[1]
     # No reload: web.js swaps the live block until the job has ended.
-    page.wait_for_function("document.querySelector('#job-status').textContent.trim() === 'succeeded'",
+    page.wait_for_function("() => document.querySelector('#job-status').textContent.trim() === 'succeeded'",
                            timeout=90_000)
     assert "ape_rmse_m" in page.inner_text("#metrics-table")
     return job_id
@@ -239,7 +239,7 @@ def test_select_two_runs_and_compare(page: Any, server: str) -> None:
     page.click("#job-form button")
     page.wait_for_url(re.compile(r"/ui/jobs/[0-9a-f]{32}$"))
     again = page.url.rsplit("/", 1)[1]
-    page.wait_for_function("document.querySelector('#job-status').textContent.trim() === 'succeeded'",
+    page.wait_for_function("() => document.querySelector('#job-status').textContent.trim() === 'succeeded'",
                            timeout=90_000)
     page.goto(server + "/runs")
     page.check(f"#run-{again} input[name=sel]")
@@ -259,7 +259,8 @@ def test_failed_job_error_is_readable_at_every_width(page: Any, server: str) -> 
     page.fill("#job-form input[name=topic_map]", '{"/odom": "/camera/image"}')
     page.click("#job-form button")
     page.wait_for_url(re.compile(r"/ui/jobs/[0-9a-f]{32}$"))
-    page.wait_for_function("document.querySelector('#job-status').textContent.trim() === 'failed'", timeout=90_000)
+    page.wait_for_function("() => document.querySelector('#job-status').textContent.trim() === 'failed'",
+                           timeout=90_000)
     for size in (LAPTOP, PHONE):
         page.set_viewport_size(size)
         status, error = page.locator("#job-status").bounding_box(), page.locator("#job-error").bounding_box()
@@ -311,7 +312,7 @@ def _run_on(page: Any, server: str, recording_id: str, pipeline: str) -> str:
     page.select_option("#job-form select[name=pipeline]", pipeline)
     page.click("#job-form button")
     page.wait_for_url(re.compile(r"/ui/jobs/[0-9a-f]{32}$"))
-    page.wait_for_function("document.querySelector('#job-status').textContent.trim() === 'succeeded'",
+    page.wait_for_function("() => document.querySelector('#job-status').textContent.trim() === 'succeeded'",
                            timeout=90_000)
     return str(page.url.rsplit("/", 1)[1])
 
