@@ -142,6 +142,12 @@ def job_ctx(request: Request, jobs: JobService, job_id: str) -> dict[str, Any]:
                            "timing": _timing(job)}
     with contextlib.suppress(OSError, json.JSONDecodeError):
         ctx["manifest"] = json.loads((run_dir / "manifest.json").read_text())
+    if job.status == "running":  # the run so far (its live file), and the viewer following its .rrd as it grows
+        from slamreplay.api.live_view import live_ctx
+
+        ctx["live"] = live_ctx(run_dir)
+        ctx["rerun"] = viewer_href(str(request.base_url), link_secret(request), f"/jobs/{job_id}/live.rrd")
+        ctx["rerun_live"] = True
     if job.status == "succeeded":
         ctx["metrics"] = metric_rows(run_dir, job.pipeline)
         ctx["rerun"] = viewer_href(str(request.base_url), link_secret(request), f"/jobs/{job_id}/run.rrd")

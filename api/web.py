@@ -25,7 +25,7 @@ from urllib.parse import urlencode
 from fastapi import APIRouter, Depends, FastAPI, Request
 from fastapi import Path as PathParam
 from fastapi.middleware import Middleware
-from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, Response
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, Response, StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
 from slamreplay.api.audit import install_audit, record_suite, submitted_text
@@ -279,6 +279,18 @@ def job_rrd(job_id: JobPath, jobs: JobsDep) -> FileResponse:
 def shared_job_rrd(request: Request, key: Key, job_id: JobPath, jobs: JobsDep) -> FileResponse:
     _check_key(request, key, f"/jobs/{job_id}/run.rrd")
     return FileResponse(jobs.artifact(job_id, "run.rrd"), media_type="application/octet-stream")
+
+
+@public.get("/ui/shared/{key}/jobs/{job_id}/live.rrd")
+def shared_live_rrd(request: Request, key: Key, job_id: JobPath, jobs: JobsDep) -> StreamingResponse:
+    """The job's .rrd as the run writes it, until it ends (the viewer follows it live; api.live_view)."""
+    from slamreplay.api.live_view import follow_rrd
+    from slamreplay.api.store import ACTIVE
+
+    _check_key(request, key, f"/jobs/{job_id}/live.rrd")
+    jobs.get(job_id)
+    return StreamingResponse(follow_rrd(jobs.run_dir(job_id), lambda: jobs.get(job_id).status in ACTIVE),
+                             media_type="application/octet-stream", headers={"Cache-Control": "no-store"})
 
 
 @public.get("/ui/shared/{key}/diff/{a}-{b}.rrd")

@@ -11,7 +11,7 @@ import itertools
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -24,6 +24,19 @@ from slamreplay.replay.engine.trajectory import trajectory_artifacts
 from slamreplay.replay.errors import ReplayError
 
 Progress = Callable[[int, int], None]
+
+
+class LiveSink(Protocol):
+    """What a running replay reports as it goes, for people watching it (``slamreplay.replay.runs.live``): called
+    at most every ``period_s`` seconds of wall time and once at the end; it returns nothing to the replay and
+    changes none of its results (the wall clock only paces it)."""
+
+    period_s: float
+
+    def tap(self, observer: ReplayObserver) -> ReplayObserver: ...
+
+    def update(self, done: int, total: int, t0_ns: int, sensor_time_ns: int, pipeline: Pipeline,
+               t_truth_ns: list[int], truth: list[np.ndarray]) -> None: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -131,11 +144,14 @@ def _truth_at(t0: int, truth: Iterable[tuple[int, np.ndarray]]) -> np.ndarray | 
 def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, observer: ReplayObserver, *,
            seed: int, start_ns: int | None = None, end_ns: int | None = None, log: Callable[[str], None],
            progress: Progress | None = None, log_timings: bool = False,
-           config_sources: Mapping[str, str] | None = None) -> ReplayStats:
+           config_sources: Mapping[str, str] | None = None, live: LiveSink | None = None) -> ReplayStats:
     """Run one pipeline over a recording: its own metrics, its trajectory and the ground truth seen.
 
     The trajectory metrics (APE, RPE) are evaluation's: ``slamreplay.replay.evaluation.score.score(stats, cls)``.
+    ``live``: told what the replay has done so far, about every ``live.period_s`` seconds (`LiveSink`).
 """
+    if live is not None:
+        observer = live.tap(observer)
     topics = check_topics(reader, pipeline_cls)
     stream = reader.messages(topics, start_ns=start_ns, end_ns=end_ns)
     t0, T_world_start, held = start_from_stream(reader, stream, topics, pipeline_cls.start_topic, start_ns, end_ns)
@@ -152,6 +168,7 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
     every = max(1, total // 200)
     t_gt: list[int] = []
     gt: list[np.ndarray] = []
+    live_next = 0.0
     for env in itertools.chain(held, stream):
         observer.set_time(env.index, env.log_time_ns)
         if env.topic == TOPIC_GROUND_TRUTH_POSE:  # kept for the trajectory metrics
@@ -167,6 +184,11 @@ def replay(reader: RecordingReader, pipeline_cls: type[Pipeline], config: Any, o
         n += 1
         if progress is not None and n % every == 0:
             progress(n, total)
+        if live is not None and time.monotonic() >= live_next:
+            live.update(n, total, t0, env.log_time_ns, pipeline, t_gt, gt)
+            live_next = time.monotonic() + live.period_s
+    if live is not None:
+        live.update(n, total, t0, observer.sensor_time_ns, pipeline, t_gt, gt)
     if progress is not None:
         progress(n, n)
     metrics = pipeline.finish()

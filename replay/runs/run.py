@@ -52,6 +52,7 @@ from slamreplay.replay.engine.recording_file import check_recording
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.evaluation import metrics as metrics_mod
 from slamreplay.replay.evaluation.score import metric_specs, score
+from slamreplay.replay.runs.live import LIVE_FILE, LiveWriter
 
 MANIFEST_FORMAT = 1
 LIBRARIES = ("rerun-sdk", "numpy", "scipy", "opencv-contrib-python-headless", "mcap", "protobuf")
@@ -246,6 +247,7 @@ def run_recording(recording: str | Path, pipeline: str | type[Pipeline], out_dir
                                         f"seed {seed}")
     rrd_tmp, rrd = out_dir / ".run.rrd.partial", out_dir / "run.rrd"
     observer: RerunObserver | None = None
+    live = LiveWriter(out_dir / LIVE_FILE)  # what a running job's page shows; removed at the end
     values: dict[str, float] = {}
     kept: dict[str, Any] = {}  # artifacts a failed run keeps (an external program's output)
     try:
@@ -278,7 +280,8 @@ def run_recording(recording: str | Path, pipeline: str | type[Pipeline], out_dir
         log(f"{pipeline} on {reader.path.name} ({reader.info.message_count:,} messages), seed {seed}, "
             f"config {manifest['config_hash'][:12]}")
         stats = score(replay(reader, pipeline_cls, cfg, observer, seed=seed, start_ns=start_ns, end_ns=end_ns, log=log,
-                             progress=progress, log_timings=log_timings, config_sources=resolved.sources), pipeline_cls)
+                             progress=progress, log_timings=log_timings, config_sources=resolved.sources,
+                             live=live), pipeline_cls)
         timings["replay_s"] = time.perf_counter() - tic
         values = stats.metrics
         timings.update({f"pipeline_{k}": v for k, v in stats.timings.items()})
@@ -325,6 +328,7 @@ def run_recording(recording: str | Path, pipeline: str | type[Pipeline], out_dir
         lines.append(f"FAILED: internal error\n{traceback.format_exc()}")
         raise
     finally:
+        live.close()
         if observer is not None:
             observer.close()
         if manifest["status"] != "succeeded":  # the directory was empty: what is in it is this run's, half done

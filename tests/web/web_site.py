@@ -53,8 +53,9 @@ def web_job(task: Task, report: Report | None = None) -> Outcome:
 
 
 @contextmanager
-def served(data_dir: Path, workers: int = 2) -> Iterator[str]:
-    """The app over ``data_dir`` on a free loopback port (jobs run by ``web_job``); its base URL."""
+def served(data_dir: Path, workers: int = 2, job: Any = web_job) -> Iterator[str]:
+    """The app over ``data_dir`` on a free loopback port (jobs run by ``job``, a module-level function); its base
+    URL."""
     import uvicorn
 
     from slamreplay.api.app import create_app
@@ -64,7 +65,7 @@ def served(data_dir: Path, workers: int = 2) -> Iterator[str]:
 
     sock = listen("127.0.0.1", 0)
     port = sock.getsockname()[1]
-    app = create_app(Settings(data_dir=data_dir, workers=workers), executor=LocalExecutor(workers, job=web_job))
+    app = create_app(Settings(data_dir=data_dir, workers=workers), executor=LocalExecutor(workers, job=job))
     server = uvicorn.Server(uvicorn.Config(app, log_level="warning"))
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
