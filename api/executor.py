@@ -159,8 +159,9 @@ def run_task(task: Task, report: Report | None = None) -> Outcome:
 
 
 def run_at_revision(task: Task, rev: str, recording: Path, run_dir: Path) -> str | None:
-    """Run ``task`` with the code of the revision ``rev`` (its worktree, built once per commit under
-    ``task.rev_cache``, running its own ``slamreplay run``), in the git checkout the service runs from; an
+    """Run ``task`` with the code of the revision ``rev`` (its worktree under ``task.rev_cache``, in the environment
+    shared by commits of the same dependencies, running its own ``slamreplay run``), in the git checkout the service
+    runs from; an
     error message (one line: the checkout is gone, the revision does not build, the run failed), or None."""
     from slamreplay.replay.errors import ReplayError
     from slamreplay.replay.runs.revisions import find_repo, prepare_revision, run_at

@@ -234,7 +234,8 @@ def add_suite_parsers(sub: Any, quiet: argparse.ArgumentParser) -> None:
     sr.add_argument("suite", metavar="SUITE.toml", help="the suite file (see docs/compare.md)")
     sr.add_argument("--out", required=True, metavar="RESULTS_DIR", help="results directory (created or reused)")
     sr.add_argument("--rev", default=None, metavar="GITREV",
-                    help="run the suite at this git revision, in a cached worktree with its own virtualenv")
+                    help="run the suite at this git revision: its cached worktree, in the environment shared by "
+                         "commits of the same dependencies (slamreplay cache)")
     sr.add_argument("--executor", choices=["local", "ray"], default="local",
                     help="local worker processes, or Ray tasks (slamreplay[ray]) (default: local)")
     sr.add_argument("--jobs", type=int, default=1, metavar="N", help="cells running at once (default: 1)")
