@@ -116,7 +116,7 @@ class _Printer:
         self.tty = sys.stderr.isatty()
         self.every_s, self.last = interval_s(), time.monotonic()
         self.drawn = False
-        self.lock = threading.Lock()
+        self.lock = threading.RLock()  # the Ctrl-C handler says a line, maybe while the main thread prints one
 
     def say(self, line: str) -> None:
         if self.quiet:

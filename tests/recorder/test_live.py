@@ -114,7 +114,7 @@ def live_sim(sim: Path, tmp_path_factory: pytest.TempPathFactory
              ) -> Iterator[tuple[Path, list[str], Any, dict[str, int]]]:
     """``sim`` served by the peer and recorded live: the recording, the lines said, the summary, the counts sent."""
     tmp = tmp_path_factory.mktemp("live-sim")
-    peer = Peer(tmp, sim)
+    peer = Peer(tmp, sim, "--speed", "10")  # in real time at 10x: 30 s of simulation in 3 s
     try:
         _, lines, summary = _record_all(peer, tmp / "live.mcap", sensor_model=_model(sim))
         yield tmp / "live.mcap", lines, summary, peer.sent()
@@ -195,19 +195,50 @@ def test_live_kill9_leaves_a_partial_that_recover_salvages(sim: Path, tmp_path: 
                             stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
     assert proc.stderr is not None
     flushed = 0
-    for line in proc.stderr:  # a status line comes after each flush: what it counts is on disk
-        if line.startswith("record live") and " messages" in line:
-            flushed = int(line.split(", ")[1].split()[0].replace(",", ""))
-            if flushed >= 300:
-                break
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    watchdog = threading.Timer(60, proc.kill)  # a recorder that hangs ends the test, not the suite
+    watchdog.start()
+    try:
+        for line in proc.stderr:  # a status line comes after each flush: what it counts is on disk
+            if line.startswith("record live") and " messages" in line:
+                flushed = int(line.split(", ")[1].split()[0].replace(",", ""))
+                if flushed >= 300:
+                    break
+    finally:
+        watchdog.cancel()
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
     partial = Path(f"{out}.partial")
     assert partial.exists() and not out.exists()
     report = recover(partial, tmp_path / "fixed.mcap")
     assert report.messages >= flushed >= 300
     got = _sequence(tmp_path / "fixed.mcap")
     assert got == _sequence(sim)[:len(got)]  # a prefix of what was sent, nothing damaged
+
+
+def test_live_ctrl_c_ends_the_recording_cleanly(sim: Path, tmp_path: Path, peers: list[Peer]) -> None:
+    """Ctrl-C (SIGINT) is the normal end: exit 0, FILE (no .partial), what came so far, the summary line."""
+    peers.append(peer := Peer(tmp_path, sim, "--speed", "10"))
+    out = tmp_path / "live.mcap"
+    env = {**os.environ, "SLAMREPLAY_PROGRESS_INTERVAL_S": "0"}
+    proc = subprocess.Popen([sys.executable, "-m", "slamreplay.api.cli", "record", "live", peer.url, "--out", str(out)],
+                            stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+    assert proc.stderr is not None
+    watchdog = threading.Timer(60, proc.kill)  # a recorder that hangs ends the test, not the suite
+    watchdog.start()
+    try:
+        for line in proc.stderr:
+            if line.startswith("record live") and " messages" in line:
+                break
+        proc.send_signal(signal.SIGINT)
+        _, rest = proc.communicate(timeout=30)
+    finally:
+        watchdog.cancel()
+        proc.kill()
+    assert proc.wait() == 0, rest
+    assert out.exists() and not Path(f"{out}.partial").exists()
+    got = _sequence(out)
+    assert got and got == _sequence(sim)[:len(got)]
+    assert "stopping: finishing the recording" in rest and f"wrote {out}: {len(got):,} messages" in rest
 
 
 def test_live_dropped_connection_is_one_gap_in_the_file_and_said(sim: Path, tmp_path: Path,
