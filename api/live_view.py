@@ -71,8 +71,9 @@ async def follow_rrd(run_dir: Path, running: Callable[[], bool], poll_s: float =
 
     The run writes ``RRD_PARTIAL`` and renames it to ``run.rrd`` when complete: the file opened here is the
     same file after the rename, so reading it on to its end, once ``running()`` says no, sends the whole
-    recording (footer included). A run that ends before writing any (it failed early) sends nothing; a
-    client that goes away ends it (the server stops iterating).
+    recording (footer included). ``running`` (a job store read) runs in a thread, off the event loop. A run
+    that ends before writing any (it failed early) sends nothing; a client that goes away ends it (the server
+    stops iterating).
     """
     partial, final = run_dir / RRD_PARTIAL, run_dir / "run.rrd"
     fd = None
@@ -85,7 +86,7 @@ async def follow_rrd(run_dir: Path, running: Callable[[], bool], poll_s: float =
             except OSError:
                 continue
         if fd is None:
-            if not running() or waited > wait_start_s:
+            if not await asyncio.to_thread(running) or waited > wait_start_s:
                 return
             await asyncio.sleep(poll_s)
             waited += poll_s
@@ -95,7 +96,7 @@ async def follow_rrd(run_dir: Path, running: Callable[[], bool], poll_s: float =
             if block:
                 yield block
                 continue
-            if not running():  # the writer is done (renamed its file, removed it, or was killed): send the rest
+            if not await asyncio.to_thread(running):  # the writer is done (renamed, removed or killed): the rest
                 block = os.read(fd, READ_BLOCK)
                 while block:
                     yield block

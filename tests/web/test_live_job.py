@@ -64,10 +64,13 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str]]:
 
 @pytest.mark.browser
 def test_watch_a_running_job(site: tuple[str, str]) -> None:
-    """The page shows 3+ successive values of a metric while the job runs, and its trajectory so far; the live
-    viewer draws the run before it ends and still holds it after."""
+    """A running suite cell links to its job page, which shows 3+ successive values of a metric while the job runs
+    and its trajectory so far; the live viewer draws the run before it ends and still holds it after."""
     base, rid = site
-    job = call(base, "POST", "/jobs", {"recording_id": rid, "pipeline": "dslam", "seed": LIVE_SEED})["id"]
+    # a suite of one cell: its page links the running cell to the cell's job page, the live one
+    suite = call(base, "POST", "/suites", b'name = "live"\nseeds = [%d]\n[recordings.corridor]\nid = "%s"\n'
+                                          b'[pipelines.dslam]\n' % (LIVE_SEED, rid.encode()))["id"]
+    job = call(base, "GET", f"/suites/{suite}")["cells"][0]["job_id"]
     assert wait_until(base, job, ("running",))["status"] == "running"
     with chromium() as browser:
         ctx = browser.new_context(viewport=LAPTOP)
@@ -76,7 +79,11 @@ def test_watch_a_running_job(site: tuple[str, str]) -> None:
         problems: list[str] = []
         page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
         page.on("pageerror", lambda e: problems.append(f"uncaught: {e}"))
-        page.goto(f"{base}/ui/jobs/{job}")
+        page.goto(f"{base}/ui/suites/{suite}")
+        cell = page.locator(f'table.cells a[href="/ui/jobs/{job}"]')
+        assert "running" in page.inner_text("table.cells")
+        cell.click()
+        page.wait_for_url(f"{base}/ui/jobs/{job}")
         # Open in Rerun, while it runs: the viewer follows /ui/shared/KEY/jobs/ID/live.rrd (it loads in its own tab
         # while the page is watched).
         href = page.get_attribute("#open-rerun", "href")
@@ -103,6 +110,7 @@ def test_watch_a_running_job(site: tuple[str, str]) -> None:
         assert page.locator("#live-plots svg").count() == 2  # the trajectory so far, the error so far
         assert "estimate" in page.inner_text("#live-plots")
         shoot(page, "job-live")
+        _no_serious_axe_violation(ctx, f"{base}/ui/jobs/{job}")
 
         viewer.bring_to_front()
         viewer.wait_for_selector("#the_canvas_id.visible", timeout=90_000)
@@ -123,6 +131,20 @@ def test_watch_a_running_job(site: tuple[str, str]) -> None:
         assert page.locator("#live").count() == 0
         assert [p for p in problems if "live.rrd" not in p] == [], problems
         ctx.close()
+
+
+def _no_serious_axe_violation(ctx: Any, url: str) -> None:
+    """axe-core on the live job page (in its own tab, its refresh stopped so the scan keeps its nodes)."""
+    axe = pytest.importorskip("axe_playwright_python.sync_playwright", reason="pip install -e '.[browser]'")
+    tab = ctx.new_page()
+    tab.goto(url)
+    tab.wait_for_selector("#live-metrics")
+    tab.evaluate("() => document.querySelectorAll('[data-live]').forEach(el => el.removeAttribute('data-live'))")
+    results = axe.Axe().run(tab)
+    bad = [f"{v['id']} ({v['impact']}): {v['help']}" for v in results.response["violations"]
+           if v["impact"] in ("serious", "critical")]
+    tab.close()
+    assert bad == [], bad
 
 
 def _distinct_colours(png: bytes) -> int:
