@@ -99,9 +99,10 @@ test-docs: $(STAMP)
 
 # The oldest and newest supported Pythons (3.10, 3.13), each in its own .venv-3.X: found as
 # python3.X on PATH or a pyenv install (or PYTHON_3_10=/path...); one that is missing is skipped
-# with a message. In each: the suite but its slow tests (PYTHONS_TESTS, about 3 min) and the
-# README's blocks (about 3 min); then the same cells run under both must pass `slamreplay diff`
-# (.ci/cross-python-diff.sh, about 2 min). About 15 minutes in all on 2 cores.
+# with a message. In each: the suite but its slow tests (PYTHONS_TESTS, about 4 min); on 3.10 also the
+# README's blocks (about 3 min: 3.10 has rerun-sdk 0.39, the others 0.41 as make test-docs runs them); then the
+# same cells run under both must pass `slamreplay diff` (.ci/cross-python-diff.sh, about 2 min). About 17 minutes
+# in all on 2 cores.
 PYTHONS_TESTS ?= -m "not ray and not docs and not slow and not viewer and not browser"
 test-pythons:
 	@found=""; for v in 3.10 3.13; do \
@@ -113,7 +114,7 @@ test-pythons:
 		echo "test-pythons: Python $$v at $$py"; \
 		$(MAKE) --no-print-directory venv VENV=.venv-$$v PYTHON=$$py || exit 1; \
 		.venv-$$v/bin/python -m pytest -n 2 -q $(PYTHONS_TESTS) $(ARGS) || exit 1; \
-		.venv-$$v/bin/python -m pytest -q -m docs tests/test_readme.py || exit 1; \
+		if [ "$$v" = 3.10 ]; then .venv-$$v/bin/python -m pytest -q -m docs tests/test_readme.py || exit 1; fi; \
 		found="$$found .venv-$$v"; \
 	done; \
 	set -- $$found; if [ $$# -eq 2 ]; then .ci/cross-python-diff.sh $$1 $$2 || exit 1; \
