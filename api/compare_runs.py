@@ -136,38 +136,53 @@ def two_runs(jobs: JobService, ids: list[str], tolerances: dict[str, str] | None
     counts = {v: sum(r["verdict"] == v for r in rows) for v in ("better", "worse", "same", "changed", LOST)}
     counts["worse"] += counts.pop(LOST)
     return {"a": a, "b": b, "changes": what_changed(d.changes, a, b, maps), "metrics": rows, "counts": counts,
-            "worse": d.worse, "programs": d.programs, "plot": overlay(jobs, [a, b], ("A", "B"))}
+            "worse": d.worse, "programs": d.programs, **_plots(jobs, [a, b], ("A", "B"))}
 
 
-def _trajectory(jobs: JobService, job_id: str, name: str) -> Any:
+def _timed(jobs: JobService, job_id: str, name: str) -> tuple[Any, Any] | None:
+    """A run's TUM file as (times in s, poses), or None."""
     from slamreplay.replay.engine.trajectory import read_tum
 
     with contextlib.suppress(OSError, ValueError):
-        xy = read_tum((jobs.run_dir(job_id) / name).read_text())[1][:, :2]
-        return xy if len(xy) else None
+        t, poses = read_tum((jobs.run_dir(job_id) / name).read_text())
+        return (t, poses) if len(t) else None
     return None
 
 
-def overlay(jobs: JobService, runs: list[Run], tags: tuple[str, ...] | None = None) -> str:
-    """Inline SVG: each succeeded run's estimated path in its own colour, over each recording's ground truth."""
-    from slamreplay.api.svg_plots import overlay_svg
-    from slamreplay.replay.engine.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT
+def overlay(jobs: JobService, runs: list[Run], tags: tuple[str, ...] | None = None) -> tuple[str, str]:
+    """Inline SVGs of the succeeded runs, one colour each in both: their estimated paths over each recording's
+    ground truth, and their position error over time (each against its own recording's truth, from the first pose
+    with ground truth; empty when no run has one)."""
+    import numpy as np
 
-    curves, truths, seen = [], [], set()
+    from slamreplay.api.svg_plots import curves_svg, overlay_svg
+    from slamreplay.replay.engine.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, paired_with_truth
+
+    paths, truths, errors, seen = [], [], [], set()
     for i, r in enumerate(runs):
-        if r.job.status != "succeeded":
-            continue
-        est = _trajectory(jobs, r.job.id, TUM_ARTIFACT)
-        if est is None:
+        if r.job.status != "succeeded" or (est := _timed(jobs, r.job.id, TUM_ARTIFACT)) is None:
             continue
         tag = tags[i] if tags else str(i + 1)
-        curves.append((f"{tag}: {r.job.name or r.job.id[:8]} ({r.job.pipeline}, seed {r.job.seed})", est))
-        if r.job.recording_id not in seen:
-            truth = _trajectory(jobs, r.job.id, TRUTH_TUM_ARTIFACT)
-            if truth is not None:
-                seen.add(r.job.recording_id)
-                truths.append((f"ground truth of {r.recording}", truth))
-    return overlay_svg(curves, truths) if curves else ""
+        label = f"{tag}: {r.job.name or r.job.id[:8]} ({r.job.pipeline}, seed {r.job.seed})"
+        paths.append((label, est[1][:, :2]))
+        truth = _timed(jobs, r.job.id, TRUTH_TUM_ARTIFACT)
+        paired = None if truth is None else paired_with_truth(est[0], est[1], truth[0])
+        if truth is None or paired is None:
+            errors.append((label, np.zeros(0), np.zeros(0)))  # keeps the next runs' colours those of the paths
+        else:
+            errors.append((label, truth[0] - truth[0][0], np.hypot(*(paired[:, :2] - truth[1][:, :2]).T)))
+        if truth is not None and r.job.recording_id not in seen:
+            seen.add(r.job.recording_id)
+            truths.append((f"ground truth of {r.recording}", truth[1][:, :2]))
+    if not paths:
+        return "", ""
+    return overlay_svg(paths, truths), curves_svg(errors, "position error (m)",
+                                                  f"position error over time of {len(paths)} runs")
+
+
+def _plots(jobs: JobService, runs: list[Run], tags: tuple[str, ...] | None = None) -> dict[str, str]:
+    plot, errors = overlay(jobs, runs, tags)
+    return {"plot": plot, "error_plot": errors}
 
 
 def _best(values: list[float | None], better: str, target: float | None) -> int | None:
@@ -203,7 +218,7 @@ def many_runs(jobs: JobService, ids: list[str]) -> dict[str, Any]:
     pairs = (list(combinations(indexes, 2)) if len(runs) <= ALL_PAIRS_UP_TO else [(0, i) for i in indexes[1:]])
     links = [{"a": runs[i], "b": runs[j], "ia": i + 1, "ib": j + 1,
               "href": f"/ui/compare?runs={runs[i].job.id},{runs[j].job.id}"} for i, j in pairs]
-    return {"runs": runs, "metrics": rows, "pairs": links, "plot": overlay(jobs, runs),
+    return {"runs": runs, "metrics": rows, "pairs": links, **_plots(jobs, runs),
             "not_succeeded": [r for r in runs if r.job.status != "succeeded"]}
 
 

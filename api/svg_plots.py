@@ -174,3 +174,26 @@ def overlay_svg(runs: Sequence[tuple[str, F64]], truths: Sequence[tuple[str, F64
     body += _legend([(label, colour) for _, label, colour in curves], frame.left, plot_h + 10)
     return _svg(width, plot_h + legend_h, f"{len(runs)} trajectories overlaid on ground truth (world frame, m)",
                 body)
+
+
+def curves_svg(curves: Sequence[tuple[str, F64, F64]], y_label: str, title: str, width: int = 640,
+               height: int = 300) -> str:
+    """Several runs' per-step curves on one time axis from 0, one colour each in ``RUN_COLOURS`` order (the
+    trajectory overlay's, so the legends agree), with the legend below the plot.
+
+    Parameters
+    ----------
+    curves : (label, (n,) float64 time since the run's first pose with ground truth (s), (n,) float64 value), in
+        legend order; empty curves keep their colour but are not drawn
+    """
+    drawn = [(label, np.column_stack([t, y]), RUN_COLOURS[i % len(RUN_COLOURS)])
+             for i, (label, t, y) in enumerate(curves) if len(t)]
+    if not drawn:
+        return ""
+    both = np.vstack([rows for _, rows, _ in drawn])
+    t_max, y_max = float(both[:, 0].max()) or 1.0, float(both[:, 1].max()) or 1.0
+    frame = _Frame((0.0, t_max), (0.0, y_max * 1.08), width, height)
+    body = frame.axes("time since the first pose with ground truth (s)", y_label)
+    body += "".join(frame.line(thin(rows), colour) for _, rows, colour in drawn)
+    body += _legend([(label, colour) for label, _, colour in drawn], frame.left, height + 10)
+    return _svg(width, height + 16 * len(drawn) + 8, title, body)

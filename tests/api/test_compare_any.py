@@ -148,3 +148,36 @@ def test_too_few_runs_and_unfinished_runs_are_one_line(client: TestClient, runs:
     assert r.status_code == 422 and "at least two runs" in r.json()["detail"]
     r = client.get("/compare", params={"runs": f"{runs['odo']},zz-top"})
     assert r.status_code == 404 and "'zz-top'" in r.json()["detail"]
+
+
+def test_position_error_over_time_overlaid_in_the_paths_colours(client: TestClient, runs: dict[str, str]) -> None:
+    """Issue 41: the compare page draws each run's position error over time on one axis, one colour per run, the
+    colours and legend of the trajectory overlay; each curve's peak is the run's robot_max_error_m."""
+    from slamreplay.api.compare_runs import overlay, runs_of
+    from slamreplay.api.svg_plots import RUN_COLOURS
+
+    jobs = client.app.state.jobs  # type: ignore[attr-defined]
+    ids = [runs["odo"], runs["dslam"], runs["odo1"]]
+    paths, errors = overlay(jobs, runs_of(jobs, ids))
+    for svg in (paths, errors):
+        assert all(f'stroke="{c}"' in svg for c in RUN_COLOURS[:3]) and f'stroke="{RUN_COLOURS[3]}"' not in svg
+        assert all(f"{i}: {job[:8]}" in svg for i, job in enumerate(ids, 1))
+    page = client.get("/ui/compare", params={"runs": ",".join(ids)})
+    assert 'id="error-over-time"' in page.text and "position error over time of 3 runs" in page.text
+
+    import numpy as np
+
+    from slamreplay.replay.engine.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, paired_with_truth, read_tum
+
+    checked = 0
+    for job in ids:  # the curve drawn is the error the metrics report (the pipelines that report its peak)
+        if "robot_max_error_m" not in jobs.metric_values(job):
+            continue
+        checked += 1
+        t, est = read_tum((jobs.run_dir(job) / TUM_ARTIFACT).read_text())
+        tt, truth = read_tum((jobs.run_dir(job) / TRUTH_TUM_ARTIFACT).read_text())
+        paired = paired_with_truth(t, est, tt)
+        assert paired is not None
+        peak = float(np.hypot(*(paired[:, :2] - truth[:, :2]).T).max())
+        assert peak == pytest.approx(jobs.metric_values(job)["robot_max_error_m"], rel=1e-6)  # TUM: 9 decimals
+    assert checked == 2
