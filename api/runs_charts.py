@@ -4,8 +4,12 @@
   maximum, a bar of mean ± standard deviation and a dot at the mean (``chart=METRIC`` on a grouped view).
 - `scatter_svg`: the runs' value of a metric against a config key, the commit, the seed or the day it was made
   (``chart=METRIC&x=config.KEY|commit|seed|created``), a dot per run.
+- `parallel_svg`: parallel coordinates (``chart=METRIC&x=parallel``): a vertical axis for each config key that
+  differs among the listed runs, then each chosen metric column, then the charted metric; a line per run across
+  them, linked to the run, its shade by the charted metric (darker: better by its direction).
 
-`view_chart` draws the one a view of the runs table asks for. Every dot or row links to its runs (a run's page; a group's filtered view) and says its values in a tooltip.
+`view_chart` draws the one a view of the runs table asks for. Every dot or row links to its runs (a run's page; a
+group's filtered view) and says its values in a tooltip.
 Labels sit above the marks rather than beside them, so that a chart stays readable at 390 px: the viewBox is
 narrow (420 units) and scales down little. Colours are the palette's estimate blue (`slamreplay.api.svg_plots`);
 the plot area and grid use the attribute values the page's dark mode restyles.
@@ -21,7 +25,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from slamreplay.api.runs_grammar import value_text
-from slamreplay.api.runs_query import RunsView, metric_heading
+from slamreplay.api.runs_query import RunsView, metric_heading, metric_specs
 from slamreplay.api.store_runs import RunsTableMixin
 from slamreplay.api.svg_plots import ESTIMATE, nice_ticks
 
@@ -203,6 +207,8 @@ def view_chart(store: RunsTableMixin, view: RunsView, where: str, args: list[Any
         marks = [GroupMark(e["g"].label, e["link"], s.n, s.mean, s.std, s.lo, s.hi)
                  for e in groups if (s := e["g"].stats.get(view.chart)) is not None]
         return group_chart_svg(marks, view.chart, head["unit"], head["title"].rsplit("; ", 1)[-1])
+    if view.x == "parallel":
+        return parallel_chart(store, view, where, args)
     rows = store.chart_points(where, args, view.chart, view.x)
     if view.x == "commit":
         rows.reverse()  # commits from the oldest, left, to the newest
@@ -220,3 +226,96 @@ def view_chart(store: RunsTableMixin, view: RunsView, where: str, args: list[Any
 
     points = [Point(x_of(x), y, f"/ui/jobs/{i}", name or f"{i[:8]} seed {seed}") for i, name, seed, x, y in rows]
     return scatter_svg(points, view.x, y_label, kind)
+
+
+@dataclass(frozen=True)
+class Line:
+    """A run in parallel coordinates: its values by axis (a number, or a category), link and name."""
+
+    values: dict[str, Any]
+    href: str
+    name: str
+
+
+def _axis_of(values: list[Any]) -> tuple[str, list[Any], float, float]:
+    """How an axis places its values: ("number", [], lo, hi) or ("category", the categories in order, 0, n - 1)."""
+    present = [v for v in values if v is not None]
+    if present and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in present):
+        lo, hi = min(present), max(present)
+        return "number", [], float(lo), float(hi) if hi > lo else float(lo) + 1.0
+    cats = sorted({value_text(v, "") if not isinstance(v, (list, dict)) else str(v) for v in present})
+    return "category", cats, 0.0, float(max(len(cats) - 1, 1))
+
+
+def parallel_svg(lines: Sequence[Line], axes: Sequence[str], shade_by: str, better: str = "") -> str:
+    """Parallel coordinates: an axis per name in ``axes`` (left to right), a polyline per run through its values
+    (a gap where it has none), each a link to its run; the lines' shade follows ``shade_by`` (darker: better by
+    ``better``, "lower" or "higher"; one shade without a direction).
+
+    Parameters
+    ----------
+    lines : the runs (at most MAX_POINTS, the first ones)
+    axes : config keys (``config.KEY``) and metric names, at least two
+    """
+    given, lines = len(lines), list(lines[:MAX_POINTS])
+    if len(axes) < 2 or not lines:
+        return ""
+    left, right, top, bottom = 16, WIDTH - 16, 30, 250
+    step = (right - left) / (len(axes) - 1)
+    scales = {a: _axis_of([ln.values.get(a) for ln in lines]) for a in axes}
+
+    def py(axis: str, v: Any) -> float | None:
+        kind, cats, lo, hi = scales[axis]
+        if v is None:
+            return None
+        if kind == "number":
+            pos = (float(v) - lo) / (hi - lo)
+        else:
+            text = value_text(v, "") if not isinstance(v, (list, dict)) else str(v)
+            pos = cats.index(text) / hi if text in cats else 0.0
+        return bottom - pos * (bottom - top)
+
+    out = []
+    for i, a in enumerate(axes):
+        x = left + i * step
+        kind, cats, lo, hi = scales[a]
+        label = a.removeprefix("config.")
+        anchor = "start" if i == 0 else "end" if i == len(axes) - 1 else "middle"
+        out.append(f'<line x1="{x:.1f}" y1="{top}" x2="{x:.1f}" y2="{bottom}" stroke="#999"/>'
+                   f'<text x="{x:.1f}" y="{top - 16}" text-anchor="{anchor}">{_esc(label[:18])}</text>')
+        ends = (_fmt(hi), _fmt(lo)) if kind == "number" else (cats[-1][:10] if cats else "", cats[0][:10] if cats
+                                                                                    else "")
+        out.append(f'<text x="{x:.1f}" y="{top - 3}" text-anchor="{anchor}" font-size="10">{_esc(ends[0])}</text>'
+                   f'<text x="{x:.1f}" y="{bottom + 13}" text-anchor="{anchor}" font-size="10">{_esc(ends[1])}</text>')
+    shade_values = [v for ln in lines if isinstance(v := ln.values.get(shade_by), (int, float)) and math.isfinite(v)]
+    lo_s, hi_s = (min(shade_values), max(shade_values)) if shade_values else (0.0, 1.0)
+    for ln in lines:
+        v = ln.values.get(shade_by)
+        rank = 0.5 if not isinstance(v, (int, float)) or hi_s <= lo_s else (float(v) - lo_s) / (hi_s - lo_s)
+        goodness = {"lower": 1 - rank, "higher": rank}.get(better, 0.5)
+        points = [(left + i * step, y) for i, a in enumerate(axes) if (y := py(a, ln.values.get(a))) is not None]
+        if len(points) < 2:
+            continue
+        said = ", ".join(f"{a.removeprefix('config.')} {_fmt(x) if isinstance(x, float) else x}"
+                         for a in axes if (x := ln.values.get(a)) is not None)
+        out.append(f'<a href="{_esc(ln.href)}" class="mark"><title>{_esc(ln.name)}: {_esc(said)}</title>'
+                   f'<polyline points="{" ".join(f"{x:.1f},{y:.1f}" for x, y in points)}" fill="none" '
+                   f'stroke="{ESTIMATE}" stroke-width="1.6" stroke-opacity="{0.25 + 0.7 * goodness:.2f}"/></a>')
+    more = f" (the newest {MAX_POINTS})" if given > MAX_POINTS else ""
+    return _svg(bottom + 24, f"parallel coordinates of {len(lines)} runs over {', '.join(axes)}{more}",
+                "".join(out), "parallel")
+
+
+def parallel_chart(store: RunsTableMixin, view: RunsView, where: str, args: list[Any]) -> str:
+    """The listed runs in parallel coordinates: config keys that differ among them, the view's metric columns, and
+    the charted metric last (its direction shades the lines)."""
+    rows, _ = store.select_runs(where, args, "j.seq DESC", MAX_POINTS)
+    runs = [r.job for r in rows]
+    keys = sorted({k for j in runs for k in j.config})
+    differ = [k for k in keys if len({repr(j.config.get(k)) for j in runs}) > 1][:6]
+    metrics = [m for m in (*view.cols, view.chart) if any(m in (j.metrics or {}) for j in runs)]
+    axes = [*(f"config.{k}" for k in differ), *dict.fromkeys(metrics)]
+    lines = [Line({**{f"config.{k}": j.config.get(k) for k in differ}, **(j.metrics or {})}, f"/ui/jobs/{j.id}",
+                  j.name or f"{j.id[:8]} {j.pipeline} seed {j.seed}") for j in runs]
+    spec = metric_specs().get(view.chart)
+    return parallel_svg(lines, axes, view.chart, spec.better if spec is not None else "")

@@ -59,7 +59,7 @@ COLUMNS = {"status": "status", "recording": "recording", "pipeline": "pipeline",
 DEFAULT_SHOW = ("status", "recording", "pipeline", "variant", "seed", "config", "commit", "made_by", "tags", "note",
                 "created", "duration")
 GROUP_KEYS = ("recording", "pipeline", "variant", "commit")  # and config.KEY
-CHART_X = ("seed", "created", "commit")  # and config.KEY
+CHART_X = ("seed", "created", "commit", "parallel")  # and config.KEY; parallel: parallel coordinates
 MAX_GROUP_KEYS = 4
 TIME_SORTS = ("created", "started", "finished", "duration")
 

@@ -180,7 +180,7 @@ def runs_ctx(request: Request, view: RunsView) -> dict[str, Any]:
             "metric_cols": [metric_heading(c) for c in view.cols], "metric_menu": _menu(view.cols, listed_metrics),
             "column_menu": [(c, COLUMNS[c], on) for c, on in _menu(view.show, list(COLUMNS))],
             "group_menu": _menu(view.group, group_choices), "sort_choices": sort_choices(view),
-            "chart_svg": chart, "chart_x": ["seed", "created", "commit", *[f"config.{k}" for k in listed_config]],
+            "chart_svg": chart, "chart_x": ["seed", "created", "commit", *[f"config.{k}" for k in listed_config], "parallel"],
             "chart_metrics": sorted({*listed_metrics, *view.cols, *([view.chart] if view.chart else [])}),
             "page_sizes": PAGE_SIZES, "statuses": JOB_STATUSES,
             "filter_recordings": recs, "filter_pipelines": jobs.store.pipelines_used(),

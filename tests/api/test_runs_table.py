@@ -695,6 +695,32 @@ def test_scatter_of_a_sweep_shows_a_column_per_value(table: tuple[TestClient, St
         assert r.status_code == 422 and message in html.unescape(r.text)
 
 
+def test_parallel_coordinates_of_a_sweep(table: tuple[TestClient, Store]) -> None:
+    """chart=METRIC&x=parallel: an axis per config key that differs among the listed runs, then the metric; a line
+    per run linked to it, through the sweep's value and its metric, the best (lowest) run drawn darkest."""
+    client, store = table
+    store.cancel_job(jid(8))
+    k = 200
+    for sigma in (0.05, 0.1, 0.2, 0.4, 0.8):
+        for seed in (1, 2, 3):
+            store.add_job(jid(k), HALL, "ekfslam", {"range_sigma_m": sigma}, seed)
+            assert store.claim_next() is not None
+            store.finish_job(jid(k), "succeeded", None, {"landmark_rmse_m": sigma / 4 + seed / 100}, COMMITS[0])
+            k += 1
+    page = client.get("/runs", params={"pipeline": "ekfslam", "where": "landmark_rmse_m > 0", "cols": "",
+                                       "chart": "landmark_rmse_m", "x": "parallel"}).text
+    svg = html.unescape(page.split('id="runs-chart"')[1].split("</svg>")[0])
+    assert "parallel coordinates of " in svg and "over config.range_sigma_m, landmark_rmse_m" in svg, svg[:400]
+    lines = re.findall(r'<a href="/ui/jobs/([0-9a-f]{32})" class="mark"><title>([^<]*)</title><polyline points="'
+                       r'([^"]+)"[^>]*stroke-opacity="([\d.]+)"', svg)
+    sweep = {int(i, 16): (title, pts, float(o)) for i, title, pts, o in lines if 200 <= int(i, 16) < 215}
+    assert len(sweep) == 15
+    assert "range_sigma_m 0.8, landmark_rmse_m 0.21" in sweep[212][0]  # sigma 0.8, seed 1: 0.8 / 4 + 0.01
+    best = min(sweep.values(), key=lambda v: float(v[0].rsplit(" ", 1)[1]))
+    assert best[2] == max(v[2] for v in sweep.values()) and "range_sigma_m 0.05" in best[0]
+    assert all(len(v[1].split()) == 2 for v in sweep.values())  # two axes: the key that differs, the metric
+
+
 def test_group_chart_has_a_row_per_group(table: tuple[TestClient, Store]) -> None:
     """chart=METRIC on a grouped view: a row per group in the table's order (mean, spread, min-max), each linked
     to the group's runs; without groups or x, a line saying what to choose."""

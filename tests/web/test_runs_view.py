@@ -26,6 +26,7 @@ COMMITS = ("3f2a9c1" + "0" * 33, "8be41d7" + "1" * 33)
 GROUPED = "/runs?group=pipeline,recording&cols=ape_rmse_m,landmark_rmse_m,landmark_nees_mean&sort=m.ape_rmse_m"
 GROUP_CHART = GROUPED + "&chart=ape_rmse_m"
 SCATTER = "/runs?pipeline=ekfslam&recording=corridor-loop.mcap&chart=landmark_rmse_m&x=config.range_sigma_m"
+PARALLEL = "/runs?pipeline=ekfslam&recording=corridor-loop.mcap&cols=ape_rmse_m&chart=landmark_rmse_m&x=parallel"
 FLAT = "/runs?pipeline=dslam&cols=ape_rmse_m,landmark_rmse_m&show=status,recording,seed,config,commit,made_by,tags,note"
 
 
@@ -242,6 +243,13 @@ def test_charts_across_runs(page: Any, site: tuple[str, dict[str, str]]) -> None
             readme_image(page, "web-group-chart-phone")
     page.click("#runs-chart a.mark")  # a group's row: its runs
     page.wait_for_url(re.compile(r"/runs\?.*where="))
+    for size, tag in ((LAPTOP, "laptop"), (PHONE, "phone")):  # parallel coordinates: a line per run, linked
+        page.set_viewport_size(size)
+        page.goto(base + PARALLEL)
+        assert page.locator("#runs-chart a.mark polyline").count() >= 15
+        assert page.evaluate("document.documentElement.scrollWidth") <= size["width"]
+        page.locator("#runs-chart").scroll_into_view_if_needed()
+        shot(page, f"parallel-{tag}")
     assert page.problems == [], page.problems
 
 
@@ -256,7 +264,7 @@ def test_axe_clean_in_both_schemes(browser: Any, site: tuple[str, dict[str, str]
     problems: list[str] = []
     pg.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
     try:
-        for name, path in (("flat", FLAT), ("grouped", GROUP_CHART), ("scatter", SCATTER),
+        for name, path in (("flat", FLAT), ("grouped", GROUP_CHART), ("scatter", SCATTER), ("parallel", PARALLEL),
                            ("job", f"/ui/jobs/{ids['dslam']}"),
                            ("compare", f"/ui/compare?runs={ids['odometry']},{ids['dslam']}")):
             pg.goto(base + path)
