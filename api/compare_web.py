@@ -56,6 +56,20 @@ def deleted_cells(side: Any, name: str) -> list[str]:
             f"{str(r.get('job_id'))[:8]} {r.get('error')}" for r in side.rows if r.get("status") == "deleted"]
 
 
+def light_only(css: str) -> str:
+    """``css`` without its dark-scheme block: the comparison report is a self-contained file drawn for a light page
+    (its verdict rows, legend and plots have their own light colours), so its page stays light in either scheme."""
+    start = css.find("@media (prefers-color-scheme:dark){")
+    if start < 0:
+        return css
+    depth, end = 0, len(css) - 1
+    for end in range(css.index("{", start), len(css)):
+        depth += {"{": 1, "}": -1}.get(css[end], 0)
+        if depth == 0:
+            break
+    return css[:start] + css[end + 1:]
+
+
 def _report(request: Request, c: Any, deleted: list[str] | None = None) -> HTMLResponse:
     """The comparison report of ``GET /compare?format=html``, under the page's header."""
     from slamreplay.replay.runs.report import render_html
@@ -63,7 +77,7 @@ def _report(request: Request, c: Any, deleted: list[str] | None = None) -> HTMLR
     report = render_html(c, Path("/"), service_links(str(request.base_url), link_secret(request)))
     nav = templates.get_template("_nav.html").render(**people_ctx(request))
     head, _, body = report.partition("<body>")
-    style = "<style>" + (HERE / "static" / "web.css").read_text() + "</style>"
+    style = "<style>" + light_only((HERE / "static" / "web.css").read_text()) + ":root{color-scheme:light}</style>"
     viewport = ('<meta name="viewport" content="width=device-width, initial-scale=1">'
                 '<link rel="icon" href="/static/favicon.svg" type="image/svg+xml">')  # as base.html's head
     head = head.replace("<html>", '<html lang="en">', 1)  # the report has none: screen readers guess the language

@@ -105,10 +105,14 @@ def readme_images(page: Any, stem: Path) -> None:
     page.set_viewport_size(LAPTOP)
 
 
+@pytest.mark.parametrize("scheme", ["light", "dark"])
 @pytest.mark.parametrize("name", list(PAGES))
-def test_page_has_no_serious_accessibility_violation(page: Any, site: tuple[str, dict[str, str]], name: str) -> None:
-    """axe-core finds no violation of impact "serious" or "critical" (contrast, names, labels, landmarks...)."""
+def test_page_has_no_serious_accessibility_violation(page: Any, site: tuple[str, dict[str, str]], name: str,
+                                                     scheme: str) -> None:
+    """axe-core finds no violation of impact "serious" or "critical" (contrast, names, labels, landmarks...), in the
+    light and the dark scheme (the page follows the system's)."""
     axe = pytest.importorskip("axe_playwright_python.sync_playwright", reason="pip install -e '.[browser]'")
+    page.emulate_media(color_scheme=scheme)
     open_page(page, site, name)
     # no live refresh during the scan (a running job's block is swapped every 2 s): axe would lose its nodes
     page.evaluate("document.querySelectorAll('[data-live]').forEach(el => el.removeAttribute('data-live'))")
