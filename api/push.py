@@ -40,11 +40,12 @@ from slamreplay.api.errors import NotFoundError, TooLargeError
 from slamreplay.api.store import JobRow, Store
 from slamreplay.api.store_runs import Labels
 from slamreplay.replay.errors import ReplayError
+from slamreplay.replay.runs.run import ARTIFACT_NAME
 
 MAX_FILES = 2000
 MAX_DEPTH = 4
 MAX_JSON_BYTES = 16 << 20
-PART_RE = re.compile(r"[A-Za-z0-9_+-][A-Za-z0-9_.+-]{0,99}")
+PART_RE = re.compile(r"[A-Za-z0-9_+-][A-Za-z0-9_.+-]{0,127}")  # an artifact name (ARTIFACT_NAME) fits
 PIPELINE_RE = re.compile(r"[A-Za-z0-9_.:-]{1,100}")
 METRIC_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,99}")
 SHA256_RE = re.compile(r"[0-9a-f]{64}")
@@ -187,7 +188,7 @@ def check_run(folder: Path) -> PushedRun:
         raise PushError("manifest.json: artifacts is not an object")
     for name, info in artifacts.items():
         path = folder / name
-        if not isinstance(info, dict) or not PART_RE.fullmatch(str(name)):
+        if not isinstance(info, dict) or not ARTIFACT_NAME.fullmatch(str(name)):
             raise PushError(f"manifest.json: artifact {str(name)[:100]!r} is not described as a file")
         if not path.is_file():
             raise PushError(f"manifest.json lists the artifact {name} but the run has no such file")
