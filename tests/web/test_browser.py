@@ -345,14 +345,16 @@ def test_compare_two_runs_of_different_pipelines(page: Any, server: str, tmp_pat
     verdict = row.locator(".verdict")
     r, g, b = map(int, re.findall(r"\d+", verdict.evaluate("el => getComputedStyle(el).color"))[:3])
     assert g > r + 40 and g > b + 20  # green text
-    assert page.locator("#plots svg polyline").count() >= 3  # A, B and ground truth
+    assert page.locator("#plots figure:first-of-type svg polyline").count() >= 3  # A, B and ground truth
+    assert page.locator("#error-over-time svg polyline").count() == 2  # A's and B's position error over time
     both_sizes(page, "compare-two-runs")
     if SHOTS is not None:
         page.screenshot(path=str(SHOTS / "compare-two-runs-full.png"), full_page=True)
 
     third = _run_on(page, server, rid, "ekfslam")
     page.goto(server + f"/ui/compare?runs={odo[:8]},{dslam[:8]},{third[:8]}")  # the page's short ids do
-    assert page.locator("#plots svg polyline").count() == 4  # three runs and the truth
+    assert page.locator("#plots figure:first-of-type svg polyline").count() == 4  # three runs and the truth
+    assert page.locator("#error-over-time svg polyline").count() == 3  # each run's position error over time
     assert page.locator("#metrics-side-table tr").first.locator("th.n").count() == 3
     assert page.locator("#pairs li").count() == 3
     both_sizes(page, "compare-three-runs")
