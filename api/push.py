@@ -21,7 +21,6 @@ with the job it became.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import re
@@ -40,7 +39,7 @@ from slamreplay.api.errors import NotFoundError, TooLargeError
 from slamreplay.api.store import JobRow, Store
 from slamreplay.api.store_runs import Labels
 from slamreplay.replay.errors import ReplayError
-from slamreplay.replay.runs.run import ARTIFACT_NAME
+from slamreplay.replay.runs.run import ARTIFACT_NAME, sha256_file
 
 MAX_FILES = 2000
 MAX_DEPTH = 4
@@ -155,14 +154,6 @@ def _json(folder: Path, name: str) -> Any:
         raise PushError(f"{name} is not JSON: {err}") from None
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def check_run(folder: Path) -> PushedRun:
     """The run in ``folder`` as checked (see the module docstring); PushError says the first thing wrong."""
     m = _json(folder, "manifest.json")
@@ -194,7 +185,7 @@ def check_run(folder: Path) -> PushedRun:
             raise PushError(f"manifest.json lists the artifact {name} but the run has no such file")
         if info.get("bytes") is not None and path.stat().st_size != info["bytes"]:
             raise PushError(f"{name} is {path.stat().st_size:,} bytes but the manifest says {info['bytes']:,}")
-        if info.get("sha256") is not None and _sha256(path) != info["sha256"]:
+        if info.get("sha256") is not None and sha256_file(path) != info["sha256"]:
             raise PushError(f"{name} is not the file the manifest describes (its sha256 differs)")
     metrics: dict[str, float | None] = {}
     if status == "succeeded":

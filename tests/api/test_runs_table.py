@@ -666,18 +666,24 @@ def test_groups_export_as_csv(table: tuple[TestClient, Store]) -> None:
     assert [float(x) for x in rows[1][3:7]] == pytest.approx([0.2, 0.2, 0.0, 0.4]) and rows[1][7] == "3"
 
 
-def test_scatter_of_a_sweep_shows_a_column_per_value(table: tuple[TestClient, Store]) -> None:
-    """A sweep of range_sigma_m over 5 values x 3 seeds: the scatter of landmark_rmse_m against it draws 15 dots
-    at 5 x positions, each linked to its run; commit and seed scatters too."""
-    client, store = table
+def add_sweep(store: Store, first: int) -> None:
+    """Succeeded ekfslam runs jid(first)... of a sweep: range_sigma_m 0.05, 0.1, 0.2, 0.4, 0.8 x seeds 1, 2, 3, each
+    with landmark_rmse_m = sigma / 4 + seed / 100."""
     store.cancel_job(jid(8))  # so that each claim is the new job
-    k = 100
+    k = first
     for sigma in (0.05, 0.1, 0.2, 0.4, 0.8):
         for seed in (1, 2, 3):
             store.add_job(jid(k), HALL, "ekfslam", {"range_sigma_m": sigma}, seed)
             assert store.claim_next() is not None
             store.finish_job(jid(k), "succeeded", None, {"landmark_rmse_m": sigma / 4 + seed / 100}, COMMITS[0])
             k += 1
+
+
+def test_scatter_of_a_sweep_shows_a_column_per_value(table: tuple[TestClient, Store]) -> None:
+    """A sweep of range_sigma_m over 5 values x 3 seeds: the scatter of landmark_rmse_m against it draws 15 dots
+    at 5 x positions, each linked to its run; commit and seed scatters too."""
+    client, store = table
+    add_sweep(store, 100)
     page = client.get("/runs", params={"pipeline": "ekfslam", "chart": "landmark_rmse_m",
                                        "x": "config.range_sigma_m"}).text
     svg = page.split('id="runs-chart"')[1].split("</svg>")[0]
@@ -699,14 +705,7 @@ def test_parallel_coordinates_of_a_sweep(table: tuple[TestClient, Store]) -> Non
     """chart=METRIC&x=parallel: an axis per config key that differs among the listed runs, then the metric; a line
     per run linked to it, through the sweep's value and its metric, the best (lowest) run drawn darkest."""
     client, store = table
-    store.cancel_job(jid(8))
-    k = 200
-    for sigma in (0.05, 0.1, 0.2, 0.4, 0.8):
-        for seed in (1, 2, 3):
-            store.add_job(jid(k), HALL, "ekfslam", {"range_sigma_m": sigma}, seed)
-            assert store.claim_next() is not None
-            store.finish_job(jid(k), "succeeded", None, {"landmark_rmse_m": sigma / 4 + seed / 100}, COMMITS[0])
-            k += 1
+    add_sweep(store, 200)
     page = client.get("/runs", params={"pipeline": "ekfslam", "where": "landmark_rmse_m > 0", "cols": "",
                                        "chart": "landmark_rmse_m", "x": "parallel"}).text
     svg = html.unescape(page.split('id="runs-chart"')[1].split("</svg>")[0])
