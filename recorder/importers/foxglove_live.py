@@ -40,6 +40,7 @@ from slamreplay.recorder.importers.foxglove_ws import (
     connect,
 )
 from slamreplay.recorder.importers.live_plan import (
+    TF,
     ChannelPlan,
     Conversion,
     Converted,
@@ -71,6 +72,8 @@ class LiveOptions:
     duration_s: float | None = None
     sensor_model: SensorModel | None = None
     base_frame: str = "base_link"
+    odom_frame: str = "odom"  # /tf: odometry is base_frame in it, when no channel gives odometry
+    ground_truth_frame: str | None = None  # /tf: ground truth is base_frame in it (e.g. map)
     poles: PoleConfig = field(default_factory=PoleConfig)
     wait_s: float = 5.0  # for a channel to record, after connecting
     give_up_s: float | None = None  # reconnecting; None: until stopped
@@ -161,7 +164,7 @@ class LiveRecording:
         self._subs: dict[int, int] = {}  # subscription id -> channel id
         self._counts: dict[str, TopicCount] = {}
         self._skipped: dict[str, ChannelPlan] = {}
-        self._conv = Conversion(options.base_frame, options.poles)
+        self._conv = Conversion(options.base_frame, options.poles, options.odom_frame, options.ground_truth_frame)
         self._rec: Recorder | None = None
         self._gaps: list[Gap] = []
         self._gap: Gap | None = None  # lost and not yet written: its end is the next message written
@@ -255,7 +258,8 @@ class LiveRecording:
                 break
             event = session.recv(min(0.1, deadline - now))
             if isinstance(event, Advertise):
-                plans += plan_channels(event.channels, self._selected, self.opts.topic_map, self._taken)
+                plans += plan_channels(event.channels, self._selected, self.opts.topic_map, self._taken,
+                                       self.opts.ground_truth_frame)
                 settle = settle or time.monotonic() + 0.2
             elif isinstance(event, Status) and event.level >= 2:
                 self._say(f"server error: {event.message}")
@@ -285,7 +289,9 @@ class LiveRecording:
                                                    else "", "subprotocol": session.subprotocol},
                              parameters={"topics": list(o.topics), "topic_map": {p.channel.topic: p.maps_to
                                                                                for p in plans if p.maps_to},
-                                         "base_frame": o.base_frame, "pole_extractor": o.poles.as_dict()},
+                                         "base_frame": o.base_frame, "odom_frame": o.odom_frame,
+                                         "ground_truth_frame": o.ground_truth_frame,
+                                         "pole_extractor": o.poles.as_dict()},
                              sensor_model=model)
         self._rec.open()
         self._start = self._last_tick = time.monotonic()
@@ -326,7 +332,8 @@ class LiveRecording:
                 advertised += event.channels
                 if any(c.topic in self._counts for c in advertised):
                     break
-        plans = plan_channels(advertised, self._selected, self.opts.topic_map, self._taken)
+        plans = plan_channels(advertised, self._selected, self.opts.topic_map, self._taken,
+                              self.opts.ground_truth_frame)
         self._subscribe(session, plans, prefix=None)
         if self._gap is not None:
             self._gap = replace(self._gap, wall_end_ns=time.time_ns())
@@ -354,7 +361,8 @@ class LiveRecording:
             elif isinstance(event, Advertise):
                 known = {p.channel.kind for p in self._plans.values()}
                 new = [c for c in event.channels if c.id not in self._plans and c.kind not in known]
-                self._subscribe(session, plan_channels(new, self._selected, self.opts.topic_map, self._taken),
+                self._subscribe(session, plan_channels(new, self._selected, self.opts.topic_map, self._taken,
+                                                       self.opts.ground_truth_frame),
                                 prefix="new channel: ")
             elif isinstance(event, Unadvertise):
                 for cid in event.channel_ids:
@@ -398,6 +406,23 @@ class LiveRecording:
             self._rec.write(topic, msg, publish_time_ns=receive_ns, encoded=encoded)
             self._last_log_ns = msg.stamp_ns
 
+    def _compose(self, final: bool) -> None:
+        """Write the odometry and ground truth composed through /tf since the last tick; say once why a composed
+        topic has none (after STALL_MIN_S of recording, when the tree has had time to fill, or at the end)."""
+        if not self._conv.composed:
+            return
+        out, problems = self._conv.compose()
+        self._write(out, time.time_ns())
+        tf = self._counts.get(TF)
+        if tf is not None:
+            tf.written += len(out)
+        if final or time.monotonic() - self._start >= STALL_MIN_S:
+            for problem in problems:
+                key = problem.split(":")[0]
+                if key not in self._said_bad:
+                    self._said_bad.add(key)
+                    self._say(problem)
+
     def _tick(self, now: float) -> None:
         assert self._rec is not None
         if self._conv.held and self._conv.hold_scans and now >= self._hold_until:
@@ -405,6 +430,7 @@ class LiveRecording:
             self._conv.hold_scans = False
         if self._conv.held and not self._conv.hold_scans:
             self._write(self._conv.release(), time.time_ns())
+        self._compose(final=False)
         self._rec.flush()
         dt, wall = now - self._last_tick, time.time_ns()
         for c in self._counts.values():
@@ -424,6 +450,7 @@ class LiveRecording:
         rec = self._rec
         assert rec is not None
         self._write(self._conv.release(force=True), time.time_ns())
+        self._compose(final=True)
         if self._gap is not None:
             self._close_gap(0)
         summary = {c.topic: {"maps_to": c.maps_to, "received": c.received, "written": c.written, "bad": c.bad}

@@ -27,12 +27,19 @@ from typing import Any
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.importers.foxglove_ws import ChannelInfo
 from slamreplay.recorder.importers.pole_config import PoleConfig
-from slamreplay.recorder.messages import TOPIC_NAV_LOCALIZATION, TOPIC_RANGE_BEARING, TOPIC_TYPES, Message
+from slamreplay.recorder.messages import (
+    TOPIC_GROUND_TRUTH_POSE,
+    TOPIC_NAV_LOCALIZATION,
+    TOPIC_ODOM,
+    TOPIC_RANGE_BEARING,
+    TOPIC_TYPES,
+    Message,
+)
 
 TF_TREE = "transform tree"
 # (logical topic, message, (schema data, bytes) when the message is written as it came)
 Converted = tuple[str, Message, tuple[bytes, bytes] | None]
-TF_STATIC = "/tf_static"
+TF, TF_STATIC = "/tf", "/tf_static"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 # Logical topics a live stream does not feed: a pipeline's output
 NOT_RECORDED = (TOPIC_NAV_LOCALIZATION,)
@@ -49,6 +56,7 @@ class ChannelPlan:
     channel: ChannelInfo
     maps_to: str | None
     note: str
+    composes: tuple[str, ...] = ()  # /tf: the logical topics composed through the tree (odometry, ground truth)
 
     def line(self) -> str:
         c = self.channel
@@ -111,9 +119,10 @@ def _why_not(channel: ChannelInfo) -> str:
 
 
 def plan_channels(channels: Iterable[ChannelInfo], selected: Callable[[str], bool], topic_map: Mapping[str, str],
-                  taken: dict[str, str]) -> list[ChannelPlan]:
+                  taken: dict[str, str], ground_truth_frame: str | None = None) -> list[ChannelPlan]:
     """Map ``channels`` onto logical topics; ``taken`` (logical topic -> channel topic, updated) holds what earlier
-    channels of the stream took. RecorderError when ``topic_map`` asks for what a channel cannot become."""
+    channels of the stream took; ``/tf`` gives ground truth when ``ground_truth_frame`` is given. RecorderError
+    when ``topic_map`` asks for what a channel cannot become."""
     plans: dict[int, ChannelPlan] = {}
     todo = sorted(channels, key=lambda c: (c.topic, c.id))
     for c in todo:
@@ -136,13 +145,9 @@ def plan_channels(channels: Iterable[ChannelInfo], selected: Callable[[str], boo
             taken[c.topic] = c.topic
             plans[c.id] = ChannelPlan(c, c.topic, "as named")
     scans = TOPIC_RANGE_BEARING in taken or any(TOPIC_RANGE_BEARING in targets(c) for c in todo if selected(c.topic))
+    tfs = [c for c in todo if c.id not in plans and c.encoding == "cdr" and ros_type(c) == TF_TYPE]
     for c in todo:
-        if c.id in plans:
-            continue
-        if c.encoding == "cdr" and ros_type(c) == TF_TYPE:
-            plans[c.id] = (ChannelPlan(c, TF_TREE, "the laser's mounting") if c.topic == TF_STATIC and scans else
-                           ChannelPlan(c, None, "transforms are read from /tf_static for the laser's mounting only: "
-                                                "publish odometry as nav_msgs/Odometry or foxglove.PoseInFrame"))
+        if c.id in plans or c in tfs:
             continue
         options = targets(c)
         if not options or c.problem:
@@ -157,17 +162,47 @@ def plan_channels(channels: Iterable[ChannelInfo], selected: Callable[[str], boo
         how = {TOPIC_RANGE_BEARING: "poles and trunks as landmarks, ids unknown"}.get(target, "automatic") \
             if c.encoding == "cdr" else "as it comes"
         plans[c.id] = ChannelPlan(c, target, how)
+    # the tf channels last, as the bag importer decides them: /tf gives odometry when no channel does, and ground
+    # truth with a ground-truth frame; /tf_static the laser's mounting and the static links of those
+    for c in sorted(tfs, key=lambda c: c.topic != TF):
+        plans[c.id] = _plan_tf(c, taken, scans, ground_truth_frame)
     return [plans[c.id] for c in todo]
+
+
+def _plan_tf(c: ChannelInfo, taken: dict[str, str], scans: bool, ground_truth_frame: str | None) -> ChannelPlan:
+    if c.topic not in (TF, TF_STATIC):
+        return ChannelPlan(c, None, "transforms are read from /tf and /tf_static only")
+    composes: list[str] = []
+    if c.topic == TF:
+        for target, wanted in ((TOPIC_ODOM, True), (TOPIC_GROUND_TRUTH_POSE, ground_truth_frame is not None)):
+            if wanted and taken.get(target, TF) == TF:
+                taken[target] = TF
+                composes.append(target)
+    uses = [what for what, on in (("odometry", TOPIC_ODOM in composes), ("ground truth", TOPIC_GROUND_TRUTH_POSE
+                                                                          in composes)) if on]
+    if c.topic == TF_STATIC:
+        uses = [what for what, on in (("odometry", taken.get(TOPIC_ODOM) == TF),
+                                      ("ground truth", taken.get(TOPIC_GROUND_TRUTH_POSE) == TF),
+                                      ("the laser's mounting", scans)) if on]
+    if not uses:
+        why = f"not needed: odometry comes from {taken.get(TOPIC_ODOM)}" if TOPIC_ODOM in taken else \
+            "not needed: no odometry, ground truth or laser scan is composed through it"
+        return ChannelPlan(c, None, why + ("" if ground_truth_frame else " and no --ground-truth-frame was given"))
+    return ChannelPlan(c, TF_TREE, " and ".join(uses) + " composed through the tree", tuple(composes))
 
 
 @dataclass
 class Conversion:
     """Turns payloads of planned channels into (logical topic, message) pairs; shared state of a stream: the
-    transform tree (``/tf_static``) and laser scans held until the laser's mounting is known."""
+    transform tree (``/tf``, ``/tf_static``), the poses composed through it so far, and laser scans held until
+    the laser's mounting is known."""
 
     base_frame: str = "base_link"
     poles: PoleConfig = field(default_factory=PoleConfig)
+    odom_frame: str = "odom"
+    ground_truth_frame: str | None = None
     tree: Any = None
+    composed: dict[str, int | None] = field(default_factory=dict)  # logical topic -> stamp of its last pose
     _decoders: dict[int, Callable[[bytes, int], list[Converted]]] = field(default_factory=dict)
     held: list[tuple[int, str, Any]] = field(default_factory=list)  # scans: (stamp, frame, LaserScan)
     hold_scans: bool = False  # until /tf_static has given the laser's mounting
@@ -183,9 +218,11 @@ class Conversion:
         """Make the decoder of a planned channel (CodecError: its schema cannot be read)."""
         c, target = plan.channel, plan.maps_to
         assert target is not None
+        for topic in plan.composes:
+            self.composed.setdefault(topic, None)
         if c.encoding == "cdr":
             from slamreplay.recorder.codec.live import ros2_decoder
-            from slamreplay.recorder.importers.ros2bag import _convert
+            from slamreplay.recorder.importers.ros2bag import convert_message
 
             raw = ros2_decoder(c.topic, c.schema_name, c.schema)
             msgtype = ros_type(c)
@@ -196,7 +233,7 @@ class Conversion:
             def cdr(data: bytes, stamp_ns: int) -> list[Converted]:
                 obj = raw(data)
                 try:
-                    item = _convert(c.topic, msgtype, logical, obj, stamp_ns, self.tree, self.held)
+                    item = convert_message(c.topic, msgtype, logical, obj, stamp_ns, self.tree, self.held)
                 except (ValueError, AttributeError, TypeError) as err:  # values a message cannot hold
                     raise RecorderError(f"a {msgtype} message on {c.topic} cannot be read: {err}") from err
                 if c.topic == TF_STATIC:
@@ -223,16 +260,43 @@ class Conversion:
         """Scans held so far, as range-bearing scans, once the laser's mounting is known (or ``force``)."""
         if not self.held or (self.hold_scans and not force):
             return []
-        from slamreplay.recorder.importers.ros2bag import _poles_scan
+        from slamreplay.recorder.importers.ros2bag import poles_scan
 
         out: list[Converted] = []
         for stamp, frame, scan in self.held:
             mount = (0.0, 0.0, 0.0)
             if frame and frame != self.base_frame and {frame, self.base_frame} <= self.tree.frames:
                 mount = self.tree.static_planar(self.base_frame, frame) or mount
-            rb = _poles_scan(stamp, scan, self.poles, mount)
+            rb = poles_scan(stamp, scan, self.poles, mount)
             self.poles_found += len(rb)
             out.append((TOPIC_RANGE_BEARING, rb, None))
         self.scans_converted += len(self.held)
         self.held.clear()
         return out
+
+    def compose(self) -> tuple[list[Converted], list[str]]:
+        """Odometry and ground truth composed through the tree since the last call (as ``record ros2`` composes
+        them: a pose at each stamp of the moving transforms where all of them are known), and why a composed
+        topic has none (a frame not in the tree yet, frames not linked)."""
+        from slamreplay.recorder.importers.ros2bag import tf_poses
+
+        out: list[Converted] = []
+        problems: list[str] = []
+        for topic, after in self.composed.items():
+            frame = self.odom_frame if topic == TOPIC_ODOM else self.ground_truth_frame
+            assert frame is not None
+            option = "--odom-frame" if topic == TOPIC_ODOM else "--ground-truth-frame"
+            try:
+                self.tree.check_frame(frame, option)
+                self.tree.check_frame(self.base_frame, "--base-frame")
+                msgs = tf_poses(self.tree, topic, frame, self.base_frame, after)
+            except RecorderError as err:
+                problems.append(f"{topic} from /tf: {err}")
+                continue
+            if msgs:
+                self.composed[topic] = msgs[-1].stamp_ns
+            out += [(topic, m, None) for m in msgs]
+        done = list(self.composed.values())
+        if done and all(t is not None for t in done):  # what no later pose needs is dropped
+            self.tree.forget_before(min(t for t in done if t is not None))
+        return out, problems

@@ -357,7 +357,7 @@ def import_ros2_bag(bag_path: str | Path, out: str | Path, *, topic_map: Mapping
             except Exception as err:  # rosbags' deserialization errors of damaged CDR, whatever their type
                 raise rosbags_error(err, f"{bag_path}: {where} is damaged", "re-record or copy the bag again") from err
             try:
-                item = _convert(conn.topic, conn.msgtype, by_topic[conn.topic].maps_to, obj, bag_ns, tree, scans)
+                item = convert_message(conn.topic, conn.msgtype, by_topic[conn.topic].maps_to, obj, bag_ns, tree, scans)
             except (ValueError, AttributeError, TypeError) as err:  # values a message cannot hold
                 raise RecorderError(f"{bag_path}: {where} cannot be read: {err}") from err
             if item is not None:
@@ -372,21 +372,20 @@ def import_ros2_bag(bag_path: str | Path, out: str | Path, *, topic_map: Mapping
         if frame and frame != base_frame and base_frame in tree.frames and frame in tree.frames:
             mount = tree.static_planar(base_frame, frame) or mount
         for stamp, _, scan in scans:
-            rb = _poles_scan(stamp, scan, poles, mount)
+            rb = poles_scan(stamp, scan, poles, mount)
             n_poles += len(rb)
             out_msgs.append((stamp, len(out_msgs), TOPIC_RANGE_BEARING, rb))
     if plan.tf_odometry:
         tree.check_frame(odom_frame, "--odom-frame")
         tree.check_frame(base_frame, "--base-frame")
-        for stamp, pose in zip(*tree.planar_poses(odom_frame, base_frame), strict=True):
-            out_msgs.append((int(stamp), len(out_msgs), TOPIC_ODOM, OdometryPose(int(stamp), *pose.tolist())))
+        for msg in tf_poses(tree, TOPIC_ODOM, odom_frame, base_frame):
+            out_msgs.append((msg.stamp_ns, len(out_msgs), TOPIC_ODOM, msg))
     if plan.tf_ground_truth:
         assert ground_truth_frame is not None
         tree.check_frame(ground_truth_frame, "--ground-truth-frame")
         tree.check_frame(base_frame, "--base-frame")
-        for stamp, pose in zip(*tree.planar_poses(ground_truth_frame, base_frame), strict=True):
-            out_msgs.append((int(stamp), len(out_msgs), TOPIC_GROUND_TRUTH_POSE,
-                             GroundTruthPose(int(stamp), *pose.tolist())))
+        for msg in tf_poses(tree, TOPIC_GROUND_TRUTH_POSE, ground_truth_frame, base_frame):
+            out_msgs.append((msg.stamp_ns, len(out_msgs), TOPIC_GROUND_TRUTH_POSE, msg))
     if not any(t in (TOPIC_ODOM, TOPIC_CAMERA_IMAGE) for _, _, t, _ in out_msgs):
         raise RecorderError(f"{bag_path}: no odometry nor image message could be read: {NEEDS}")
     out_msgs.sort(key=lambda m: (m[0], m[1]))
@@ -407,9 +406,24 @@ def import_ros2_bag(bag_path: str | Path, out: str | Path, *, topic_map: Mapping
     return ImportSummary(Path(out), plan, counts, n_poles)
 
 
-def _convert(topic: str, msgtype: str, target: str | None, obj: Any, bag_ns: int, tree: TfTree,
-             scans: list[tuple[int, str, Any]]) -> tuple[str, Message] | None:
-    """One bag message -> (logical topic, message), or None when it is gathered for later (tf, scans)."""
+def convert_message(topic: str, msgtype: str, target: str | None, obj: Any, bag_ns: int, tree: TfTree,
+                    scans: list[tuple[int, str, Any]]) -> tuple[str, Message] | None:
+    """One ROS 2 message (of a bag or a live stream) as a message of the recording.
+
+    Parameters
+    ----------
+    topic, msgtype : where it came from and its ROS 2 type (``nav_msgs/msg/Odometry``)
+    target : the logical topic it maps to (None for ``tf2_msgs/msg/TFMessage``)
+    obj : the decoded ROS 2 object
+    bag_ns : its receive time (ns), the stamp when its header's is 0
+    tree : transforms of ``/tf`` and ``/tf_static`` are added to it (``/tf_static`` ones as static)
+    scans : ``sensor_msgs/LaserScan`` messages are appended to it as (stamp ns, laser frame, scan), for
+        :func:`poles_scan` once the laser's mounting is known
+
+    Returns
+    -------
+    (logical topic, message), or None when the message was gathered for later (tf, scans).
+    """
     if msgtype == TF_TYPE:
         for tf in obj.transforms:
             t, q = tf.transform.translation, tf.transform.rotation
@@ -440,8 +454,20 @@ def _convert(topic: str, msgtype: str, target: str | None, obj: Any, bag_ns: int
     raise RecorderError(f"{topic}: type {msgtype} has no mapping")
 
 
-def _poles_scan(stamp: int, scan: Any, cfg: PoleConfig, mount: tuple[float, float, float]) -> RangeBearingScan:
-    """A LaserScan's poles as a range-bearing scan in the base frame (``mount``: the laser's pose there)."""
+def poles_scan(stamp: int, scan: Any, cfg: PoleConfig, mount: tuple[float, float, float]) -> RangeBearingScan:
+    """A ``sensor_msgs/LaserScan``'s poles and trunks (:mod:`.poles`) as a range-bearing scan in the base frame.
+
+    Parameters
+    ----------
+    stamp : the scan's time (ns)
+    scan : the decoded LaserScan (``ranges`` in m, ``angle_min`` and ``angle_increment`` in rad)
+    cfg : the pole extractor's settings
+    mount : ``(x_m, y_m, yaw_rad)`` of the laser in the base frame (zeros: the laser is the base)
+
+    Returns
+    -------
+    The poles' ranges and bearings from the base, ids unknown (-1), one sigma each: the largest of its poles'.
+    """
     with np.errstate(invalid="ignore"):  # a signalling NaN (damaged bytes) widened: a NaN, a range not read
         ranges = np.asarray(scan.ranges, dtype=np.float64)
     p = extract_poles(ranges, float(scan.angle_min), float(scan.angle_increment), cfg, float(scan.range_min),
@@ -456,6 +482,26 @@ def _poles_scan(stamp: int, scan: Any, cfg: PoleConfig, mount: tuple[float, floa
     rs = float(p.range_sigmas_m.max()) if len(p) else cfg.range_sigma_m
     bs = float(p.bearing_sigmas_rad.max()) if len(p) else cfg.bearing_sigma_rad
     return RangeBearingScan(stamp, r, b, np.full(len(r), -1, dtype=np.int64), rs, bs)
+
+
+def tf_poses(tree: TfTree, target: str, frame: str, base_frame: str, after_ns: int | None = None) -> list[Message]:
+    """``base_frame``'s planar pose in ``frame``, composed through the tf tree, as odometry or ground truth.
+
+    Parameters
+    ----------
+    tree : the transforms read so far
+    target : ``/odom`` (odometry poses) or ``/ground_truth/pose`` (ground-truth poses)
+    frame, base_frame : e.g. ``odom`` and ``base_link`` (odometry), ``map`` and ``base_link`` (ground truth)
+    after_ns : only the poses stamped after it (a live stream: what is new since the last call)
+
+    Returns
+    -------
+    One pose at each stamp of a moving transform between the two frames where all of them are known,
+    in stamp order. RecorderError when a frame is missing or the frames are not linked by moving transforms.
+    """
+    kind = OdometryPose if target == TOPIC_ODOM else GroundTruthPose
+    stamps, poses = tree.planar_poses(frame, base_frame, after_ns)
+    return [kind(int(t), *pose.tolist()) for t, pose in zip(stamps, poses, strict=True)]
 
 
 def iter_plan_lines(plan: BagPlan) -> Iterator[str]:

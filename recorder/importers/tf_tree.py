@@ -95,11 +95,11 @@ class TfTree:
             raise RecorderError(msg)
         return up_f[:up_f.index(common)], up_c[:up_c.index(common)]
 
-    def planar_poses(self, frame: str, child: str) -> tuple[NDArray[np.int64], F64]:
+    def planar_poses(self, frame: str, child: str, after_ns: int | None = None) -> tuple[NDArray[np.int64], F64]:
         """Stamps (m,) and planar poses (m, 3) ``[x, y, yaw]`` of ``child`` in ``frame``.
 
-        Raises RecorderError when a frame is missing, the two are not connected, or no
-        moving transform lies between them.
+        ``after_ns``: only the stamps after it (none may be left: m = 0). Raises RecorderError when a frame
+        is missing, the two are not connected, or no moving transform lies between them.
         """
         from_frame, from_child = self.path(frame, child)
         edges = [self._edges[f] for f in from_frame + from_child]
@@ -110,6 +110,10 @@ class TfTree:
         hi = min(max(e.stamps) for e in moving)
         stamps = np.unique(np.concatenate([np.asarray(e.stamps, dtype=np.int64) for e in moving]))
         stamps = stamps[(stamps >= lo) & (stamps <= hi)]
+        if after_ns is not None:
+            stamps = stamps[stamps > after_ns]
+            if len(stamps) == 0:
+                return stamps, np.zeros((0, 3))
         if len(stamps) == 0:
             raise RecorderError(f"the transforms linking tf frames {frame!r} and {child!r} never overlap in time")
 
@@ -122,6 +126,22 @@ class TfTree:
         T = np.linalg.inv(root_from(from_frame)) @ root_from(from_child)
         yaw = np.arctan2(T[:, 1, 0], T[:, 0, 0])
         return stamps, np.column_stack([T[:, 0, 3], T[:, 1, 3], yaw])
+
+    def forget_before(self, stamp_ns: int) -> None:
+        """Drop the samples of moving transforms that no pose after ``stamp_ns`` needs (a live stream's tree
+        stays small): each keeps its last sample at or before it, for interpolation, and all after."""
+        for edge in self._edges.values():
+            if edge.static or len(edge.stamps) < 3:
+                continue
+            before = [s for s in edge.stamps if s <= stamp_ns]
+            if not before:
+                continue
+            first = max(before)
+            keep = [k for k, s in enumerate(edge.stamps) if s >= first]
+            if len(keep) < len(edge.stamps):
+                edge.stamps = [edge.stamps[k] for k in keep]
+                edge.translations = [edge.translations[k] for k in keep]
+                edge.quats_xyzw = [edge.quats_xyzw[k] for k in keep]
 
     def static_planar(self, frame: str, child: str) -> tuple[float, float, float] | None:
         """The fixed planar pose of ``child`` in ``frame`` when only static transforms link them, else None."""

@@ -69,7 +69,7 @@ def test_channels_map_as_named_first_then_by_type_and_the_rest_are_skipped_with_
     assert plans["/odom"].maps_to == "/odom" and plans["/odom"].note == "as named"
     assert plans["/a_pose"].maps_to is None and "--topic-map /a_pose=/odom" in plans["/a_pose"].note
     assert "foxglove.SceneUpdate is not one slamreplay reads" in plans["/markers"].note
-    assert "/tf_static for the laser's mounting only" in plans["/tf"].note
+    assert plans["/tf"].note == "not needed: odometry comes from /odom and no --ground-truth-frame was given"
     assert "flatbuffer encoding is not read" in plans["/blob"].note
     assert "ros2idl schema" in plans["/scan"].note
     mapped = {p.channel.topic: p.maps_to for p in plan_channels(chans, compile_patterns([]),
@@ -80,6 +80,30 @@ def test_channels_map_as_named_first_then_by_type_and_the_rest_are_skipped_with_
         plan_channels(chans, compile_patterns([]), {"/markers": "/odom"}, {})
     with pytest.raises(RecorderError, match=r"--topic-map /a_pose=/odom: /odom comes from /odom already"):
         plan_channels(chans, compile_patterns([]), {"/a_pose": "/odom"}, {"/odom": "/odom"})
+
+
+TF_MSG, LASER_MSG = "tf2_msgs/msg/TFMessage", "sensor_msgs/msg/LaserScan"
+
+
+def test_tf_channels_give_odometry_and_ground_truth_as_the_bag_importer_decides() -> None:
+    """/tf gives odometry when no channel does and ground truth with a frame; /tf_static the links of those."""
+    tf, tf_static = _ch(1, "/tf", "cdr", TF_MSG), _ch(2, "/tf_static", "cdr", TF_MSG)
+    odom, scan = _ch(3, "/wheel/odom", "cdr", "nav_msgs/msg/Odometry"), _ch(4, "/scan", "cdr", LASER_MSG)
+    taken: dict[str, str] = {}
+    plans = {p.channel.topic: p for p in plan_channels([tf, tf_static], compile_patterns([]), {}, taken)}
+    assert (plans["/tf"].maps_to, plans["/tf"].composes) == ("transform tree", ("/odom",))
+    assert plans["/tf"].note == "odometry composed through the tree" and taken == {"/odom": "/tf"}
+    assert plans["/tf_static"].note == "odometry composed through the tree"
+    # an odometry channel (advertised with it, named after /tf) keeps /odom; /tf gives ground truth in map
+    plans = {p.channel.topic: p for p in plan_channels([odom, tf, tf_static, scan], compile_patterns([]), {}, {},
+                                                       ground_truth_frame="map")}
+    assert plans["/wheel/odom"].maps_to == "/odom" and plans["/tf"].composes == ("/ground_truth/pose",)
+    assert plans["/tf_static"].note == "ground truth and the laser's mounting composed through the tree"
+    # advertised later, an odometry channel finds /odom taken by /tf
+    later = plan_channels([odom], compile_patterns([]), {}, taken)
+    assert later[0].maps_to is None and "/odom comes from /tf" in later[0].note
+    other = plan_channels([_ch(5, "/robot/tf", "cdr", TF_MSG)], compile_patterns([]), {}, {})
+    assert other[0].maps_to is None and "from /tf and /tf_static only" in other[0].note
 
 
 def test_json_channels_in_a_foxglove_schema_are_read_with_their_sec_nsec_timestamps() -> None:
