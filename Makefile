@@ -82,9 +82,13 @@ readme-figures: $(STAMP)
 	$(BIN)/slamreplay demo --out runs/demo --data $(DATA)
 	$(BIN)/python docs/demo_figures.py --demo runs/demo --write
 
-# The README's pictures: every demo pipeline and a diff, rendered by `slamreplay snapshot` into docs/images/.
+# The README's viewer pictures: every demo pipeline and a diff, rendered by `slamreplay snapshot` into docs/images/
+# from a fresh demo of a commit (HEAD, or REV=...; exported, so the work tree never reaches a picture), each with
+# its record in docs/images/pictures.json (commit, sha256, the metrics it shows), which `make test-docs` checks.
+# About 4 minutes on 2 cores.
+REV ?= HEAD
 snapshots: $(STAMP) viewer-deps
-	$(BIN)/python docs/make_snapshots.py --out docs/images $(ARGS)
+	$(BIN)/python docs/make_snapshots.py --out docs/images --rev $(REV) $(ARGS)
 
 # The Ray executor against a local Ray instance: installs the ray extra (about 20 s, 290 MB), then about
 # a minute of tests, most of it Ray's start-up; apart from `make test` so that it needs no Ray. CI runs both.
@@ -92,10 +96,11 @@ test-ray: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[dev,ray]"
 	$(BIN)/python -m pytest -q -m ray tests/api/test_ray_executor.py tests/api/test_suite_cli.py $(ARGS)
 
-# Every ```sh/```bash/```console block of README.md, run in a fresh copy of the repository with
-# $(BIN) on PATH (tests/test_readme.py); blocks marked <!-- docs-test: skip (why) --> are reported.
+# Every ```sh/```bash/```console/```python block of README.md and docs/*.md, run in a fresh copy of the repository
+# with $(BIN) on PATH (tests/test_readme.py); blocks marked <!-- docs-test: skip (why) --> are reported. Then the
+# figures and pictures against one fresh demo, and every linked picture against its record (tests/test_docs_pictures.py).
 test-docs: $(STAMP)
-	$(BIN)/python -m pytest -q -m docs tests/test_readme.py $(ARGS)
+	$(BIN)/python -m pytest -q -m docs tests/test_readme.py tests/test_docs_pictures.py $(ARGS)
 
 # The oldest and newest supported Pythons (3.10, 3.13), each in its own .venv-3.X: found as
 # python3.X on PATH or a pyenv install (or PYTHON_3_10=/path...); one that is missing is skipped

@@ -1,42 +1,50 @@
-"""Render the README's pictures: each demo pipeline's tabs and a diff, in the real (headless) Rerun viewer.
+"""Render the README's viewer pictures and write their records: each demo pipeline's tabs and a diff, in the
+real (headless) Rerun viewer.
 
-Run with `make snapshots` (installs Mesa's Vulkan driver if needed). It runs `slamreplay demo` into
-``runs/snapshots-demo`` unless ``--demo DIR`` points at a finished demo, renders every tab of every
-run with `slamreplay snapshot`, and keeps the chosen tabs under ``--out`` as PNGs of at most 300 KB.
+Run with `make snapshots` (installs Mesa's Vulkan driver if needed). Pictures are made from a commit, never
+from a work tree: the commit (HEAD unless ``--rev``) is exported to a temporary folder and this script runs
+again from there, so uncommitted edits in the checkout (yours or anyone's) cannot reach a picture. It runs
+`slamreplay demo` there, renders every tab of every run with `slamreplay snapshot` (the loop-closure tab at
+the step of a real loop closure), keeps the chosen tabs under ``--out`` as PNGs of at most 300 KB and writes
+each picture's record (made by, commit, sha256, the metrics it shows) into docs/images/pictures.json
+(docs/pictures.py; `make test-docs` checks them).
 """
 
 from __future__ import annotations
 
 import argparse
-import shutil
+import json
+import os
+import re
+import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-import cv2
-import numpy as np
-
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+PACKAGES = {"api": "api", "replay": "replay", "recorder": "recorder", "algorithms": "algorithms"}
+MADE_BY = "make snapshots (docs/make_snapshots.py)"
+LOOP = "loop-closure"  # the `at` of a tab drawn at the step of the best loop closure
 
-from slamreplay.api.demo import run_demo  # noqa: E402
-from slamreplay.replay.runs.diff_view import write_comparison_rrd  # noqa: E402
-from slamreplay.replay.tools.snapshot import snapshot  # noqa: E402
-
-# (demo run directory, the tabs to keep, picture name)
+# (demo run directory, the tabs to keep, picture name, the step shown: end or LOOP)
 PICTURES = (
-    ("sim-landmarks--dslam", ("Summary", "Filter internals"), "dslam"),
-    ("sim-landmarks--ekfslam", ("Filter internals",), "ekfslam"),
-    ("sim-landmarks--odometry", ("Summary",), "odometry"),
-    ("sim-seabed--ifmi", ("Summary", "Registration", "Pose graph"), "ifmi"),
-    ("sim-corridor--topometric", ("Summary", "Loop closure"), "topometric"),
-    ("sim-corridor-navigation--topometric-nav", ("Navigation",), "topometric-nav"),
+    ("sim-landmarks--dslam", ("Summary", "Filter internals"), "dslam", "end"),
+    ("sim-landmarks--ekfslam", ("Filter internals",), "ekfslam", "end"),
+    ("sim-landmarks--odometry", ("Summary",), "odometry", "end"),
+    ("sim-seabed--ifmi", ("Summary", "Registration", "Pose graph"), "ifmi", "end"),
+    ("sim-corridor--topometric", ("Summary",), "topometric", "end"),
+    ("sim-corridor--topometric", ("Loop closure",), "topometric", LOOP),
+    ("sim-corridor-navigation--topometric-nav", ("Navigation",), "topometric-nav", "end"),
 )
+DIFF = ("sim-landmarks--dslam", "sim-landmarks--ekfslam", ("Summary", "Metrics A vs B"))
 MAX_BYTES = 300_000
 
 
 def save_small(src: Path, dst: Path, width: int = 1280) -> int:
     """Write ``src`` as a PNG of at most MAX_BYTES (scaled down until it fits); its size in bytes."""
+    import cv2
+    import numpy as np
+
     img = cv2.imread(str(src))
     while True:
         scale = width / img.shape[1]
@@ -50,36 +58,125 @@ def save_small(src: Path, dst: Path, width: int = 1280) -> int:
         width = int(width * 0.85)
 
 
+def loop_closure_step(run: Path) -> int:
+    """The step of the topo-metric run's most confident loop closure whose accepted candidate is the last one
+    drawn at that step (so the candidate view shows it, inliers green); ValueError when the run closed none."""
+    from rerun.chunk import RrdReader
+
+    from slamreplay.replay.engine.views import STEP
+
+    lines: list[tuple[int, str]] = []
+    for ch in RrdReader(run / "run.rrd").stream():
+        if str(ch.entity_path) != "/topo/log" or ch.is_static:
+            continue
+        rb = ch.to_record_batch()
+        lines += [(int(s), " ".join(t) if isinstance(t, list) else str(t))
+                  for s, t in zip(rb.column(STEP).to_pylist(), rb.column("TextLog:text").to_pylist(), strict=True)]
+    lines.sort(key=lambda row: row[0])  # stable: the log order within a step is kept
+    best: tuple[float, int, int] | None = None  # (-probability, -inliers, step)
+    for step in sorted({s for s, _ in lines}):
+        at = [t for s, t in lines if s == step]
+        closure = next((re.search(r"LOOP CLOSURE with location (\d+) \(p=([\d.]+), (\d+) inliers", t) for t in at
+                        if "LOOP CLOSURE" in t), None)
+        candidates = [re.search(r"candidate location (\d+)", t) for t in at if "candidate location" in t]
+        if closure is None or not candidates or candidates[-1] is None or candidates[-1][1] != closure[1]:
+            continue
+        key = (-float(closure[2]), -int(closure[3]), step)
+        best = key if best is None or key < best else best
+    if best is None:
+        raise ValueError(f"{run} closed no loop: no step to show the loop-closure tab at")
+    return best[2]
+
+
+def run_label(name: str) -> str:
+    return name.lower().replace(" ", "-")
+
+
+def render(demo: Path, out: Path, size: tuple[int, int], commit: str, records_path: Path) -> int:
+    """Render every picture from the finished demo in ``demo`` into ``out`` and record each (the inner pass)."""
+    sys.path.insert(0, str(REPO / "docs"))
+    import pictures
+
+    from slamreplay.replay.runs.diff_view import write_comparison_rrd
+    from slamreplay.replay.tools.snapshot import snapshot
+
+    def metrics(*runs: str) -> dict[str, float]:
+        out: dict[str, float] = {}
+        for run in runs:
+            doc = json.loads((demo / run / "metrics.json").read_text())["metrics"]
+            out.update({f"{run}/{k}": float(v["value"]) for k, v in doc.items()})
+        return out
+
+    records = pictures.load(records_path)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def keep(src: Path, name: str, shows: dict[str, float], note: str = "") -> None:
+        dst = out / name
+        size_b = save_small(src, dst)
+        records[name] = {"made_by": MADE_BY, "commit": commit, "sha256": pictures.sha256(dst), "source": "demo",
+                         "metrics": shows, **({"note": note} if note else {})}
+        print(f"{name}: {size_b / 1000:.0f} kB")
+
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, (run, tabs, name, at) in enumerate(PICTURES):
+            step: str | int = loop_closure_step(demo / run) if at == LOOP else at
+            for shot in snapshot(demo / run, Path(tmp) / f"{i}-{name}", size=size, at=step):
+                if shot.tab in tabs:
+                    # a Summary tab shows the run's metrics table; the other tabs show series, images, maps
+                    shows = metrics(run) if shot.tab == "Summary" else {}
+                    note = f"at step {step}: a loop closure" if at == LOOP else ""
+                    keep(shot.path, f"{name}-{run_label(shot.tab)}.png", shows, note)
+        a, b, tabs = DIFF
+        cmp = Path(tmp) / "diff.rrd"
+        write_comparison_rrd(demo / a, demo / b, cmp)  # titled demo/RUN (diff_view.run_name): no machine path
+        for shot in snapshot(cmp, Path(tmp) / "diff", size=size):
+            if shot.tab in tabs:
+                keep(shot.path, f"diff-{run_label(shot.tab)}.png", metrics(a, b) if shot.tab == "Summary" else {})
+    pictures.save(records, records_path)
+    print(f"records: {records_path}")
+    return 0
+
+
+def export(rev: str, dst: Path) -> tuple[str, Path]:
+    """(full commit id, package root) of ``rev`` exported to ``dst``: its tracked files and a ``slamreplay``
+    package folder of links, which PYTHONPATH puts before the checkout's editable install."""
+    commit = subprocess.run(["git", "rev-parse", "--verify", f"{rev}^{{commit}}"], cwd=REPO, capture_output=True,
+                            text=True, check=True).stdout.strip()
+    src = dst / "src"
+    src.mkdir(parents=True)
+    archive = subprocess.run(["git", "archive", commit], cwd=REPO, capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(src)], input=archive, check=True)
+    pkg = dst / "pkg" / "slamreplay"
+    pkg.mkdir(parents=True)
+    for name, folder in PACKAGES.items():
+        (pkg / name).symlink_to(src / folder)
+    return commit, dst / "pkg"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "images")
-    ap.add_argument("--demo", type=Path, default=None, help="a finished `slamreplay demo` folder to reuse")
+    ap.add_argument("--rev", default="HEAD", help="the commit to make the pictures from (default HEAD)")
     ap.add_argument("--size", default="1600x900", help="viewer size (default: 1600x900)")
+    ap.add_argument("--records", type=Path, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--commit", default=None, help=argparse.SUPPRESS)  # set by the outer pass: run from an export
     args = ap.parse_args(argv)
-    demo = args.demo
-    if demo is None:
-        demo = REPO / "runs" / "snapshots-demo"
-        if run_demo(demo, None) != 0:
-            return 1
     w, h = (int(v) for v in args.size.split("x"))
-    args.out.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory() as tmp:
-        for run, keep, name in PICTURES:
-            shots = snapshot(demo / run, Path(tmp) / name, size=(w, h))
-            for shot in shots:
-                if shot.tab in keep:
-                    dst = args.out / f"{name}-{shot.tab.lower().replace(' ', '-')}.png"
-                    print(f"{dst.relative_to(REPO) if dst.is_relative_to(REPO) else dst}: "
-                          f"{save_small(shot.path, dst) / 1000:.0f} kB")
-        cmp = Path(tmp) / "diff.rrd"
-        write_comparison_rrd(demo / "sim-landmarks--dslam", demo / "sim-landmarks--ekfslam", cmp)
-        for shot in snapshot(cmp, Path(tmp) / "diff", size=(w, h)):
-            if shot.tab in ("Summary", "Metrics A vs B"):
-                dst = args.out / f"diff-{shot.tab.lower().replace(' ', '-')}.png"
-                print(f"{dst}: {save_small(shot.path, dst) / 1000:.0f} kB")
-    if args.demo is None:
-        shutil.rmtree(demo, ignore_errors=True)
-    return 0
+    if args.commit is None:  # the outer pass: export the commit, run this script from there
+        with tempfile.TemporaryDirectory(prefix="slamreplay-snapshots-") as tmp:
+            commit, pkg = export(args.rev, Path(tmp))
+            print(f"make snapshots: from commit {commit[:12]} (exported; the work tree is not used)")
+            env = {**os.environ, "PYTHONPATH": str(pkg)}
+            return subprocess.run([sys.executable, str(Path(tmp) / "src" / "docs" / "make_snapshots.py"),
+                                   "--out", str(args.out.resolve()), "--size", args.size, "--commit", commit,
+                                   "--records", str((REPO / "docs" / "images" / "pictures.json").resolve())],
+                                  env=env, cwd=tmp).returncode
+    from slamreplay.api.demo import run_demo
+
+    demo = Path.cwd() / "demo"
+    if run_demo(demo, None, quiet=True) != 0:
+        return 1
+    return render(demo, args.out, (w, h), args.commit, args.records)
 
 
 if __name__ == "__main__":

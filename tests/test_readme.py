@@ -202,16 +202,38 @@ def test_blocks_leave_the_repository_clean(doc: Path, workspaces: dict[Path, Pat
     assert status == "", f"{doc.name}'s blocks left files in the repository:\n{status}"
 
 
-@pytest.mark.docs
-def test_figures_quoted_from_the_demo_match_a_fresh_demo(tmp_path: Path) -> None:
-    """Every ``<!-- demo: ... -->`` figure of README.md and docs/ equals what a fresh `slamreplay demo` gives
-    (docs/demo_figures.py; `make readme-figures` rewrites them on purpose). About 2 minutes."""
-    demo = tmp_path / "demo"
+@pytest.fixture(scope="module")
+def fresh_demo(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A fresh `slamreplay demo`, run once for the figures and the pictures alike (about 2 minutes)."""
+    demo = tmp_path_factory.mktemp("fresh") / "demo"
     exe = Path(sys.executable).parent / "slamreplay"
     proc = subprocess.run([str(exe), "demo", "--out", str(demo), "--quiet"], capture_output=True, text=True,
                           timeout=900, stdin=subprocess.DEVNULL)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    check = subprocess.run([sys.executable, str(REPO / "docs" / "demo_figures.py"), "--demo", str(demo), "--check"],
-                           capture_output=True, text=True)
+    return demo
+
+
+@pytest.mark.docs
+def test_figures_quoted_from_the_demo_match_a_fresh_demo(fresh_demo: Path) -> None:
+    """Every ``<!-- demo: ... -->`` figure of README.md and docs/ equals what a fresh `slamreplay demo` gives
+    (docs/demo_figures.py; `make readme-figures` rewrites them on purpose)."""
+    check = subprocess.run([sys.executable, str(REPO / "docs" / "demo_figures.py"), "--demo", str(fresh_demo),
+                            "--check"], capture_output=True, text=True)
     assert check.returncode == 0, check.stdout + check.stderr
     assert " 0 differ" in check.stdout and "0 figure(s)" not in check.stdout
+
+
+@pytest.mark.docs
+def test_pictures_show_what_a_fresh_demo_gives(fresh_demo: Path) -> None:
+    """Every value a demo picture's record says it shows (docs/images/pictures.json) equals a fresh demo's within
+    the metric's tolerance, as `diff` judges it (`make snapshots` remakes the pictures on purpose)."""
+    from slamreplay.replay.runs.diff import metric_tolerance
+
+    spec = importlib.util.spec_from_file_location("pictures", REPO / "docs" / "pictures.py")
+    assert spec is not None and spec.loader is not None
+    pictures = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(pictures)
+    records = pictures.load()
+    assert any(r.get("source") == "demo" and r.get("metrics") for r in records.values())
+    found = pictures.value_problems(records, fresh_demo, metric_tolerance)
+    assert not found, "\n".join(found) + "\n(make snapshots remakes the pictures and their records)"

@@ -7,14 +7,17 @@ entity's ``colors`` (a static component value hides the temporal ones), so the c
 is not rewritten. Tabs:
 
 1. ``Summary``: both final maps overlaid on the same axes; a markdown table of metric
-   deltas with regressions marked, what changed between the runs (configuration keys,
-   code version, recording) and the first step at which their logged content diverges.
+   deltas with regressions marked (each judged as `diff` judges it, a NEES by its distance from
+   its consistent value), the runs named relative to the working directory (`run_name`), what
+   changed between the runs (configuration keys, code version, recording) and the first step at
+   which their logged content diverges.
 2. ``Metrics A vs B``: each metric series of A and B in one plot.
 3. ``A over time`` and ``B over time``: each run's map step by step, on one time cursor.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 from collections import defaultdict
@@ -111,8 +114,19 @@ def _copy(rec: rr.RecordingStream, run_dir: Path, label: str) -> _RunContent:
     return content
 
 
+def run_name(run_dir: str | Path) -> str:
+    """A run as its title names it: relative to the working directory when inside it, else its parent folder and
+    its own (``demo/sim-landmarks--dslam``), never the absolute path of the machine that drew it."""
+    path = Path(run_dir)
+    if not path.is_absolute():
+        return path.as_posix()
+    with contextlib.suppress(ValueError):
+        return path.relative_to(Path.cwd()).as_posix()
+    return "/".join(path.parts[-2:])
+
+
 def _markdown(diff: RunDiff, a: _RunContent, b: _RunContent) -> str:
-    lines = [f"### A: `{diff.a}`  vs  B: `{diff.b}`", "",
+    lines = [f"### A: `{run_name(diff.a)}`  vs  B: `{run_name(diff.b)}`", "",
              "Map: **A** teal, **B** magenta, ground truth grey.", "",
              "| metric | A | B | B - A | better | verdict |", "|---|---:|---:|---:|---|---|"]
     for m in diff.metrics:
