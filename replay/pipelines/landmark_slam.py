@@ -10,7 +10,8 @@ alignment, so every error the filter makes, including in its first pose, is coun
 Landmarks are matched with the truth by id in known-id mode, and one-to-one by position (a
 linear assignment within ``match_radius_m``) in unknown-id mode; a mapped feature with no
 match is a false landmark. NEES values are the plain squared Mahalanobis error, whose
-expected value for a consistent estimate is 2 for a landmark and 3 for the robot pose.
+expected value for a consistent estimate is 2 for a landmark and 3 for the robot pose. The robot NEES at
+each scan and its band are also written to the run's ``nees.json`` (``replay.evaluation.nees_series``).
 """
 
 from __future__ import annotations
@@ -22,7 +23,6 @@ from typing import Any, ClassVar, Literal, cast
 import numpy as np
 import rerun.blueprint as rrb
 from scipy.optimize import linear_sum_assignment
-from scipy.stats import chi2
 
 from slamreplay.algorithms.common import se2
 from slamreplay.algorithms.common.association import AssociationConfig
@@ -45,6 +45,7 @@ from slamreplay.replay.engine.reader import Envelope
 from slamreplay.replay.engine.trajectory import TrajectoryLog
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.evaluation.metrics import mean_nees_band, position_errors
+from slamreplay.replay.evaluation.nees_series import NEES_ARTIFACT, NeesSeries, chi2_band, nees_artifact
 from slamreplay.replay.metric_registry import specs
 
 Association = Literal["auto", "known", "unknown"]
@@ -155,7 +156,17 @@ METRICS = specs("landmark_rmse_m", "landmark_nees_mean", "robot_final_error_m", 
 OUTLIER_GATE_PROBABILITY = 0.9999
 
 
-ROBOT_NEES_BAND = (float(chi2.ppf(0.025, 3)), float(chi2.ppf(0.975, 3)))  # one pose NEES, 3 dof, 95 %
+ROBOT_NEES_BAND = chi2_band(3)  # one pose NEES, 3 dof, 95 %: the .rrd's band and nees.json's
+
+
+def pose_nees(T: np.ndarray, truth: np.ndarray, pose: np.ndarray, cov: np.ndarray) -> float | None:
+    """NEES of a map-frame ``pose`` with covariance ``cov`` against the world-frame ``truth`` (``T``: the map
+    frame's world pose); None when ``cov`` is not positive definite."""
+    if not np.all(np.linalg.eigvalsh(cov) > 0):
+        return None
+    e = se2.between(T, truth) - pose
+    e[2] = se2.wrap_angle(e[2])
+    return float(e @ np.linalg.solve(cov, e))
 
 
 class LandmarkSlamPipeline(Pipeline):
@@ -194,6 +205,8 @@ class LandmarkSlamPipeline(Pipeline):
         # between 0 and the upper end of the band it would have against the truth.
         self.estimated_truth = ground_truth_is_estimate(ctx.info)
         self.said_estimated = False
+        self.robot_nees_t: list[int] = []  # per scan with ground truth: what robot_nees_mean averages (nees.json)
+        self.robot_nees: list[float] = []
 
     @classmethod
     def config_from_sensor_model(cls, model: SensorModel) -> dict[str, Any]:
@@ -355,16 +368,21 @@ class LandmarkSlamPipeline(Pipeline):
     def _truth_pose_at(self, t: int) -> np.ndarray | None:
         return truth_pose_at(t, self.t_gt, self.gt)
 
+    def robot_nees_band(self) -> tuple[float, float]:
+        """The band of a consistent filter's robot NEES, drawn in the .rrd and written to nees.json: its lower end
+        0 when the ground truth is an estimate from the same measurements."""
+        return (0.0 if self.estimated_truth else ROBOT_NEES_BAND[0]), ROBOT_NEES_BAND[1]
+
     def _robot_nees(self, t: int, res: Any) -> None:
         truth = self._truth_pose_at(t)
-        if truth is None or not np.all(np.linalg.eigvalsh(res.pose_cov) > 0):
+        nees = None if truth is None else pose_nees(self.T, truth, res.pose, res.pose_cov)
+        if nees is None:
             return
-        e = se2.between(self.T, truth) - res.pose
-        e[2] = se2.wrap_angle(e[2])
         obs = self.ctx.observer
-        obs.log("metrics/robot_nees", Scalar(float(e @ np.linalg.solve(res.pose_cov, e))))
-        obs.log("metrics/nees_band/robot_95_low", Scalar(0.0 if self.estimated_truth else ROBOT_NEES_BAND[0]))
-        obs.log("metrics/nees_band/robot_95_high", Scalar(ROBOT_NEES_BAND[1]))
+        low, high = self.robot_nees_band()
+        obs.log("metrics/robot_nees", Scalar(nees))
+        obs.log("metrics/nees_band/robot_95_low", Scalar(low))
+        obs.log("metrics/nees_band/robot_95_high", Scalar(high))
 
     def _landmark_nees(self, seen: list[int], world_xy: np.ndarray, covs: np.ndarray, res: Any) -> None:
         truth = self._truth_of(seen)
@@ -383,7 +401,7 @@ class LandmarkSlamPipeline(Pipeline):
             if joint is not None:
                 low, high = mean_nees_band(joint)
             else:
-                low, high = float(chi2.ppf(0.025, 2 * k) / k), float(chi2.ppf(0.975, 2 * k) / k)
+                low, high = (v / k for v in chi2_band(2 * k))
             obs.log("metrics/nees_band/landmark_95_low", Scalar(0.0 if self.estimated_truth else low))
             obs.log("metrics/nees_band/landmark_95_high", Scalar(high))
 
@@ -434,16 +452,27 @@ class LandmarkSlamPipeline(Pipeline):
         if not len(pos_err):
             return {}
         out = {"robot_final_error_m": float(pos_err[-1])}  # the ATE is ape_rmse_m (replay.evaluate)
-        nees = []
+        # Against the whole ground truth (at a scan the replay may not have read the truth after it yet, so the
+        # .rrd's series can miss a few): these values are nees.json's, and the metric is their mean.
+        self.robot_nees_t, self.robot_nees = [], []
         for t, pose, cov in self.scan_poses:
             truth = self._truth_pose_at(t)
-            if truth is not None and np.all(np.linalg.eigvalsh(cov) > 0):
-                e = se2.between(self.T, truth) - pose
-                e[2] = se2.wrap_angle(e[2])
-                nees.append(float(e @ np.linalg.solve(cov, e)))
-        if nees:
-            out["robot_nees_mean"] = float(np.mean(nees))
+            nees = None if truth is None else pose_nees(self.T, truth, pose, cov)
+            if nees is not None:
+                self.robot_nees_t.append(t)
+                self.robot_nees.append(nees)
+        if self.robot_nees:
+            out["robot_nees_mean"] = float(np.mean(self.robot_nees))
         return out
+
+    def artifacts(self) -> dict[str, bytes]:
+        """``nees.json``: the robot pose NEES at each scan with ground truth and its band, when there is one."""
+        if not self.robot_nees:
+            return {}
+        series = NeesSeries("robot pose NEES at each scan (3 when consistent)", 3, self.robot_nees_band(),
+                            np.asarray(self.robot_nees_t, np.int64), np.asarray(self.robot_nees, np.float64),
+                            metric="robot_nees_mean")
+        return {NEES_ARTIFACT: nees_artifact({"robot": series})}
 
     def _landmark_metrics(self, world_xy: np.ndarray) -> dict[str, float]:
         n = len(world_xy)
