@@ -52,11 +52,14 @@ from slamreplay.replay.engine.reader import ROBOT_NAMESPACE, Envelope
 from slamreplay.replay.engine.trajectory import TrajectoryLog
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.evaluation.metrics import position_errors, rmse
+from slamreplay.replay.evaluation.nees_series import NEES_ARTIFACT, NeesSeries, nees_artifact
 from slamreplay.replay.metric_registry import specs
 from slamreplay.replay.pipelines.dslam import DSlamPipeline, DSlamPipelineConfig
 from slamreplay.replay.pipelines.landmark_slam import (
     METRICS,
+    ROBOT_NEES_BAND,
     landmark_scores,
+    pose_nees,
     truth_pose_at,
     world_cov,
     world_pose,
@@ -113,6 +116,7 @@ class _Robot:
     t_gt: list[int] = field(default_factory=list)
     gt: list[np.ndarray] = field(default_factory=list)
     scan_poses: list[tuple[int, np.ndarray, np.ndarray]] = field(default_factory=list)  # map frame
+    nees: list[tuple[int, float]] = field(default_factory=list)  # (t, NEES) at its scans with truth: nees.json's
     scans: int = 0
     dropped_unknown: int = 0
 
@@ -355,13 +359,15 @@ class DSlamMultiPipeline(Pipeline):
             if len(err):
                 out[f"robot{robot.name}_ape_rmse_m"] = rmse(err)
                 errors.append(err)
-            nees = []
+            robot.nees = []
             for t, pose, cov in robot.scan_poses:
-                if t < robot.t_gt[0] or t > robot.t_gt[-1] or not np.all(np.linalg.eigvalsh(cov) > 0):
+                if t < robot.t_gt[0] or t > robot.t_gt[-1]:
                     continue
-                e = se2.between(cast(np.ndarray, self.T), truth_pose_at(t, robot.t_gt, robot.gt, clamp=True)) - pose
-                e[2] = se2.wrap_angle(e[2])
-                nees.append(float(e @ np.linalg.solve(cov, e)))
+                value = pose_nees(cast(np.ndarray, self.T), truth_pose_at(t, robot.t_gt, robot.gt, clamp=True), pose,
+                                  cov)
+                if value is not None:
+                    robot.nees.append((t, value))
+            nees = [v for _, v in robot.nees]
             if nees:
                 out[f"robot{robot.name}_nees_mean"] = float(np.mean(nees))
                 nees_all += nees
@@ -381,6 +387,15 @@ class DSlamMultiPipeline(Pipeline):
         out.update(landmark_scores(world_xy, self.truth_xy, pairs,
                                    lambda f: self._world_cov(self.slam.marginal_covariances()[f])))
         return out
+
+    def artifacts(self) -> dict[str, bytes]:
+        """``nees.json`` with a series per robot (``robot1``, ...): its pose NEES at its scans with ground truth."""
+        series = {f"robot{r.name}": NeesSeries(f"robot {r.name}'s pose NEES at its scans (3 when consistent)", 3,
+                                               ROBOT_NEES_BAND, np.asarray([t for t, _ in r.nees], np.int64),
+                                               np.asarray([v for _, v in r.nees], np.float64),
+                                               metric=f"robot{r.name}_nees_mean")
+                  for r in self.robots.values() if r.nees}
+        return {NEES_ARTIFACT: nees_artifact(series)} if series else {}
 
     trajectory_metrics = False  # several robots: ape_rmse_m and robot{k}_ape_rmse_m are its own
 

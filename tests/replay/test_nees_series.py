@@ -87,6 +87,21 @@ def test_same_inputs_give_the_same_bytes(sim: Path, tmp_path: Path) -> None:
     assert a.manifest["artifacts"][NEES_ARTIFACT]["sha256"] == b.manifest["artifacts"][NEES_ARTIFACT]["sha256"]
 
 
+def test_several_robots_write_a_series_each(tmp_path: Path) -> None:
+    """dslam-multi: a series per robot, each the mean its robotK_nees_mean metric is; pooled, robot_nees_mean."""
+    from tests.replay.view_runs import STARTS, write_multi_recording
+
+    multi = write_multi_recording(tmp_path / "multi.mcap")
+    res = run_recording(multi, "dslam-multi", tmp_path / "run", config={"final_relinearization_iterations": 0})
+    curves = read_nees((res.run_dir / NEES_ARTIFACT).read_bytes())
+    assert sorted(curves) == [f"robot{k}" for k in sorted(STARTS)]
+    for name, curve in curves.items():
+        assert curve.metric == f"{name}_nees_mean" and curve.mean == pytest.approx(res.metrics[curve.metric], rel=1e-15)
+        assert curve.band == chi2_band(3)
+    pooled = sum(c.mean * c.steps for c in curves.values()) / sum(c.steps for c in curves.values())
+    assert pooled == pytest.approx(res.metrics["robot_nees_mean"], rel=1e-12)
+
+
 def test_a_pipeline_without_nees_writes_no_file(sim: Path, tmp_path: Path) -> None:
     """The odometry pipeline has no covariance, so no NEES: no nees.json, none listed."""
     res = run_recording(sim, "odometry", tmp_path / "run")
