@@ -9,7 +9,8 @@ whole topic; none given: every channel), then mapped onto a logical topic of the
   the message as it comes (decoded, checked, written in the same schema);
 - ``cdr`` channels with a ``ros2msg`` schema: the types ``record ros2`` reads, converted by its functions
   (:mod:`.ros2bag`): odometry, poses, IMU, laser scans (poles as landmarks, moved into ``base_frame`` by
-  ``/tf_static``), images, camera info;
+  ``/tf_static``), images, camera info; ``/tf`` (with ``/tf_static``) gives odometry when no channel does
+  (``base_frame`` in ``odom_frame``) and ground truth given a ``ground_truth_frame``, composed through the tree;
 - anything else is listed and skipped, with the reason.
 
 A channel whose topic is a logical topic it may carry maps there; the others take the first logical topic
