@@ -297,7 +297,7 @@ class Conversion:
             if msgs:
                 self.composed[topic] = msgs[-1].stamp_ns
             out += [(topic, m, None) for m in msgs]
-        done = list(self.composed.values())
-        if done and all(t is not None for t in done):  # what no later pose needs is dropped
-            self.tree.forget_before(min(t for t in done if t is not None))
+        done = [t for t in self.composed.values() if t is not None]
+        if done:  # what no later pose needs is dropped (a topic that never composed holds nothing back)
+            self.tree.forget_before(min(done))
         return out, problems
