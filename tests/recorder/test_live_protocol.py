@@ -20,7 +20,9 @@ from slamreplay.recorder.codec.live import message_decoder
 from slamreplay.recorder.errors import CodecError, RecorderError
 from slamreplay.recorder.importers.foxglove_live import LiveOptions, LiveRecording
 from slamreplay.recorder.importers.foxglove_ws import ChannelInfo, channel_info, parse_binary, parse_text
-from slamreplay.recorder.importers.live_plan import compile_patterns, plan_channels
+from slamreplay.recorder.importers.live_plan import Conversion, compile_patterns, plan_channels
+from slamreplay.recorder.importers.ros2bag import tf_poses
+from slamreplay.recorder.importers.tf_tree import TfTree
 from slamreplay.recorder.messages import OdometryPose
 from slamreplay.replay.engine.reader import RecordingReader
 
@@ -104,6 +106,40 @@ def test_tf_channels_give_odometry_and_ground_truth_as_the_bag_importer_decides(
     assert later[0].maps_to is None and "/odom comes from /tf" in later[0].note
     other = plan_channels([_ch(5, "/robot/tf", "cdr", TF_MSG)], compile_patterns([]), {}, {})
     assert other[0].maps_to is None and "from /tf and /tf_static only" in other[0].note
+
+
+def test_poses_composed_tick_by_tick_are_those_of_the_whole_tree() -> None:
+    """Odometry and ground truth composed each second, the tree pruned between, equal `record ros2`'s from the
+    whole tree: every stamp once, the same poses (a turning robot, map -> odom drifting)."""
+    rng = np.random.default_rng(5)
+    whole, live = TfTree(), Conversion(ground_truth_frame="map")
+    live.composed = {"/odom": None, "/ground_truth/pose": None}
+    got: list[Any] = []
+    for k in range(300):  # 30 s at 10 Hz, composed every 10 messages (a second)
+        ns = 1_000_000_000 + k * 100_000_000
+        yaw, drift = 0.05 * k, rng.normal(0, 0.01, 3)
+        for tree in (whole, live.tree):
+            tree.add("odom", "base_link", ns, (0.1 * k, 0.02 * k * k / 300, 0.0),
+                     (0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)), static=False)
+            tree.add("map", "odom", ns, (drift[0], drift[1], 0.0), (0.0, 0.0, np.sin(drift[2] / 2),
+                                                                    np.cos(drift[2] / 2)), static=False)
+        if k % 10 == 9:
+            out, problems = live.compose()
+            assert problems == []
+            got += out
+    assert len(live.tree._edges["base_link"].stamps) < 3  # pruned: a long stream's tree stays small
+    for topic, frame in (("/odom", "odom"), ("/ground_truth/pose", "map")):
+        want = tf_poses(whole, topic, frame, "base_link")
+        mine = [m for t, m, _ in got if t == topic]
+        assert len(mine) == len(want) == 300
+        for a, b in zip(want, mine, strict=True):
+            assert (a.stamp_ns, type(a)) == (b.stamp_ns, type(b))
+            assert np.allclose([a.x_m, a.y_m, a.yaw_rad], [b.x_m, b.y_m, b.yaw_rad], atol=1e-9)
+    none = Conversion(ground_truth_frame="world")
+    none.composed = {"/ground_truth/pose": None}
+    none.tree.add("odom", "base_link", 1, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), static=False)
+    assert none.compose() == ([], ["/ground_truth/pose from /tf: the tf tree has no frame 'world' (frames: "
+                                   "base_link, odom): pass --ground-truth-frame with one of them"])
 
 
 def test_json_channels_in_a_foxglove_schema_are_read_with_their_sec_nsec_timestamps() -> None:
