@@ -71,7 +71,8 @@ def split(key: str) -> tuple[str, str]:
 def problems(records: Mapping[str, Mapping[str, Any]], images: Path, links: Mapping[str, str],
              registered: Callable[[str], bool]) -> list[str]:
     """Every way the records disagree with the pictures, the links and the registry, one line each."""
-    out = [f"{where}: links {name}, which has no record in {RECORDS.relative_to(REPO)} (make snapshots writes it)"
+    out = [f"{where}: links {name}, which has no record in {RECORDS.relative_to(REPO)} "
+           f"(make snapshots writes the viewer's pictures' records; docs/pictures.py says what a record holds)"
            for name, where in sorted(links.items()) if name not in records]
     for name, rec in sorted(records.items()):
         png = images / name
