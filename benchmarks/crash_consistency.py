@@ -40,7 +40,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import crash_suite_service as cs
 
-SLAMREPLAY = [sys.executable, "-c", "import sys; from slamreplay.api.cli import main; sys.exit(main(sys.argv[1:]))"]
+SLAMREPLAY = [sys.executable, "-m", "slamreplay.api.cli"]
 REPO = Path(__file__).resolve().parents[1]
 
 

@@ -47,7 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # patien
 from patience import deadline as give_up_at
 
 REPO = Path(__file__).resolve().parents[1]
-SLAMREPLAY = [sys.executable, "-c", "import sys; from slamreplay.api.cli import main; sys.exit(main(sys.argv[1:]))"]
+SLAMREPLAY = [sys.executable, "-m", "slamreplay.api.cli"]
 SUITE = """seeds = [0, 1]
 [recordings.long]
 path = "{recording}"

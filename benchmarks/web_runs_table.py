@@ -156,7 +156,7 @@ def main() -> int:
     import uvicorn
 
     from slamreplay.api.app import create_app
-    from slamreplay.api.settings import Settings
+    from slamreplay.api.service.settings import Settings
 
     with tempfile.TemporaryDirectory(prefix="runs-table-") as tmp:
         port = free_port()

@@ -171,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
                                    "--out", str(args.out.resolve()), "--size", args.size, "--commit", commit,
                                    "--records", str((REPO / "docs" / "images" / "pictures.json").resolve())],
                                   env=env, cwd=tmp).returncode
-    from slamreplay.api.demo import run_demo
+    from slamreplay.api.cli.demo import run_demo
 
     demo = Path.cwd() / "demo"
     if run_demo(demo, None, quiet=True) != 0:

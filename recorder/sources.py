@@ -39,9 +39,10 @@ class Importer(Protocol):
       a note to the user; it returns the one-line summary printed after ``wrote FILE:``. Bad input
       raises ``RecorderError`` (one line for the user, exit 2); nothing that looks whole is left behind.
 
-    Optional: ``service = True`` offers it over HTTP too (``POST /recordings/record/NAME``, api/record_routes.py):
-    only an importer that needs no input from the machine it runs on (no positional argument) may say so, and
-    ``file_options`` lists the dests of its options that name a file or folder there (the service refuses them).
+    Optional: ``service = True`` offers it over HTTP too (``POST /recordings/record/NAME``,
+    api/service/record_routes.py): only an importer that needs no input from the machine it runs on (no positional
+    argument) may say so, and ``file_options`` lists the dests of its options that name a file or folder there
+    (the service refuses them).
     """
 
     name: str

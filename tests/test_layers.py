@@ -226,3 +226,67 @@ def test_the_two_wrap_angles_agree() -> None:
     a, r = algorithms_wrap(theta), recorder_wrap(theta)
     assert np.array_equal(a, r)
     assert np.all((r >= -np.pi) & (r < np.pi))
+
+
+# api/'s rooms (api/__init__.py): the service imports neither the web page nor the command line; the web page may
+# import the service; the command line imports the service only for what it starts or shares with it (below) and
+# the client; ``api/app.py``, above the rooms, composes the service and the pages.
+API_ROOMS_ALLOWED = {
+    "service": {"service"},
+    "web": {"service", "web"},
+    "client": {"client"},
+    "cli": {"cli", "client", "service", "app"},
+}
+# What the command line may use of the service: `serve` (settings, the data directory's lock, the site guard's
+# host names, the server's timeouts, create_app above the rooms), `users` (people in the store), and the executors
+# a local `suite run` shares with the service (and their limits).
+CLI_USES_OF_SERVICE = {"settings", "datalock", "siteguard", "timeouts", "store", "people", "executor",
+                       "ray_executor", "limits"}
+MAX_API_MODULE_LINES = 400
+
+
+def api_targets(path: Path) -> set[str]:
+    """What a file imports of api/: ``room.module`` (``service.store``), a room (``cli``) or ``app``."""
+    targets = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            modules = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            modules = ([f"{node.module}.{a.name}" for a in node.names] if node.module.count(".") == 2
+                       else [node.module])
+        else:
+            continue
+        targets |= {".".join(m.split(".")[2:4]) for m in modules if m.startswith("slamreplay.api.")}
+    return targets
+
+
+def test_api_is_rooms_under_the_app() -> None:
+    """api/ holds its four rooms and, above them, only ``app``; each room's __init__ says what it owns."""
+    top = {p.stem for p in (REPO / "api").glob("*.py")} - {"__init__"}
+    dirs = {p.name for p in (REPO / "api").iterdir() if p.is_dir() and p.name != "__pycache__"}
+    assert top == {"app"}
+    assert dirs == set(API_ROOMS_ALLOWED)
+    for room in dirs:
+        doc = ast.get_docstring(ast.parse((REPO / "api" / room / "__init__.py").read_text()))
+        assert doc and len(doc) > 100, f"api/{room}/__init__.py does not say what the room owns"
+
+
+@pytest.mark.parametrize("room", sorted(API_ROOMS_ALLOWED))
+def test_api_rooms_import_by_the_rules(room: str) -> None:
+    """The service imports neither the web page nor the command line, the web page never the command line, and the
+    command line of the service only what it starts or shares (CLI_USES_OF_SERVICE)."""
+    for path in files(f"api/{room}"):
+        got = api_targets(path)
+        bad = {t for t in got if t.split(".")[0] not in API_ROOMS_ALLOWED[room]}
+        if room == "cli":
+            bad |= {t for t in got if t.startswith("service.") and t.split(".")[1] not in CLI_USES_OF_SERVICE}
+        assert not bad, f"{path.relative_to(REPO)} imports {sorted(bad)}"
+    assert api_targets(REPO / "api" / "app.py") <= {f"service.{m}" for m in ("app", "datalock", "executor",
+                                                                            "settings")} | {"web.pages", "web.web"}
+
+
+def test_no_api_module_is_over_400_lines() -> None:
+    """A module a reader can hold in their head: none of api/ over MAX_API_MODULE_LINES lines."""
+    long = {str(p.relative_to(REPO)): n for p in files("api") if (n := len(p.read_text().splitlines()))
+            > MAX_API_MODULE_LINES}
+    assert not long, long

@@ -62,8 +62,8 @@ def test_every_package_folder_is_listed_under_the_namespace() -> None:
 
 def test_installed_names_are_under_slamreplay() -> None:
     """The project imports as slamreplay.<package>, from this repository's folders."""
-    import slamreplay.api.cli
+    import slamreplay.api.cli.command
     import slamreplay.replay.runs.run
 
-    assert Path(slamreplay.api.cli.__file__).resolve() == REPO / "api" / "cli.py"
+    assert Path(slamreplay.api.cli.command.__file__).resolve() == REPO / "api" / "cli" / "command.py"
     assert Path(slamreplay.replay.runs.run.__file__).resolve() == REPO / "replay" / "runs" / "run.py"

@@ -6,7 +6,7 @@ in the frame of i and an *information* matrix. ``FIX id`` (g2o) names gauge vert
 edges only get their initial guess by composing odometry along a spanning tree.
 
 ``optimize_file`` is ``slamreplay graph optimize``: read a file, optimize it, write it back and, with
-``--rrd``, log both graphs and chi2 per iteration to Rerun (api/graph_cli.py is its argument parser).
+``--rrd``, log both graphs and chi2 per iteration to Rerun (api/cli/graph_cli.py is its argument parser).
 """
 
 from __future__ import annotations

@@ -15,9 +15,9 @@ with warnings.catch_warnings():
     from fastapi.testclient import TestClient
 
 from slamreplay.api.app import create_app
-from slamreplay.api.auth import COOKIE, csrf_token
-from slamreplay.api.settings import Settings
-from slamreplay.api.store import Store
+from slamreplay.api.service.auth import COOKIE, csrf_token
+from slamreplay.api.service.settings import Settings
+from slamreplay.api.service.store import Store
 
 ROLES = ("viewer", "runner", "admin")
 NAMES = {"viewer": "vic", "runner": "rui", "admin": "ada"}

@@ -7,8 +7,8 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
-from slamreplay.api.executor import Outcome, Task, run_task
-from slamreplay.api.store import RecordingRow, Store
+from slamreplay.api.service.executor import Outcome, Task, run_task
+from slamreplay.api.service.store import RecordingRow, Store
 
 if TYPE_CHECKING:
     from fastapi.testclient import TestClient

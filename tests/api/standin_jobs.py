@@ -13,8 +13,8 @@ import time
 
 import numpy as np
 
-from slamreplay.api.executor import Outcome, Report, Task, run_task
-from slamreplay.api.limits import JobLimits
+from slamreplay.api.service.executor import Outcome, Report, Task, run_task
+from slamreplay.api.service.limits import JobLimits
 
 HOG_STEP_BYTES = 32 << 20
 SLOW_EXIT_S = 6.0  # longer than the executor's GRACE_S wait for a worker to exit

@@ -11,8 +11,8 @@ import pytest
 from conftest import write_tiny_recording
 from mcap.writer import Writer
 
-from slamreplay.api.cli import main
-from slamreplay.api.hints import view_hint
+from slamreplay.api.cli.command import main
+from slamreplay.api.cli.hints import view_hint
 from slamreplay.recorder import OdometryPose, Recorder, codec
 
 

@@ -11,7 +11,7 @@ import pytest
 from conftest import write_tiny_recording
 from test_cli import assert_bad_input, run_cli
 
-from slamreplay.api.cli import build_parser
+from slamreplay.api.cli.command import build_parser
 from slamreplay.recorder.sources import importer_plugins
 
 

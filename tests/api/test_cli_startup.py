@@ -19,7 +19,7 @@ HEAVY = ("numpy", "scipy", "cv2", "rerun", "mcap", "fastapi", "pydantic", "googl
 # Runs main(argv) in a fresh interpreter and prints which heavy modules it imported and how it exited.
 PROBE = """
 import contextlib, io, json, sys
-from slamreplay.api.cli import main
+from slamreplay.api.cli.command import main
 argv = json.loads(sys.argv[1])
 out, err = io.StringIO(), io.StringIO()
 with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -85,13 +85,13 @@ def test_help_costs_a_few_bare_interpreter_starts() -> None:
     """`slamreplay --help` takes at most 12 times a bare `python -c pass` (best of 5 each, so that a busy machine
     slows both alike): about 0.1 s against 0.02 s here; importing the stack first took 1-2.6 s (60-100x)."""
     bare = _best_of(["-c", "pass"])
-    helped = _best_of(["-c", "import sys; from slamreplay.api.cli import main; sys.exit(main(['--help']))"])
+    helped = _best_of(["-c", "import sys; from slamreplay.api.cli.command import main; sys.exit(main(['--help']))"])
     assert helped < 12 * bare, f"--help took {helped:.3f} s, a bare interpreter {bare:.3f} s"
 
 
 def test_graph_choices_match_the_solver() -> None:
     """The graph command's choices are spelled in the CLI (no scipy import): they must be graph_io's."""
-    from slamreplay.api import graph_cli
+    from slamreplay.api.cli import graph_cli
     from slamreplay.replay.tools import graph_io
 
     assert (graph_cli.SOLVERS, graph_cli.INITS, graph_cli.ROBUST) == (graph_io.SOLVERS, graph_io.INITS,

@@ -16,7 +16,7 @@ with warnings.catch_warnings():
     from fastapi.testclient import TestClient
 
 from slamreplay.api.app import create_app
-from slamreplay.api.settings import Settings
+from slamreplay.api.service.settings import Settings
 
 
 @pytest.fixture(scope="module")
@@ -153,8 +153,9 @@ def test_too_few_runs_and_unfinished_runs_are_one_line(client: TestClient, runs:
 def test_position_error_over_time_overlaid_in_the_paths_colours(client: TestClient, runs: dict[str, str]) -> None:
     """Issue 41: the compare page draws each run's position error over time on one axis, one colour per run, the
     colours and legend of the trajectory overlay; each curve's peak is the run's robot_max_error_m."""
-    from slamreplay.api.compare_runs import overlay, runs_of
-    from slamreplay.api.svg_plots import RUN_COLOURS
+    from slamreplay.api.service.compare_runs import runs_of
+    from slamreplay.api.web.compare_plots import overlay
+    from slamreplay.api.web.svg_plots import RUN_COLOURS
 
     jobs = client.app.state.jobs  # type: ignore[attr-defined]
     ids = [runs["odo"], runs["dslam"], runs["odo1"]]

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from conftest import REPO, write_tiny_recording
 
-from slamreplay.api.executor import Task, run_task
+from slamreplay.api.service.executor import Task, run_task
 from slamreplay.replay.errors import ReplayError
 from slamreplay.replay.runs.compare import load_side
 from slamreplay.replay.runs.suite import load_suite

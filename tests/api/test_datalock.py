@@ -23,9 +23,9 @@ with warnings.catch_warnings():
     from fastapi.testclient import TestClient
 
 from slamreplay.api.app import create_app
-from slamreplay.api.datalock import LOCK_NAME, DataDirInUseError, DataDirLock, Owner
-from slamreplay.api.executor import LocalExecutor
-from slamreplay.api.settings import Settings
+from slamreplay.api.service.datalock import LOCK_NAME, DataDirInUseError, DataDirLock, Owner
+from slamreplay.api.service.executor import LocalExecutor
+from slamreplay.api.service.settings import Settings
 
 # A process that takes the lock of argv[1], writes argv[2] as its owner, says so and sleeps.
 HOLDER = textwrap.dedent("""

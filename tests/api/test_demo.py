@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from slamreplay.api.demo import PIPELINES, run_demo
+from slamreplay.api.cli.demo import PIPELINES, run_demo
 from slamreplay.replay.engine.pipeline import all_pipelines
 
 
@@ -30,7 +30,7 @@ def test_next_steps_work_as_printed(tmp_path: Path, monkeypatch: pytest.MonkeyPa
 
     from conftest import write_tiny_recording
 
-    from slamreplay.api.demo import next_steps
+    from slamreplay.api.cli.demo import next_steps
     from slamreplay.replay.runs.run import run_recording
 
     rec = write_tiny_recording(tmp_path / "tiny.mcap")

@@ -13,8 +13,9 @@ import pytest
 from conftest import write_tiny_recording
 from service_helpers import claimed, make_store
 
-from slamreplay.api.executor import LocalExecutor, Outcome, Task, describe_exit, run_task
-from slamreplay.api.store import Store
+from slamreplay.api.service.executor import LocalExecutor, Outcome, Task, run_task
+from slamreplay.api.service.limits import describe_exit
+from slamreplay.api.service.store import Store
 
 
 @pytest.fixture(scope="module")
@@ -116,7 +117,7 @@ def test_worker_is_replaced_after_max_jobs(store: Store, tmp_path: Path) -> None
 
 def test_service_words_name_the_recording_by_its_file_and_the_topic_map_as_a_field() -> None:
     """A run's error as the service shows it: no server folder before the file name, topic_map as a job field."""
-    from slamreplay.api.executor import service_words
+    from slamreplay.api.service.executor import service_words
 
     msg = service_words("/srv/data/recordings/named/ab12/sim.mcap: truncated at byte 70; pass --topic-map "
                         "/wheel/odom=/odom", "/srv/data/recordings/named/ab12/sim.mcap")

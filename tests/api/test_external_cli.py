@@ -19,8 +19,8 @@ with warnings.catch_warnings():
 from patience import deadline as give_up_at
 
 from slamreplay.api.app import create_app
-from slamreplay.api.cli import main
-from slamreplay.api.settings import Settings
+from slamreplay.api.cli.command import main
+from slamreplay.api.service.settings import Settings
 from slamreplay.recorder.plugins import refresh
 from slamreplay.replay.engine.declared import DECLARATIONS_ENV
 

@@ -16,8 +16,8 @@ with warnings.catch_warnings():
     from fastapi.testclient import TestClient
 
 from slamreplay.api.app import create_app
-from slamreplay.api.executor import Outcome, Task
-from slamreplay.api.settings import Settings
+from slamreplay.api.service.executor import Outcome, Task
+from slamreplay.api.service.settings import Settings
 
 schemathesis = pytest.importorskip("schemathesis")  # the `dev` extra has it; skip in a bare install
 TOKEN = "fuzz-token"

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from conftest import write_tiny_recording
 
-from slamreplay.api.hints import has_display, rerun_sdk_version, tool, view_hint
+from slamreplay.api.cli.hints import has_display, rerun_sdk_version, tool, view_hint
 
 BIN = Path(sys.executable).parent
 
@@ -69,8 +69,8 @@ def test_view_hint_headless(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_error_messages_suggest_commands_that_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                    capsys: pytest.CaptureFixture[str]) -> None:
     """A library error suggesting `slamreplay recover ...` is printed with the command as it runs here."""
-    from slamreplay.api.cli import main
-    from slamreplay.api.hints import spell_commands
+    from slamreplay.api.cli.command import main
+    from slamreplay.api.cli.hints import spell_commands
 
     monkeypatch.setenv("PATH", "/usr/bin:/bin")
     monkeypatch.chdir(tmp_path)

@@ -20,7 +20,7 @@ with warnings.catch_warnings():
     from fastapi.testclient import TestClient
 
 from slamreplay.api.app import create_app
-from slamreplay.api.settings import Settings
+from slamreplay.api.service.settings import Settings
 from slamreplay.replay.runs import history as hist
 from slamreplay.replay.runs.revisions import Revision
 from slamreplay.replay.runs.suite_run import CellJob

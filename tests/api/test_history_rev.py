@@ -19,8 +19,8 @@ with warnings.catch_warnings():
     from fastapi.testclient import TestClient
 
 from slamreplay.api.app import create_app
-from slamreplay.api.executor import Task, run_task
-from slamreplay.api.settings import Settings
+from slamreplay.api.service.executor import Task, run_task
+from slamreplay.api.service.settings import Settings
 from slamreplay.replay.runs import revisions
 
 NIGHTLY = "name = 'nightly'\nseeds"

@@ -19,7 +19,7 @@ with warnings.catch_warnings():
     from fastapi.testclient import TestClient
 
 from slamreplay.api.app import create_app
-from slamreplay.api.settings import Settings
+from slamreplay.api.service.settings import Settings
 
 STRANGER = "f" * 40  # a commit the server's checkout does not have
 

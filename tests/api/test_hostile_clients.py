@@ -17,8 +17,8 @@ import pytest
 from patience import deadline as give_up_at
 from pydantic import ValidationError
 
-from slamreplay.api.settings import Settings
-from slamreplay.api.timeouts import MAX_HEADER_BYTES, BodyTimeout
+from slamreplay.api.service.settings import Settings
+from slamreplay.api.service.timeouts import MAX_HEADER_BYTES, BodyTimeout
 from tests.api.test_serve_lock import free_port, stop
 
 HEADER_S, BODY_S = 1.0, 1.5  # the server's timeouts here, short so that each test takes seconds

@@ -15,7 +15,7 @@ with warnings.catch_warnings():
     from fastapi.testclient import TestClient
 
 from slamreplay.api.app import create_app
-from slamreplay.api.settings import Settings
+from slamreplay.api.service.settings import Settings
 from tests.fuzz.bombs import bomb_file
 
 SECONDS = 30  # as the CLI's bound, on a loaded 2-core machine

@@ -18,9 +18,9 @@ with warnings.catch_warnings():
     from fastapi.testclient import TestClient
 
 from slamreplay.api.app import create_app
-from slamreplay.api.settings import Settings
-from slamreplay.api.store import Store
-from slamreplay.api.svg_plots import nice_ticks
+from slamreplay.api.service.settings import Settings
+from slamreplay.api.service.store import Store
+from slamreplay.api.web.svg_plots import nice_ticks
 
 
 @pytest.fixture(scope="module")
@@ -103,7 +103,7 @@ def test_running_job_shows_percent_elapsed_eta_and_cancel(tmp_path: Path) -> Non
     client = TestClient(create_app(Settings(allowed_hosts=("testserver",), data_dir=tmp_path, workers=1),
                                    executor=InlineExecutor()))
     store: Store = client.app.state.jobs.store  # type: ignore[attr-defined]
-    from slamreplay.api.store import RecordingRow
+    from slamreplay.api.service.store import RecordingRow
 
     store.add_recording(RecordingRow("a" * 64, "sim.mcap", 1, [], 0, 0, 0, 0.0))
     job_id = "c" * 32

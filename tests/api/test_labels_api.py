@@ -118,7 +118,7 @@ def test_failed_sign_ins_are_limited_per_address(tmp_path_factory: pytest.TempPa
     saying how long to wait; the failures are in the trail."""
     from people_helpers import TestClient
 
-    from slamreplay.api.auth import SIGN_IN_ATTEMPTS
+    from slamreplay.api.service.auth import SIGN_IN_ATTEMPTS
 
     recording = write_tiny_recording(tmp_path_factory.mktemp("rec2") / "tiny.mcap")
     t, _ = make_team(tmp_path_factory.mktemp("limited"), recording)

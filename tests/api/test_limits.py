@@ -12,11 +12,11 @@ from conftest import write_tiny_recording
 from service_helpers import claimed, make_store, run_all
 from standin_jobs import SLOW_EXIT_LIMIT_S, standin_job
 
-from slamreplay.api.app import make_executor
-from slamreplay.api.executor import LocalExecutor, Outcome, Task, run_limited
-from slamreplay.api.limits import EXIT_MEMORY, EXIT_WALL, JobLimits, Watchdog, rss_mib
-from slamreplay.api.settings import Settings
-from slamreplay.api.store import Store
+from slamreplay.api.service.app import make_executor
+from slamreplay.api.service.executor import LocalExecutor, Outcome, Task, run_limited
+from slamreplay.api.service.limits import EXIT_MEMORY, EXIT_WALL, JobLimits, Watchdog, rss_mib
+from slamreplay.api.service.settings import Settings
+from slamreplay.api.service.store import Store
 
 MEMORY_MIB = 450  # a worker holds about 200 MiB after its imports; a tiny replay adds about 30
 
@@ -118,7 +118,7 @@ def test_settings_from_env_reach_the_executor() -> None:
 
 def test_ray_executor_without_ray_says_how_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
     """--executor ray without the extra fails at start-up with the install command."""
-    from slamreplay.api.ray_executor import RayMissingError
+    from slamreplay.api.service.ray_executor import RayMissingError
 
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
     with pytest.raises(RayMissingError, match=r"the ray executor needs the ray extra: `pip install -e '\.\[ray\]'`"):

@@ -16,11 +16,11 @@ from people_helpers import Team, TestClient, make_team, page_csrf, seed, sign_in
 from service_helpers import InlineExecutor
 
 from slamreplay.api.app import create_app
-from slamreplay.api.auth import COOKIE, RECORD_PREFIX, RULES, STATE_CHANGING
-from slamreplay.api.cli import main
-from slamreplay.api.people import TOKEN_RE, PeopleError, hash_token
-from slamreplay.api.settings import Settings
-from slamreplay.api.store import Store
+from slamreplay.api.cli.command import main
+from slamreplay.api.service.auth import COOKIE, RECORD_PREFIX, RULES, STATE_CHANGING
+from slamreplay.api.service.people import TOKEN_RE, PeopleError, hash_token
+from slamreplay.api.service.settings import Settings
+from slamreplay.api.service.store import Store
 
 
 @pytest.fixture(scope="module")

@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 from conftest import write_tiny_recording
 
-from slamreplay.api import demo
-from slamreplay.api.cli import main
-from slamreplay.api.progress import PlainProgress, duration
+from slamreplay.api.cli import demo
+from slamreplay.api.cli.command import main
+from slamreplay.api.cli.progress import PlainProgress, duration
 from slamreplay.replay.runs import suite_run
 
 SLAMREPLAY = str(Path(sys.executable).parent / "slamreplay")

@@ -1,4 +1,4 @@
-"""Runs from anywhere (issue 40, item 5): ``slamreplay push`` and `slamreplay.api.client` against a served team
+"""Runs from anywhere (issue 40, item 5): ``slamreplay push`` and `slamreplay.api.client.client` against a served team
 server: three runs of a `suite run` made in another folder pushed (their recording uploaded on the way), listed
 and compared beside the server's own run of the same recording; the same run pushed again is the same job; a run
 that lies about its files, an archive with a link or a path out of its folder, a run of a recording the server
@@ -20,7 +20,7 @@ from conftest import write_tiny_recording
 from patience import deadline as give_up_at
 from test_cli import run_cli
 
-from slamreplay.api.client import Client, ClientError
+from slamreplay.api.client.client import Client, ClientError
 from slamreplay.replay.runs import suite_run
 
 
@@ -31,8 +31,8 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, dict
     from service_helpers import InlineExecutor
 
     from slamreplay.api.app import create_app
-    from slamreplay.api.listen import listen
-    from slamreplay.api.settings import Settings
+    from slamreplay.api.cli.listen import listen
+    from slamreplay.api.service.settings import Settings
 
     data = tmp_path_factory.mktemp("server")
     app = create_app(Settings(data_dir=data, workers=1), executor=InlineExecutor())
@@ -60,7 +60,7 @@ def made_elsewhere(tmp_path_factory: pytest.TempPathFactory) -> Path:
     write_tiny_recording(folder / "tiny.mcap", n=60)
     (folder / "suite.toml").write_text('name = "laptop odometry"\nseeds = [0, 1, 2]\n[recordings.tiny]\n'
                                        'path = "tiny.mcap"\n[pipelines.odometry]\n')
-    from slamreplay.api.cli import main
+    from slamreplay.api.cli.command import main
 
     assert main(["suite", "run", str(folder / "suite.toml"), "--out", str(folder / "results"), "-q"]) == 0
     return folder / "results"

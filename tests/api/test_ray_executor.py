@@ -19,11 +19,11 @@ from conftest import write_tiny_recording  # noqa: E402
 from service_helpers import claimed, make_store, run_all, wait_for  # noqa: E402
 from standin_jobs import standin_job  # noqa: E402
 
-from slamreplay.api.executor import Outcome, Task, run_task  # noqa: E402
-from slamreplay.api.limits import JobLimits  # noqa: E402
-from slamreplay.api.ray_executor import RayExecutor  # noqa: E402
-from slamreplay.api.settings import Settings  # noqa: E402
-from slamreplay.api.store import Store  # noqa: E402
+from slamreplay.api.service.executor import Outcome, Task, run_task  # noqa: E402
+from slamreplay.api.service.limits import JobLimits  # noqa: E402
+from slamreplay.api.service.ray_executor import RayExecutor  # noqa: E402
+from slamreplay.api.service.settings import Settings  # noqa: E402
+from slamreplay.api.service.store import Store  # noqa: E402
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore", UserWarning)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from conftest import make_distribution
 
-from slamreplay.api.cli import main
+from slamreplay.api.cli.command import main
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.plugins import refresh
 from slamreplay.recorder.sources import get_importer, importer_plugins

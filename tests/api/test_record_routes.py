@@ -14,7 +14,7 @@ with warnings.catch_warnings():
     from fastapi.testclient import TestClient
 
 from slamreplay.api.app import create_app
-from slamreplay.api.settings import Settings
+from slamreplay.api.service.settings import Settings
 from slamreplay.recorder.sim.landmarks import LandmarkSimConfig, simulate_landmarks
 from slamreplay.replay.runs.run import sha256_file
 

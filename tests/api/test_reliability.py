@@ -22,11 +22,11 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore", UserWarning)
     from fastapi.testclient import TestClient
 
-import slamreplay.api.recordings as api_recordings
+import slamreplay.api.service.recordings as api_recordings
 from slamreplay.api.app import create_app
-from slamreplay.api.errors import ApiError, is_disk_full
-from slamreplay.api.executor import Outcome, Task
-from slamreplay.api.settings import Settings
+from slamreplay.api.service.errors import ApiError, is_disk_full
+from slamreplay.api.service.executor import Outcome, Task
+from slamreplay.api.service.settings import Settings
 from slamreplay.recorder import GroundTruthPose, Recorder
 from slamreplay.recorder.recover import recover
 
@@ -239,7 +239,7 @@ def test_real_full_disk_tmpfs(tmp_path: Path) -> None:
 
 def test_api_error_507_is_an_api_error() -> None:
     """The 507 error goes through the one error handler like every service error."""
-    from slamreplay.api.errors import disk_full_error
+    from slamreplay.api.service.errors import disk_full_error
 
     err = disk_full_error("doing x")
     assert isinstance(err, ApiError) and err.status == 507 and "while doing x" in err.detail

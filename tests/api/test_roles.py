@@ -220,7 +220,7 @@ def test_deleted_runs_show_as_deleted_on_suite_and_compare_pages(team: Team, tmp
 def test_a_run_on_a_commit_is_in_the_trail(team: Team, monkeypatch: pytest.MonkeyPatch) -> None:
     """POST /history/suites/NAME/runs: the suite sent again is recorded as run-on-commit, by whom, with the commit
     (the commit's build is stood in for by the suite sent as it is: tests/api/test_history_rev.py builds one)."""
-    from slamreplay.api import history_routes
+    from slamreplay.api.service import history_routes
 
     api = team.api("runner")
     api.post("/suites", content=SUITE.format(rid=team.rid).encode())

@@ -20,11 +20,11 @@ with warnings.catch_warnings():
     from fastapi.testclient import TestClient
 
 from slamreplay.api.app import create_app
-from slamreplay.api.runs_grammar import Clause, Condition, parse_where
-from slamreplay.api.runs_query import RunsView, parse_conditions, parse_view
-from slamreplay.api.settings import Settings
-from slamreplay.api.store import RecordingRow, Store
-from slamreplay.api.store_runs import Labels
+from slamreplay.api.service.runs_grammar import Clause, Condition, parse_where
+from slamreplay.api.service.runs_query import RunsView, parse_conditions, parse_view
+from slamreplay.api.service.settings import Settings
+from slamreplay.api.service.store import RecordingRow, Store
+from slamreplay.api.service.store_runs import Labels
 
 SIM, HALL = "a" * 64, "b" * 64
 COMMITS = ("abcd" + "1" * 36, "ef01" + "2" * 36)

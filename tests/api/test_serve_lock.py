@@ -19,9 +19,9 @@ import httpx
 import pytest
 from patience import deadline as give_up_at
 
-from slamreplay.api.cli import main
-from slamreplay.api.datalock import LOCK_NAME, DataDirLock
-from slamreplay.api.listen import listen
+from slamreplay.api.cli.command import main
+from slamreplay.api.cli.listen import listen
+from slamreplay.api.service.datalock import LOCK_NAME, DataDirLock
 
 SERVE = [sys.executable, "-m", "slamreplay.api.cli", "serve", "--workers", "1", "--log-level", "warning"]
 ENV = {k: v for k, v in os.environ.items() if not k.startswith("SLAMREPLAY_")} | {"PYTHONUNBUFFERED": "1"}

@@ -18,8 +18,8 @@ with warnings.catch_warnings():
 from pydantic import ValidationError
 
 from slamreplay.api.app import create_app
-from slamreplay.api.settings import Settings
-from slamreplay.api.siteguard import same_origin, served_hosts, split_host
+from slamreplay.api.service.settings import Settings
+from slamreplay.api.service.siteguard import same_origin, served_hosts, split_host
 
 EVIL = "http://evil.example"
 

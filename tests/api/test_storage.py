@@ -12,15 +12,15 @@ import pytest
 from conftest import write_tiny_recording
 from service_helpers import InlineExecutor, wait_for
 
-from slamreplay.api import storage
-from slamreplay.api.executor import Outcome, Task, run_task
+from slamreplay.api.service import storage
+from slamreplay.api.service.executor import Outcome, Task, run_task
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore", UserWarning)
     from fastapi.testclient import TestClient
 
 from slamreplay.api.app import create_app
-from slamreplay.api.settings import Settings
+from slamreplay.api.service.settings import Settings
 
 fsspec = pytest.importorskip("fsspec", reason="fsspec comes with the dev and ray extras: pip install -e '.[dev]'")
 

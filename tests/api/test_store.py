@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from slamreplay.api.settings import Settings
-from slamreplay.api.store import RecordingRow, Store
+from slamreplay.api.service.settings import Settings
+from slamreplay.api.service.store import RecordingRow, Store
 
 SHA = "a" * 64
 
@@ -91,7 +91,7 @@ def test_bad_settings_name_the_field(name: str, value: str) -> None:
                                                (["--data-dir", "/dev/null/x"], "cannot create it")])
 def test_serve_refuses_bad_settings(args: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
     """`slamreplay serve` with a bad setting exits 2 with one line saying what is wrong."""
-    from slamreplay.api.cli import main
+    from slamreplay.api.cli.command import main
 
     assert main(["serve", *args]) == 2
     err = capsys.readouterr().err

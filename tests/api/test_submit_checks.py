@@ -16,8 +16,8 @@ with warnings.catch_warnings():
     from fastapi.testclient import TestClient
 
 from slamreplay.api.app import create_app
-from slamreplay.api.settings import Settings
-from slamreplay.api.store import Store
+from slamreplay.api.service.settings import Settings
+from slamreplay.api.service.store import Store
 
 
 def wheel_recording(path: Path, n: int = 40) -> Path:
@@ -174,7 +174,7 @@ def test_runs_name_the_uploaded_file(client: TestClient, recs: dict[str, str]) -
 
 def test_run_errors_speak_of_topic_map_not_the_cli_flag() -> None:
     """A failure that would tell a CLI user to pass --topic-map names the job's topic_map field instead."""
-    from slamreplay.api.executor import service_words
+    from slamreplay.api.service.executor import service_words
 
     said = service_words("sim.mcap has no /odom topic; map it with --topic-map FILE_TOPIC=/odom")
     assert "--topic-map" not in said and 'topic_map {"FILE_TOPIC": "/odom"}' in said

@@ -338,7 +338,7 @@ def test_suite_on_ray(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> Non
 def test_compare_markdown_links_with_a_base_url(tmp_path: Path) -> None:
     """`compare --markdown S.md --base-url URL`: runs inside the summary's folder are linked under URL; the
     regression leads the table."""
-    from slamreplay.api.cli import main
+    from slamreplay.api.cli.command import main
 
     def results(name: str, values: list[float]) -> Path:
         out = tmp_path / name

@@ -18,10 +18,10 @@ with warnings.catch_warnings():
     from fastapi.testclient import TestClient
 
 from slamreplay.api.app import create_app
-from slamreplay.api.cli import main
-from slamreplay.api.deps import rrd_key
-from slamreplay.api.settings import Settings
-from slamreplay.api.web import COOKIE, session_value
+from slamreplay.api.cli.command import main
+from slamreplay.api.service.deps import rrd_key
+from slamreplay.api.service.settings import Settings
+from slamreplay.api.web.web import COOKIE, session_value
 
 UNKNOWN = "0" * 32
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from slamreplay.api.viewer_assets import QUIET, ViewerAssetsError, quiet_index
+from slamreplay.api.web.viewer_assets import QUIET, ViewerAssetsError, quiet_index
 
 
 def test_quiet_script_runs_before_the_viewer() -> None:

@@ -1,4 +1,4 @@
-"""Coverage-guided fuzzing (atheris, libFuzzer) of the multipart/form-data upload parser (api/multipart.py).
+"""Coverage-guided fuzzing (atheris, libFuzzer) of the multipart/form-data upload parser (api/service/multipart.py).
 
 Contract: for any body and Content-Type, ``form_file`` gives (file name, chunks of the ``file`` part),
 or an ``ApiError`` with a 4xx status (``FormError`` 422, ``TooLargeError`` 413) whose message is one
@@ -28,8 +28,8 @@ except ImportError:  # replaying stored cases (tests/fuzz/test_harness_cases.py)
     atheris = None
 
 with atheris.instrument_imports(include=["slamreplay", "python_multipart"]) if atheris else contextlib.nullcontext():
-    from slamreplay.api.errors import ApiError
-    from slamreplay.api.multipart import form_file
+    from slamreplay.api.service.errors import ApiError
+    from slamreplay.api.service.multipart import form_file
 
 LIMIT = 4096
 # python-multipart logs every malformed byte as a warning: millions of lines in a run, and slow

@@ -43,7 +43,7 @@ RUN_PIPELINE = {"landmarks": "dslam", "seabed": "ifmi", "corridor": "ifmi", "ima
 
 def make_base(kind: str, folder: Path) -> Path:
     """Write the base recording of ``kind`` into ``folder`` (deterministic; 15-45 KB); return its path."""
-    from slamreplay.api.cli import main
+    from slamreplay.api.cli.command import main
 
     folder.mkdir(parents=True, exist_ok=True)
     out = folder / f"{kind}.mcap"

@@ -68,7 +68,7 @@ def _fd2_captured() -> Iterator[io.StringIO]:
 def _call(argv: list[str], time_limit_s: int) -> tuple[str, int | None, str, str]:
     """(outcome, exit code, stdout, stderr) of ``slamreplay ARGV`` run in this process; stderr holds what
     Python printed and what C code wrote to file descriptor 2, as a user's terminal would show both."""
-    from slamreplay.api.cli import main
+    from slamreplay.api.cli.command import main
 
     out, err = io.StringIO(), io.StringIO()
     rc: int | None = None

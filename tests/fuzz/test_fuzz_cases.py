@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from slamreplay.api.cli import main
+from slamreplay.api.cli.command import main
 
 CASES_DIR = Path(__file__).parent / "cases"
 CASES: list[dict[str, Any]] = json.loads((CASES_DIR / "cases.json").read_text())

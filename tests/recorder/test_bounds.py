@@ -285,7 +285,7 @@ def test_metadata_json_nested_a_hundred_thousand_deep_is_refused(tmp_path: Path,
     """A sensor model of 100,000 nested arrays in the metadata: inspect reports it in one line, no recursion."""
     from mcap.writer import Writer
 
-    from slamreplay.api.cli import main
+    from slamreplay.api.cli.command import main
     from slamreplay.recorder.sensor_model import sensor_model_key
     from slamreplay.recorder.writer import METADATA_NAME
 

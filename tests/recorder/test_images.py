@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from slamreplay.api.cli import main
+from slamreplay.api.cli.command import main
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.importers.images import frame_key, import_images
 from slamreplay.replay.engine.reader import RecordingReader

@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 from mcap.reader import make_reader
 
-from slamreplay.api.cli import main as cli_main
+from slamreplay.api.cli.command import main as cli_main
 from slamreplay.recorder.importers.foxglove_live import GAP_METADATA, LIVE_METADATA, LiveOptions, LiveRecording
 from slamreplay.recorder.importers.ros2bag import import_ros2_bag
 from slamreplay.recorder.messages import TOPIC_RANGE_BEARING, assert_msg_equal

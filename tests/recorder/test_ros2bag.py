@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from ros2bag_fixtures import LASER_X_M, BagTruth, write_bag
 
-from slamreplay.api.cli import main
+from slamreplay.api.cli.command import main
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.importers.ros2bag import ImportSummary, import_ros2_bag, plan_bag, sensor_model
 from slamreplay.recorder.messages import (

@@ -18,7 +18,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, ReaderError, StoragePlugin, Writer
 from ruamel.yaml.error import YAMLError
 
-from slamreplay.api.cli import main
+from slamreplay.api.cli.command import main
 from slamreplay.recorder.codec.mcap_check import check_mcap
 from slamreplay.recorder.codec.mcap_io import McapFile
 from slamreplay.recorder.errors import RecorderError

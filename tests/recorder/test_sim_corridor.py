@@ -14,7 +14,7 @@ import pytest
 from conftest import write_tiny_recording
 from readback import by_topic, poses, read_recording
 
-from slamreplay.api.cli import main
+from slamreplay.api.cli.command import main
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.messages import (
     TOPIC_CAMERA_CALIBRATION,

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slamreplay.api.cli import main
+from slamreplay.api.cli.command import main
 from slamreplay.recorder.errors import RecorderError
 from slamreplay.recorder.importers.victoria_park import read_victoria_park, sensor_model, write_victoria_park
 from slamreplay.recorder.messages import GroundTruthPose, LandmarkMap, OdometryPose, RangeBearingScan

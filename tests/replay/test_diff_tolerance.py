@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from conftest import write_tiny_recording
 
-from slamreplay.api.cli import main
+from slamreplay.api.cli.command import main
 from slamreplay.replay.engine.pipeline import MEASURED_ABS_TOLERANCE, MEASURED_REL_TOLERANCE, MetricSpec
 from slamreplay.replay.pipelines.ifmi import IfmiPipeline
 from slamreplay.replay.pipelines.landmark_slam import METRICS as LANDMARK_METRICS

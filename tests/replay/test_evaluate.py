@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from slamreplay.algorithms.common import se2
-from slamreplay.api.cli import main
+from slamreplay.api.cli.command import main
 from slamreplay.replay.engine.trajectory import read_tum
 from slamreplay.replay.evaluation.evaluate import (
     TRAJECTORY_METRICS,

@@ -167,7 +167,7 @@ def test_an_estimate_beside_the_recording_in_time_is_refused(tmp_path: Path, cap
                                                              ) -> None:
     """A clock offset that puts every pose outside the recording: refused before anything is written, one line,
     exit 2 (evo refuses such a pair too); --t-offset-s puts it back."""
-    from slamreplay.api.cli import main
+    from slamreplay.api.cli.command import main
 
     rec = _line_recording(tmp_path / "line.mcap")
     est = _write_tum(tmp_path / "late.tum", 1001.0 + 0.1 * np.arange(101))

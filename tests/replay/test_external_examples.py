@@ -64,7 +64,7 @@ def test_c_example_and_a_biased_build_compare(tmp_path: Path, monkeypatch: pytes
                                               capsys: pytest.CaptureFixture[str]) -> None:
     """The C example equals the odometry pipeline; a build with a 5 % scale bias, run as the same pipeline in a
     second results directory, makes `compare` exit 1 naming the trajectory metrics."""
-    from slamreplay.api.cli import main
+    from slamreplay.api.cli.command import main
 
     monkeypatch.delenv(DECLARATIONS_ENV, raising=False)
     rec = write_tiny_recording(tmp_path / "tiny.mcap")

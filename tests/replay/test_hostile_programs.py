@@ -263,7 +263,7 @@ def test_a_cancelled_job_leaves_nothing(tmp_path: Path, rec: Path, monkeypatch: 
     """Through the service's executor: a job running a program that ignores SIGTERM and started a setsid sleeper
     is cancelled; its worker is killed, and the program, the sleeper and the run's temporary folder are gone
     within a few seconds."""
-    from slamreplay.api.executor import LocalExecutor, Outcome
+    from slamreplay.api.service.executor import LocalExecutor, Outcome
     from tests.api.service_helpers import claimed, make_store
 
     mark = unique_mark()

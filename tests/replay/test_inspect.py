@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from mcap.writer import Writer
 
-from slamreplay.api.cli import main
+from slamreplay.api.cli.command import main
 from slamreplay.recorder import GroundTruthPose, Recorder, codec
 from slamreplay.replay.tools.inspect import empty_contradiction, inspect_recording
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from conftest import write_tiny_recording
 
-from slamreplay.api.cli import main
+from slamreplay.api.cli.command import main
 from slamreplay.replay.metric_registry import LOST, METRICS, optional_reason
 from slamreplay.replay.runs.changepoints import detect_changes
 from slamreplay.replay.runs.compare import Side, compare, format_table

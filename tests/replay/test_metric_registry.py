@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from slamreplay.api.cli import main
+from slamreplay.api.cli.command import main
 from slamreplay.replay.engine.pipeline import pipeline_plugins
 from slamreplay.replay.evaluation.score import metric_specs
 from slamreplay.replay.metric_registry import (

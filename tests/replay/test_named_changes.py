@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from conftest import write_tiny_recording
 
-from slamreplay.api.cli import main
+from slamreplay.api.cli.command import main
 from slamreplay.replay.runs.compare import compare, format_table, load_side
 from slamreplay.replay.runs.diff import describe_origin, diff_runs, origin_changes
 from slamreplay.replay.runs.diff import format_table as diff_table

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slamreplay.api.cli import main as cli
+from slamreplay.api.cli.command import main as cli
 from slamreplay.recorder.messages import assert_msg_equal
 from slamreplay.replay.engine.reader import RecordingReader
 from slamreplay.replay.errors import ReplayError

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from conftest import make_distribution, write_tiny_recording
 
-from slamreplay.api.cli import main
+from slamreplay.api.cli.command import main
 from slamreplay.recorder.plugins import refresh
 from slamreplay.replay.engine.pipeline import all_pipelines, get_pipeline, pipeline_plugins
 from slamreplay.replay.errors import ReplayError

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from conftest import write_tiny_recording
 
-from slamreplay.api.cli import main
+from slamreplay.api.cli.command import main
 from slamreplay.recorder.plugins import refresh
 from slamreplay.replay.engine.declared import DECLARATIONS_ENV
 from slamreplay.replay.errors import ReplayError

@@ -11,7 +11,7 @@ import psutil
 import pytest
 
 from slamreplay.algorithms.observe import LineStrips
-from slamreplay.api.cli import main as cli
+from slamreplay.api.cli.command import main as cli
 from slamreplay.replay.engine import views
 from slamreplay.replay.engine.observer import RerunObserver
 from slamreplay.replay.errors import ReplayError

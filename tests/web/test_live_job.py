@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 from web_site import LAPTOP, SHOTS, call, chromium, served, shoot, wait_until
 
-from slamreplay.api.executor import Outcome, Report, Task, run_task
+from slamreplay.api.service.executor import Outcome, Report, Task, run_task
 
 LIVE_SEED = 8008  # a real dslam replay, STEP_S slower per message
 STEP_S = 0.015
@@ -29,7 +29,7 @@ def live_job(task: Task, report: Report | None = None) -> Outcome:
     """The real job, but for LIVE_SEED: the pipeline sleeps STEP_S before each message (a slow run, watched)."""
     if task.seed != LIVE_SEED:
         return run_task(task, report)
-    from slamreplay.api.store import set_progress
+    from slamreplay.api.service.store import set_progress
     from slamreplay.replay.engine.pipeline import get_pipeline
     from slamreplay.replay.runs.run import run_recording
 
@@ -157,7 +157,7 @@ def _distinct_colours(png: bytes) -> int:
 
 def test_follow_rrd_sends_the_whole_file(tmp_path: Path) -> None:
     """follow_rrd sends a file written in pieces, renamed when complete, byte for byte, and ends with the run."""
-    from slamreplay.api.live_view import RRD_PARTIAL, follow_rrd
+    from slamreplay.api.web.live_view import RRD_PARTIAL, follow_rrd
 
     pieces = [os.urandom(50_000) for _ in range(5)]
     running = threading.Event()

@@ -27,7 +27,7 @@ def team(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     sys.path.insert(0, str(Path(__file__).parents[1]))  # tests/conftest.py: the tiny recordings
     from conftest import write_tiny_recording
 
-    from slamreplay.api.store import Store
+    from slamreplay.api.service.store import Store
 
     folder = tmp_path_factory.mktemp("team")
     with served(folder / "data", workers=2) as base:
@@ -161,7 +161,7 @@ def test_a_runner_submits_and_labels(browser: Any, team: dict[str, Any]) -> None
     assert "looked at it: fine" in page.inner_text("#job-note")
     people = page.inner_text("#job-people")
     assert "Submitted by rui" in people and "tagged or annotated by rui" in people, people
-    from slamreplay.api.client import Client
+    from slamreplay.api.client.client import Client
 
     got = Client(base, team["tokens"]["vic"]).job(job)
     assert (got["name"], got["tags"], got["made_by"]) == ("rui's first", ["browser", "team"], "rui")
@@ -228,8 +228,8 @@ def test_runs_pushed_from_elsewhere_are_compared_on_the_page(browser: Any, team:
     """Issue 40, item 5: three runs of a `suite run` made in another folder, pushed by a runner, shown on the
     compare page beside the server's own run of the same recording (seed 0: the same value), and each marked on
     its page with where it was made."""
-    from slamreplay.api.cli import main
-    from slamreplay.api.client import Client
+    from slamreplay.api.cli.command import main
+    from slamreplay.api.client.client import Client
 
     base, tokens = team["base"], team["tokens"]
     laptop = tmp_path / "laptop"

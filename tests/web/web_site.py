@@ -23,7 +23,7 @@ from typing import Any
 
 from patience import deadline as give_up_at
 
-from slamreplay.api.executor import Outcome, Report, Task, run_task
+from slamreplay.api.service.executor import Outcome, Report, Task, run_task
 
 CHROMIUM = os.environ.get("SLAMREPLAY_CHROMIUM", "/usr/bin/chromium")
 SLOW_SEED = 7007  # runs for LONG_S in short naps, reporting progress, until cancelled
@@ -36,7 +36,7 @@ SHOTS = Path(os.environ.get("SLAMREPLAY_BROWSER_SHOTS") or Path(__file__).parent
 def web_job(task: Task, report: Report | None = None) -> Outcome:
     """The real job, but for SLOW_SEED (long, with progress) and DAMAGED_SEED (a truncated recording)."""
     if task.seed == SLOW_SEED:
-        from slamreplay.api.store import set_progress
+        from slamreplay.api.service.store import set_progress
 
         steps = int(LONG_S / 0.1)
         for i in range(steps):
@@ -59,9 +59,9 @@ def served(data_dir: Path, workers: int = 2, job: Any = web_job) -> Iterator[str
     import uvicorn
 
     from slamreplay.api.app import create_app
-    from slamreplay.api.executor import LocalExecutor
-    from slamreplay.api.listen import listen
-    from slamreplay.api.settings import Settings
+    from slamreplay.api.cli.listen import listen
+    from slamreplay.api.service.executor import LocalExecutor
+    from slamreplay.api.service.settings import Settings
 
     sock = listen("127.0.0.1", 0)
     port = sock.getsockname()[1]
