@@ -73,6 +73,7 @@ class PlainProgress:
         self.reused: int | None = None
         self.announced = False
         self.first, self.first_done = self.start, 0
+        self.warm: tuple[float, int] | None = None  # (when, count) of the first item done after the first count
 
     def _print(self, text: str) -> None:
         """One line, prefixed with the description."""
@@ -95,13 +96,18 @@ class PlainProgress:
             reused = f", {self.reused:,} {self.reused_word}" if self.reused_word and self.reused else ""
             self._print(f"started ({self.total:,} {self.unit}{reused})")
         now = self.clock()
+        if self.warm is None and done > self.first_done:
+            self.warm = (now, done)  # the first item done: later ones leave out what it alone paid for
         if now - self.last_line < self.every_s or done >= self.total:
             return  # the end has its own line
         self.last_line = now
         elapsed = now - self.start
         pct = f"{100.0 * done / self.total:.0f}% " if self.total else ""
-        fresh = done - self.first_done
-        counted = now - self.first
+        # The rate of the items done since the first one, once there are some: the first may carry a one-off cost
+        # (the environment `history` builds for a commit's dependencies, minutes; then seconds a commit).
+        first, first_done = self.warm if self.warm is not None and done > self.warm[1] else (self.first,
+                                                                                              self.first_done)
+        fresh, counted = done - first_done, now - first
         eta = f", ETA {duration(counted * (self.total - done) / fresh)}" if fresh > 0 and counted > 0 else ""
         self._print(f"{pct}({self._counts()}, {duration(elapsed)}{eta})")
 

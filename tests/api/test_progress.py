@@ -27,7 +27,7 @@ def cli(*args: str, interval_s: float = 0.0) -> subprocess.CompletedProcess[str]
 
 def test_plain_lines_start_every_interval_and_end(capsys: pytest.CaptureFixture[str]) -> None:
     """A line at the first count, then at most one per interval with percent, counts, elapsed time and an ETA from
-    the rate since the first count (1,170 messages in 11 s: 1,800 more take 17 s)."""
+    the rate since the first count after it (1,140 messages in 7 s: 1,800 more take 11 s)."""
     now = [0.0]
     p = PlainProgress("run dslam on s.mcap", "messages", clock=lambda: now[0], every_s=10.0)
     for done, t in ((30, 1.0), (60, 5.0), (1200, 12.0), (1300, 13.0), (3000, 30.0)):
@@ -36,7 +36,7 @@ def test_plain_lines_start_every_interval_and_end(capsys: pytest.CaptureFixture[
     p.finished()
     assert capsys.readouterr().err.splitlines() == [
         "run dslam on s.mcap: started (3,000 messages)",
-        "run dslam on s.mcap: 40% (1,200/3,000 messages, 12 s, ETA 17 s)",
+        "run dslam on s.mcap: 40% (1,200/3,000 messages, 12 s, ETA 11 s)",
         "run dslam on s.mcap: done (3,000/3,000 messages in 30 s)",
     ]
 
@@ -53,6 +53,24 @@ def test_the_eta_leaves_out_the_work_before_the_first_count(capsys: pytest.Captu
     lines = capsys.readouterr().err.splitlines()
     assert lines[1] == "record victoria-park: 0% (1/6,969 steps, 51 s)"  # no rate yet: no ETA
     assert lines[2] == "record victoria-park: 50% (3,485/6,969 steps, 62 s, ETA 11 s)"
+
+
+def test_the_eta_leaves_out_a_first_item_that_paid_a_one_off_cost(capsys: pytest.CaptureFixture[str]) -> None:
+    """`history` over 60 commits: the first cell waits 180 s for the shared environment, the next take 2 s each.
+    Once a second cell is done the ETA comes from the cells after the first (2 s each: 58 more take about 2
+    minutes), not from the first's 3 minutes (once 2.3 hours for a 13-minute job, issue 38)."""
+    now = [0.0]
+    p = PlainProgress("history s", "cells", clock=lambda: now[0], every_s=1.0)
+    p.update(0, 60)
+    now[0] = 180.0
+    p.update(1, 60)  # only the first is done: its own rate is all there is
+    for k in range(2, 7):
+        now[0] = 180.0 + 2.0 * (k - 1)
+        p.update(k, 60)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[1] == "history s: 2% (1/60 cells, 3.0 min, ETA 3.0 h)"
+    assert lines[2] == "history s: 3% (2/60 cells, 3.0 min, ETA 1.9 min)"
+    assert lines[-1] == "history s: 10% (6/60 cells, 3.2 min, ETA 1.8 min)"  # 54 more at 2 s
 
 
 def test_reused_cells_are_named_and_left_out_of_the_eta(capsys: pytest.CaptureFixture[str]) -> None:
