@@ -55,8 +55,14 @@ def add_live_parser(rsub: Any, quiet: argparse.ArgumentParser) -> None:
                    help="the sensors' noise and limits the recording carries: a JSON object of sensor model keys "
                         "(range_sigma_m, bearing_sigma_rad, ...; see `slamreplay inspect` of a simulated recording)")
     p.add_argument("--base-frame", default="base_link",
-                   help="the robot's tf frame: ROS 2 laser scans are moved into it through /tf_static "
-                        "(default: base_link)")
+                   help="the robot's tf frame: ROS 2 laser scans are moved into it through /tf_static, and /tf "
+                        "gives its pose (default: base_link)")
+    p.add_argument("--odom-frame", default="odom",
+                   help="without an odometry channel, /odom is --base-frame in this frame, composed through /tf "
+                        "(default: odom)")
+    p.add_argument("--ground-truth-frame", default=None,
+                   help="record /ground_truth/pose as --base-frame in this frame (e.g. map), composed through /tf "
+                        "(default: none)")
     p.add_argument("--wait-s", type=float, default=5.0,
                    help="how long to wait for the server to advertise a channel to record (default: 5)")
     p.add_argument("--give-up-s", type=float, default=None,
@@ -89,7 +95,8 @@ def live_options(args: argparse.Namespace) -> Any:
         model = SensorModel.from_mapping(data)
     poles = dataclass_from_options(vars(args), PoleConfig, prefix="pole_", what="pole extractor option")
     return LiveOptions(url=args.url, out=Path(args.out), topics=tuple(args.topics), topic_map=_pairs(args.topic_map),
-                       duration_s=args.duration_s, sensor_model=model, base_frame=args.base_frame, poles=poles,
+                       duration_s=args.duration_s, sensor_model=model, base_frame=args.base_frame,
+                       odom_frame=args.odom_frame, ground_truth_frame=args.ground_truth_frame, poles=poles,
                        wait_s=args.wait_s, give_up_s=args.give_up_s)
 
 

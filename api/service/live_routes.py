@@ -11,12 +11,16 @@ its file is then stored like any upload (id: the sha256) and named in ``recordin
 
 Each recording runs in a thread of its own (network and file I/O; never the event loop) and writes into
 ``recordings/.live-ID/``; a server stopped cleanly stops its recordings first and stores them. A server that is
-killed leaves ``recordings/.live-ID/live.mcap.partial``: `slamreplay recover` salvages it, then upload it.
+killed leaves ``recordings/.live-ID/live.mcap.partial``: when it starts again, each such folder is salvaged
+(:func:`slamreplay.recorder.importers.live_salvage.salvage_live`: every message flushed, at most a second before
+the kill) and stored like an upload, or listed as failed with the reason; either way listed, as ended.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import json
 import shutil
 import threading
 import time
@@ -34,7 +38,7 @@ from starlette.concurrency import run_in_threadpool
 
 from slamreplay.api.service.auth import record as audit_record
 from slamreplay.api.service.deps import ERRORS, RecordingsDep, SettingsDep, require_token
-from slamreplay.api.service.errors import ForbiddenError, NotFoundError
+from slamreplay.api.service.errors import ApiError, ForbiddenError, NotFoundError
 from slamreplay.api.service.models import RecordingOut
 from slamreplay.recorder.errors import RecorderError
 
@@ -42,6 +46,8 @@ MAX_DURATION_S = 7 * 24 * 3600.0
 START_TIMEOUT_S = 30.0  # connecting and the first advertise (wait_s) take less
 STOP_TIMEOUT_S = 60.0  # the last chunk, the summary and storing the file take less
 LINES_KEPT = 50
+FOLDER_PREFIX = ".live-"
+TASK_FILE = "task.json"  # the url and start of the recording in its folder, for a salvage after a kill
 
 State = Literal["connecting", "recording", "stopping", "done", "failed"]
 
@@ -57,6 +63,12 @@ class LiveIn(BaseModel):
                                                               '{"/robot/pose": "/ground_truth/pose"}')
     duration_s: float | None = Field(default=None, gt=0, le=MAX_DURATION_S,
                                      description="seconds to record (default: until POST .../stop)")
+    base_frame: str = Field(default="base_link", min_length=1, max_length=200, description=(
+        "ROS 2: the robot's tf frame (laser scans are moved into it; /tf gives its pose)"))
+    odom_frame: str = Field(default="odom", min_length=1, max_length=200, description=(
+        "ROS 2: without an odometry channel, odometry is base_frame in this frame, composed through /tf"))
+    ground_truth_frame: str | None = Field(default=None, min_length=1, max_length=200, description=(
+        "ROS 2: ground truth is base_frame in this frame (e.g. map), composed through /tf"))
 
 
 class LiveTopicOut(BaseModel):
@@ -109,7 +121,13 @@ class LiveTask:
             self.state = "recording"
 
     def out(self) -> LiveOut:
-        s = self.live.status()
+        if self.live is None:  # salvaged at start-up: what was stored is what it recorded
+            from slamreplay.recorder.importers.foxglove_live import LiveStatus
+
+            n = self.stored.message_count if self.stored is not None else 0
+            s = LiveStatus(0.0, False, (), n, self.stored.size if self.stored is not None else 0, 0)
+        else:
+            s = self.live.status()
         return LiveOut(id=self.id, url=self.url, state=self.state, started_at=self.started_at, elapsed_s=s.elapsed_s,
                        connected=s.connected, messages=s.messages, bytes=s.bytes_on_disk, gaps=s.gaps,
                        topics=[LiveTopicOut(topic=c.topic, maps_to=c.maps_to, messages=c.written, rate_hz=c.rate_hz,
@@ -133,11 +151,13 @@ class LiveRegistry:
 
         check_url(body.url)
         task_id = uuid.uuid4().hex[:12]
-        folder = recordings.settings.recordings_dir / f".live-{task_id}"
+        folder = recordings.settings.recordings_dir / f"{FOLDER_PREFIX}{task_id}"
         folder.mkdir()
         options = LiveOptions(url=body.url, out=folder / "live.mcap", topics=tuple(body.topics),
-                              topic_map=dict(body.topic_map), duration_s=body.duration_s)
+                              topic_map=dict(body.topic_map), duration_s=body.duration_s, base_frame=body.base_frame,
+                              odom_frame=body.odom_frame, ground_truth_frame=body.ground_truth_frame)
         task = LiveTask(task_id, body.url, folder, None)
+        (folder / TASK_FILE).write_text(json.dumps({"url": body.url, "started_at": task.started_at.isoformat()}))
         task.live = LiveRecording(options, say=task.say)
         task.thread = threading.Thread(target=self._run, args=(task, recordings), name=f"live-{task_id}", daemon=True)
         with self.lock:
@@ -177,6 +197,48 @@ class LiveRegistry:
         label = f"live-{task.started_at:%Y%m%dT%H%M%SZ}-{task.id}.mcap"
         return recordings.accept_local(staged, sha.hexdigest(), label).recording
 
+    def salvage(self, recordings: Any) -> list[LiveTask]:
+        """The live recordings a killed server left (``recordings/.live-ID/``), each salvaged and stored like an
+        upload (state ``done``) or ``failed`` with the reason, listed as ended; their folders removed."""
+        from slamreplay.recorder.importers.live_salvage import Salvaged, live_leftovers, salvage_live
+
+        found = []
+        for folder in live_leftovers(recordings.settings.recordings_dir, FOLDER_PREFIX):
+            try:
+                meta = json.loads((folder / TASK_FILE).read_text())
+            except (OSError, ValueError):  # killed before it wrote it
+                meta = {}
+            started = datetime.fromtimestamp(folder.stat().st_mtime, timezone.utc)
+            with contextlib.suppress(TypeError, ValueError):
+                started = datetime.fromisoformat(meta.get("started_at"))
+            task = LiveTask(folder.name[len(FOLDER_PREFIX):], str(meta.get("url", "")), folder, None,
+                            started_at=started)
+            retry = False  # the folder is kept for the next start when salvaging or storing failed, not the file
+            try:
+                got = salvage_live(folder)
+            except Exception as err:  # noqa: BLE001 -- one folder's trouble must not stop the server starting
+                got = Salvaged(folder, "failed", reason=f"salvaging it failed: {type(err).__name__}: {err}")
+                retry = True
+            task.say(got.line())
+            task.state = "failed"
+            if got.path is None:
+                task.error = f"the server stopped while recording; {got.reason}"
+            else:
+                task.end_reason = ("the server stopped while recording: salvaged at its restart" if got.how ==
+                                   "recovered" else "ended before the server stopped: stored at its restart")
+                try:
+                    task.stored = self._store(task, got.path, recordings)
+                    task.state = "done"
+                except (RecorderError, ApiError, OSError) as err:
+                    task.error = f"the salvaged recording cannot be stored: {err}"
+                    retry = True
+            if not retry:
+                shutil.rmtree(folder, ignore_errors=True)
+            with self.lock:
+                self.tasks[task.id] = task
+            found.append(task)
+        return found
+
     def get(self, task_id: str) -> LiveTask:
         task = self.tasks.get(task_id)
         if task is None:
@@ -186,14 +248,16 @@ class LiveRegistry:
     def stop(self, task_id: str) -> LiveTask:
         """Stop a recording and wait until its file is stored (or it failed)."""
         task = self.get(task_id)
-        task.live.stop()
+        if task.live is not None:  # None: salvaged at start-up, ended already
+            task.live.stop()
         if task.thread is not None:
             task.thread.join(STOP_TIMEOUT_S)
         return task
 
     def stop_all(self) -> None:
         for task in list(self.tasks.values()):
-            task.live.stop()
+            if task.live is not None:
+                task.live.stop()
         for task in list(self.tasks.values()):
             if task.thread is not None:
                 task.thread.join(STOP_TIMEOUT_S)
@@ -205,7 +269,8 @@ def _registry(request: Request) -> LiveRegistry:
 
 
 def install_live_routes(app: FastAPI) -> None:
-    """The ``/recordings/live`` routes, and live recordings stopped (and stored) when the server stops."""
+    """The ``/recordings/live`` routes; live recordings a killed server left salvaged when the server starts, and
+    those running stopped (and stored) when it stops."""
     registry = LiveRegistry()
     app.state.live_recordings = registry
     router = APIRouter(dependencies=[Depends(require_token)], responses=ERRORS, tags=["recordings"])
@@ -246,7 +311,8 @@ def install_live_routes(app: FastAPI) -> None:
 
     @asynccontextmanager
     async def lifespan(a: FastAPI) -> AsyncIterator[Any]:
-        async with inner(a) as state:
+        async with inner(a) as state:  # the data directory is this server's now: what a killed one left is salvaged
+            await run_in_threadpool(registry.salvage, a.state.recordings)
             try:
                 yield state
             finally:

@@ -3,6 +3,8 @@ stored like an upload; refused unless the operator allows it."""
 
 from __future__ import annotations
 
+import os
+import signal
 import socket
 import subprocess
 import sys
@@ -12,6 +14,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from conftest import REPO
+from patience import deadline as give_up_at
 from service_helpers import InlineExecutor
 
 with warnings.catch_warnings():
@@ -100,3 +104,53 @@ def test_live_recording_that_cannot_start_answers_422_with_the_reason(tmp_path: 
     r = client.post("/recordings/live", json={"url": url.format(free=_free_port())})
     assert r.status_code == 422 and expected in r.json()["detail"], r.text
     assert client.get("/recordings/live").json() == []
+
+
+def test_a_live_recording_of_a_killed_server_is_salvaged_when_it_starts_again(tmp_path: Path, robot: str) -> None:
+    """kill -9 of `slamreplay serve` while it records a live stream: started again, it salvages the .partial into a
+    recording like any upload, every message written out before the kill in it, listed as done."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import crash_suite_service as cs
+
+    data = tmp_path / "serve-data"
+    with cs.server(data, tmp_path / "serve.log", workers=1, env={"SLAMREPLAY_ALLOW_LIVE_RECORDING": "true"}) as (
+            proc, client):
+        r = client.post("/recordings/live", json={"url": robot})
+        assert r.status_code == 201, r.text
+        task_id = r.json()["id"]
+        deadline = give_up_at(20)
+        while (counted := client.get(f"/recordings/live/{task_id}").json()["messages"]) < 200:
+            assert time.monotonic() < deadline, "the live recording did not grow"
+            time.sleep(0.1)
+        time.sleep(1.5)  # the chunk in progress is written out every second: what was counted is on disk
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    folder = data / "recordings" / f".live-{task_id}"
+    assert (folder / "live.mcap.partial").exists() and not (folder / "live.mcap").exists()
+    with cs.server(data, tmp_path / "serve2.log", workers=1) as (_, client):
+        listed = client.get("/recordings/live").json()
+        assert [(t["id"], t["state"], t["url"]) for t in listed] == [(task_id, "done", robot)], listed
+        task = listed[0]
+        assert task["end_reason"] == "the server stopped while recording: salvaged at its restart"
+        assert any(line.startswith("recovered ") for line in task["lines"]), task["lines"]
+        rec = task["recording"]
+        assert rec["message_count"] == task["messages"] >= counted >= 200
+        assert client.get(f"/recordings/{rec['id']}").status_code == 200
+    stored = data / "recordings" / f"{rec['id']}.mcap"
+    assert sum(1 for _ in RecordingReader(stored).messages()) == rec["message_count"]
+    assert not list((data / "recordings").glob(".live-*"))  # salvaged and stored: its folder is gone
+
+
+def test_a_live_recording_left_with_nothing_to_salvage_is_listed_failed_with_the_reason(tmp_path: Path) -> None:
+    """A killed server's live folder whose .partial holds no message: listed as failed, saying why; folder gone."""
+    folder = tmp_path / "data" / "recordings" / ".live-0123456789ab"
+    folder.mkdir(parents=True)
+    (folder / "task.json").write_text('{"url": "ws://robot:8765", "started_at": "2026-01-02T03:04:05+00:00"}')
+    (folder / "live.mcap.partial").write_bytes(b"")
+    with _client(tmp_path, allow=False) as client:
+        listed = client.get("/recordings/live").json()
+    assert [(t["id"], t["state"], t["url"], t["recording"]) for t in listed] == [
+        ("0123456789ab", "failed", "ws://robot:8765", None)]
+    assert listed[0]["error"].startswith("the server stopped while recording; live.mcap.partial cannot be salvaged")
+    assert "is empty" in listed[0]["error"] and listed[0]["started_at"].startswith("2026-01-02T03:04:05")
+    assert not folder.exists()

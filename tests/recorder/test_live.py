@@ -279,6 +279,19 @@ def test_live_odometry_only_on_tf_is_composed_as_record_ros2_does(tmp_path: Path
     assert tf.written == 80  # the poses composed through it
 
 
+def test_live_frame_options_reach_the_recording() -> None:
+    """--base-frame, --odom-frame and --ground-truth-frame choose the frames /tf is composed between."""
+    from slamreplay.api.cli.command import build_parser
+    from slamreplay.api.cli.live_cli import live_options
+
+    args = build_parser().parse_args(["record", "live", "ws://robot:8765", "--out", "x.mcap", "--base-frame",
+                                      "chassis", "--odom-frame", "wheel_odom", "--ground-truth-frame", "map"])
+    o = live_options(args)
+    assert (o.base_frame, o.odom_frame, o.ground_truth_frame) == ("chassis", "wheel_odom", "map")
+    o = live_options(build_parser().parse_args(["record", "live", "ws://robot:8765", "--out", "x.mcap"]))
+    assert (o.base_frame, o.odom_frame, o.ground_truth_frame) == ("base_link", "odom", None)
+
+
 def test_live_kill9_leaves_a_partial_that_recover_salvages(sim: Path, tmp_path: Path, peers: list[Peer]) -> None:
     """kill -9 of `slamreplay record live` mid-way: FILE.partial, and `recover` keeps every message flushed."""
     peers.append(peer := Peer(tmp_path, sim, "--speed", "10"))  # 30 s of simulation in 3 s
