@@ -89,3 +89,17 @@ def test_a_diff_names_its_runs_without_the_machines_paths(tmp_path: Path, monkey
     assert run_name(tmp_path / "runs" / "a") == "runs/a"
     assert run_name("runs/b") == "runs/b"
     assert run_name("/elsewhere/home/me/demo/sim-landmarks--dslam") == "demo/sim-landmarks--dslam"
+
+
+def test_snapshot_without_a_vulkan_driver_names_the_packages(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`slamreplay snapshot` on a headless machine without Vulkan says which Debian packages the README names."""
+    import ctypes.util
+
+    from slamreplay.replay.errors import ReplayError
+    from slamreplay.replay.tools import snapshot
+
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: None)
+    with pytest.raises(ReplayError, match=r"apt-get install mesa-vulkan-drivers libvulkan1"):
+        snapshot.check_graphics()
+    readme = (REPO / "README.md").read_text()
+    assert "mesa-vulkan-drivers libvulkan1" in readme

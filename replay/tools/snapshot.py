@@ -34,7 +34,8 @@ from slamreplay.replay.engine.views import STEP
 from slamreplay.replay.errors import ReplayError
 
 VULKAN_ICD_DIRS = ("/usr/share/vulkan/icd.d", "/etc/vulkan/icd.d", "/usr/local/share/vulkan/icd.d")
-INSTALL_HINT = "apt-get install mesa-vulkan-drivers libvulkan1 (Debian/Ubuntu: Mesa's Vulkan software rasterizer)"
+INSTALL_HINT = ("on Debian/Ubuntu without a GPU, Mesa's Vulkan software rasterizer: "
+                "sudo apt-get install mesa-vulkan-drivers libvulkan1 (make viewer-deps in a checkout)")
 TOAST_S = 6.0  # the viewer's start-up notifications fade after about 5 s
 
 
