@@ -85,10 +85,11 @@ readme-figures: $(STAMP)
 # The README's viewer pictures: every demo pipeline and a diff, rendered by `slamreplay snapshot` into docs/images/
 # from a fresh demo of a commit (HEAD, or REV=...; exported, so the work tree never reaches a picture), each with
 # its record in docs/images/pictures.json (commit, sha256, the metrics it shows), which `make test-docs` checks.
-# About 4 minutes on 2 cores.
+# With the public datasets in DATA, also the pictures of docs/real-data.md (MRCLAM's five robots, Victoria Park).
+# About 4 minutes on 2 cores, 11 with the datasets. The compare report's picture: bash docs/make_compare_report.sh.
 REV ?= HEAD
 snapshots: $(STAMP) viewer-deps
-	$(BIN)/python docs/make_snapshots.py --out docs/images --rev $(REV) $(ARGS)
+	$(BIN)/python docs/make_snapshots.py --out docs/images --rev $(REV) $(if $(wildcard $(DATA)),--data $(DATA)) $(ARGS)
 
 # The Ray executor against a local Ray instance: installs the ray extra (about 20 s, 290 MB), then about
 # a minute of tests, most of it Ray's start-up; apart from `make test` so that it needs no Ray. CI runs both.

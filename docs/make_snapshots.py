@@ -37,6 +37,17 @@ PICTURES = (
     ("sim-corridor-navigation--topometric-nav", ("Navigation",), "topometric-nav", "end"),
 )
 DIFF = ("sim-landmarks--dslam", "sim-landmarks--ekfslam", ("Summary", "Metrics A vs B"))
+# With --data (the public datasets, as `make demo` finds them): the pictures of docs/real-data.md, each its run's
+# Summary tab. (dataset folder, `slamreplay record` arguments, [(run, `slamreplay run` arguments, picture)])
+DATASETS = (
+    ("mrclam-dataset6", ["mrclam", "{src}", "--robot", "all"],
+     [("mrclam-all-dslam", ["--pipeline", "dslam-multi"], "dslam-multi-summary.png")]),
+    ("victoria-park-isam", ["victoria-park", "{src}"],
+     [("vp-ekfslam", ["--pipeline", "ekfslam"], "victoria-park-ekfslam.png"),
+      ("vp-dslam-composite", ["--pipeline", "dslam", "--set", "composite_max_scans=400", "--set",
+                              "composite_max_distance_m=20"], "victoria-park-dslam.png"),
+      ("vp-slsjf", ["--pipeline", "slsjf"], "victoria-park-slsjf.png")]),
+)
 MAX_BYTES = 300_000
 
 
@@ -137,6 +148,41 @@ def render(demo: Path, out: Path, size: tuple[int, int], commit: str, records_pa
     return 0
 
 
+def render_datasets(data: Path, out: Path, size: tuple[int, int], commit: str, records_path: Path) -> int:
+    """The dataset pictures (DATASETS) from runs made here of the public datasets in ``data``; each recorded with
+    the metrics its Summary tab shows (not checked against the demo: `make test-docs` has no datasets)."""
+    sys.path.insert(0, str(REPO / "docs"))
+    import pictures
+
+    from slamreplay.replay.tools.snapshot import snapshot
+
+    cli = [sys.executable, "-m", "slamreplay.api.cli"]
+    records = pictures.load(records_path)
+    for folder, record_args, runs in DATASETS:
+        src = data / folder
+        if not src.is_dir():
+            print(f"{src}: not there, its pictures are kept as they are")
+            continue
+        recording = Path.cwd() / f"{folder}.mcap"
+        subprocess.run([*cli, "record", *[a.format(src=src) for a in record_args], "--out", str(recording)],
+                       check=True, stdout=subprocess.DEVNULL)
+        for run, run_args, name in runs:
+            run_dir = Path.cwd() / run
+            subprocess.run([*cli, "run", str(recording), *run_args, "--out", str(run_dir), "--quiet"], check=True,
+                           stdout=subprocess.DEVNULL)
+            with tempfile.TemporaryDirectory() as tmp:
+                shot = next(s for s in snapshot(run_dir, Path(tmp), size=size) if s.tab == "Summary")
+                size_b = save_small(shot.path, out / name)
+            doc = json.loads((run_dir / "metrics.json").read_text())["metrics"]
+            how = f"{folder}: slamreplay record {record_args[0]}, run {' '.join(run_args)}"
+            records[name] = {"made_by": f"{MADE_BY} with --data", "commit": commit,
+                             "sha256": pictures.sha256(out / name), "source": how,
+                             "metrics": {f"{run}/{k}": float(v["value"]) for k, v in doc.items()}}
+            print(f"{name}: {size_b / 1000:.0f} kB")
+    pictures.save(records, records_path)
+    return 0
+
+
 def export(rev: str, dst: Path) -> tuple[str, Path]:
     """(full commit id, package root) of ``rev`` exported to ``dst``: its tracked files and a ``slamreplay``
     package folder of links, which PYTHONPATH puts before the checkout's editable install."""
@@ -158,6 +204,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "images")
     ap.add_argument("--rev", default="HEAD", help="the commit to make the pictures from (default HEAD)")
     ap.add_argument("--size", default="1600x900", help="viewer size (default: 1600x900)")
+    ap.add_argument("--data", type=Path, default=None,
+                    help="the public datasets (../shared/data): the pictures of docs/real-data.md too (7 more minutes)")
     ap.add_argument("--records", type=Path, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--commit", default=None, help=argparse.SUPPRESS)  # set by the outer pass: run from an export
     args = ap.parse_args(argv)
@@ -167,16 +215,20 @@ def main(argv: list[str] | None = None) -> int:
             commit, pkg = export(args.rev, Path(tmp))
             print(f"make snapshots: from commit {commit[:12]} (exported; the work tree is not used)")
             env = {**os.environ, "PYTHONPATH": str(pkg)}
+            data = ["--data", str(args.data.resolve())] if args.data is not None else []
             return subprocess.run([sys.executable, str(Path(tmp) / "src" / "docs" / "make_snapshots.py"),
                                    "--out", str(args.out.resolve()), "--size", args.size, "--commit", commit,
-                                   "--records", str((REPO / "docs" / "images" / "pictures.json").resolve())],
+                                   "--records", str((REPO / "docs" / "images" / "pictures.json").resolve()), *data],
                                   env=env, cwd=tmp).returncode
     from slamreplay.api.cli.demo import run_demo
 
     demo = Path.cwd() / "demo"
     if run_demo(demo, None, quiet=True) != 0:
         return 1
-    return render(demo, args.out, (w, h), args.commit, args.records)
+    status = render(demo, args.out, (w, h), args.commit, args.records)
+    if status == 0 and args.data is not None:
+        status = render_datasets(args.data, args.out, (w, h), args.commit, args.records)
+    return status
 
 
 if __name__ == "__main__":
