@@ -98,7 +98,8 @@ def log_tail(run_dir: Path, lines: int = LOG_TAIL_LINES) -> str:
 
 
 def plots(run_dir: Path) -> list[str]:
-    """Inline SVGs: the trajectory against ground truth, and the position error over time (where the files are)."""
+    """Inline SVGs: the trajectory against ground truth, the position error and the robot NEES over time (where the
+    files are)."""
     from slamreplay.api.web.svg_plots import error_svg, trajectory_svg
     from slamreplay.replay.engine.trajectory import TRUTH_TUM_ARTIFACT, TUM_ARTIFACT, paired_with_truth, read_tum
 
@@ -119,6 +120,12 @@ def plots(run_dir: Path) -> list[str]:
         paired = paired_with_truth(t, est, t_truth)
         if paired is not None:
             out.append(error_svg(t_truth - t_truth[0], np.hypot(*(paired[:, :2] - truth[:, :2]).T)))
+    from slamreplay.api.web.compare_plots import nees_svg, robot_nees
+
+    if (nees := robot_nees(run_dir)) is not None:  # its NEES over time, as the compare page draws it
+        binned = f" (means of {nees.per_point} scans)" if nees.per_point else ""
+        out.append(nees_svg([("estimate", nees.t, nees.values)], [nees],
+                            f"robot pose NEES over time{binned}; shaded: where a consistent filter's NEES lies"))
     return out
 
 

@@ -1,5 +1,6 @@
 """Plots drawn on the server as inline SVG (no chart library, nothing fetched): a run's trajectory against
-ground truth, and its position error over time, each with axes, units and a legend.
+ground truth, and its position error over time, each with axes, units and a legend; several runs' paths overlaid,
+and their per-step curves (position error, NEES over its consistency band) on one time axis.
 
 The palette is the project's: ground truth grey, estimate blue, dead reckoning orange.
 """
@@ -14,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 TRUTH, ESTIMATE, DEAD_RECKONING = "#7f7f7f", "#1f77b4", "#ff7f0e"
+BAND_OPACITY = 0.25  # a consistency band: the truth's grey, light enough that every run's curve shows over it
 F64 = NDArray[np.float64]
 
 
@@ -78,12 +80,17 @@ class _Frame:
         return "".join(out)
 
 
-def _legend(entries: Sequence[tuple[str, str]], x: float, y: float) -> str:
+def _legend(entries: Sequence[tuple[str, str]], x: float, y: float, shaded: int = 0) -> str:
+    """A line of ``colour`` and its label per entry, one below another; the first ``shaded`` entries are areas
+    (a band), drawn as a filled square."""
     out = []
     for i, (label, colour) in enumerate(entries):
         yy = y + i * 16
-        out.append(f'<line x1="{x}" y1="{yy}" x2="{x + 18}" y2="{yy}" stroke="{colour}" stroke-width="3"/>'
-                   f'<text x="{x + 23}" y="{yy + 4}">{html.escape(label)}</text>')
+        if i < shaded:
+            mark = f'<rect x="{x}" y="{yy - 6}" width="18" height="12" fill="{colour}" fill-opacity="{BAND_OPACITY}"/>'
+        else:
+            mark = f'<line x1="{x}" y1="{yy}" x2="{x + 18}" y2="{yy}" stroke="{colour}" stroke-width="3"/>'
+        out.append(f'{mark}<text x="{x + 23}" y="{yy + 4}">{html.escape(label)}</text>')
     return f'<g class="legend">{"".join(out)}</g>'
 
 
@@ -177,23 +184,33 @@ def overlay_svg(runs: Sequence[tuple[str, F64]], truths: Sequence[tuple[str, F64
 
 
 def curves_svg(curves: Sequence[tuple[str, F64, F64]], y_label: str, title: str, width: int = 640,
-               height: int = 300) -> str:
+               height: int = 300, bands: Sequence[tuple[str, float, float]] = (), legend_x: int | None = None) -> str:
     """Several runs' per-step curves on one time axis from 0, one colour each in ``RUN_COLOURS`` order (the
     trajectory overlay's, so the legends agree), with the legend below the plot.
 
     Parameters
     ----------
     curves : (label, (n,) float64 time since the run's first pose with ground truth (s), (n,) float64 value), in
-        legend order; empty curves keep their colour but are not drawn
+        legend order; empty curves keep their colour but are not drawn; NaN values are left out
+    bands : (label, low, high): value ranges shaded grey across the plot under the curves (a NEES's consistency
+        band), first in the legend
+    legend_x : where the legend's marks start (default: the plot area's left edge)
     """
-    drawn = [(label, np.column_stack([t, y]), RUN_COLOURS[i % len(RUN_COLOURS)])
-             for i, (label, t, y) in enumerate(curves) if len(t)]
+    drawn = [(label, rows[np.isfinite(rows).all(axis=1)], RUN_COLOURS[i % len(RUN_COLOURS)])
+             for i, (label, t, y) in enumerate(curves) if len(t) for rows in [np.column_stack([t, y])]]
+    drawn = [d for d in drawn if len(d[1])]
     if not drawn:
         return ""
     both = np.vstack([rows for _, rows, _ in drawn])
-    t_max, y_max = float(both[:, 0].max()) or 1.0, float(both[:, 1].max()) or 1.0
+    t_max = float(both[:, 0].max()) or 1.0
+    y_max = max([float(both[:, 1].max()), *(high for _, _, high in bands)]) or 1.0
     frame = _Frame((0.0, t_max), (0.0, y_max * 1.08), width, height)
     body = frame.axes("time since the first pose with ground truth (s)", y_label)
+    for _, low, high in bands:
+        top, bottom = frame.py(high), frame.py(max(low, 0.0))
+        body += (f'<rect class="band" x="{frame.left}" y="{top:.1f}" width="{frame.right - frame.left}" '
+                 f'height="{bottom - top:.1f}" fill="{TRUTH}" fill-opacity="{BAND_OPACITY}"/>')
     body += "".join(frame.line(thin(rows), colour) for _, rows, colour in drawn)
-    body += _legend([(label, colour) for label, _, colour in drawn], frame.left, height + 10)
-    return _svg(width, height + 16 * len(drawn) + 8, title, body)
+    entries = [(label, TRUTH) for label, _, _ in bands] + [(label, colour) for label, _, colour in drawn]
+    body += _legend(entries, frame.left if legend_x is None else legend_x, height + 10, shaded=len(bands))
+    return _svg(width, height + 16 * len(entries) + 8, title, body)

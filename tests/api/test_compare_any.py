@@ -182,3 +182,55 @@ def test_position_error_over_time_overlaid_in_the_paths_colours(client: TestClie
         peak = float(np.hypot(*(paired[:, :2] - truth[:, :2]).T).max())
         assert peak == pytest.approx(jobs.metric_values(job)["robot_max_error_m"], rel=1e-6)  # TUM: 9 decimals
     assert checked == 2
+
+
+def test_nees_over_time_with_its_band_in_the_paths_colours(client: TestClient, runs: dict[str, str]) -> None:
+    """Issue 41: the compare page draws the robot NEES over time of each run that has one (dslam's nees.json: a
+    point per scan), in its trajectory's colour, over one shaded chi2(3) 95 % band; the odometry runs say why they
+    have none; runs without a NEES at all get no NEES plot."""
+    from scipy.stats import chi2
+
+    from slamreplay.api.service.compare_runs import runs_of
+    from slamreplay.api.web.compare_plots import nees_plot
+    from slamreplay.api.web.svg_plots import RUN_COLOURS
+    from slamreplay.replay.evaluation.nees_series import NEES_ARTIFACT, read_nees
+
+    jobs = client.app.state.jobs  # type: ignore[attr-defined]
+    ids = [runs["odo"], runs["dslam"], runs["odo1"]]
+    svg, without, note = nees_plot(jobs, runs_of(jobs, ids))
+    robot = read_nees((jobs.run_dir(runs["dslam"]) / NEES_ARTIFACT).read_bytes())["robot"]
+    assert robot.mean == pytest.approx(jobs.metric_values(runs["dslam"])["robot_nees_mean"], rel=1e-12)
+    lines = re.findall(r'<polyline points="([^"]*)" fill="none" stroke="([^"]+)"', svg)
+    assert [colour for _, colour in lines] == [RUN_COLOURS[1]]  # dslam is the second run: the paths' 2nd colour
+    assert len(lines[0][0].split()) == len(robot.nees) == robot.steps
+    assert svg.count('class="band"') == 1
+    low, high = chi2.ppf(0.025, 3), chi2.ppf(0.975, 3)
+    assert f"consistent, 95 % of chi2(3): {low:.3g} to {high:.3g}" in svg and f"2: {runs['dslam'][:8]} (dslam" in svg
+    assert without == [f"1: {runs['odo'][:8]} (odometry, seed 0): odometry estimates no pose covariance, so it has "
+                       "no NEES", f"3: {runs['odo1'][:8]} (odometry, seed 1): odometry estimates no pose covariance, "
+                       "so it has no NEES"]
+    assert note == ""  # 8 scans: drawn as they are
+    page = client.get("/ui/compare", params={"runs": ",".join(ids)}).text
+    assert page.count('id="nees-over-time"') == 1 and page.count("<li>1: ") == 1 and 'id="no-nees"' in page
+    two = client.get("/ui/compare", params={"runs": f"{runs['odo']},{runs['dslam']}"}).text
+    assert 'id="nees-over-time"' in two and "A: " in two[two.index('id="no-nees"'):]
+    none = client.get("/ui/compare", params={"runs": f"{runs['odo']},{runs['odo1']}"}).text
+    assert 'id="error-over-time"' in none and "nees-over-time" not in none and "no-nees" not in none
+    assert nees_plot(jobs, runs_of(jobs, [runs["odo"], runs["odo1"]])) == ("", [], "")
+
+
+def test_a_long_nees_series_is_drawn_as_means_of_its_steps() -> None:
+    """1,000 points become 143 bins of 7 (the last of 6), each the mean of its steps weighted by the steps each
+    point stands for; 150 points or fewer are drawn as they are."""
+    import numpy as np
+
+    from slamreplay.api.web.compare_plots import NEES_POINTS, binned
+
+    t, v = np.arange(1000) * 0.5, np.arange(1000, dtype=np.float64)
+    tb, vb, per = binned(t, v, np.ones(1000, np.int64))
+    assert (len(tb), per, NEES_POINTS) == (143, 7, 150) and vb[0] == 3.0 and vb[-1] == np.mean(v[994:])
+    assert tb[1] == 3.5
+    counts = np.r_[np.full(999, 2), 1]  # a file's bins: 2 steps a point, the last 1
+    _, vc, per = binned(t, v, counts)
+    assert per == 14 and vc[-1] == np.average(v[994:], weights=counts[994:])
+    assert binned(t[:150], v[:150], np.ones(150))[2] == 0

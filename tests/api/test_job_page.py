@@ -56,15 +56,18 @@ def test_config_with_sources_and_metrics_with_meaning(served: tuple[TestClient, 
 
 
 def test_plots_are_inline_svg_with_axes_and_legend(served: tuple[TestClient, str, str]) -> None:
-    """A run with trajectory.tum and truth.tum: its path over truth and the error over time, as inline SVG."""
+    """A run with trajectory.tum, truth.tum and nees.json: its path over truth, the error over time and its robot
+    NEES over time over its chi2(3) band, as inline SVG."""
     client, good, _ = served
     page = client.get(f"/ui/jobs/{good}").text
     svgs = re.findall(r"<svg .*?</svg>", page, re.S)
-    assert len(svgs) == 2
-    path, error = svgs
+    assert len(svgs) == 3
+    path, error, nees = svgs
     assert "x (m)" in path and "y (m)" in path and "ground truth" in path and "estimate" in path
     assert 'stroke="#7f7f7f"' in path and 'stroke="#1f77b4"' in path  # truth grey, estimate blue
     assert "position error (m)" in error and "(s)" in error
+    assert "robot pose NEES" in nees and nees.count('class="band"') == 1 and "of chi2(3): 0.216 to 9.35" in nees
+    assert re.findall(r'<polyline [^>]*stroke="([^"]+)"', nees) == ["#1f77b4"]  # the estimate's NEES, blue
     assert "http" not in page.split('id="plots"')[1].split("</section>")[0].replace("http://www.w3.org/2000/svg", "")
 
 

@@ -188,6 +188,19 @@ def both_sizes(page: Any, name: str) -> None:
     page.set_viewport_size(LAPTOP)
 
 
+def readme_image(page: Any, selector: str, name: str) -> None:
+    """With SLAMREPLAY_README_IMAGES (e.g. docs/images): the README's picture ``name`` of an element, in 256 colours
+    (as tests/web/test_pages.py writes its own)."""
+    folder = os.environ.get("SLAMREPLAY_README_IMAGES")
+    if not folder:
+        return
+    from PIL import Image
+
+    out = Path(folder) / f"{name}.png"
+    page.locator(selector).screenshot(path=str(out))
+    Image.open(out).convert("RGB").quantize(256, dither=Image.Dither.NONE).save(out, optimize=True)
+
+
 def option_starting(page: Any, select: str, text: str) -> str:
     """The value of the option of ``select`` whose label starts with ``text``."""
     value: str = page.eval_on_selector(select, "(s, t) => [...s.options].find(o => o.text.startsWith(t)).value", text)
@@ -347,6 +360,10 @@ def test_compare_two_runs_of_different_pipelines(page: Any, server: str, tmp_pat
     assert g > r + 40 and g > b + 20  # green text
     assert page.locator("#plots figure:first-of-type svg polyline").count() >= 3  # A, B and ground truth
     assert page.locator("#error-over-time svg polyline").count() == 2  # A's and B's position error over time
+    assert page.locator("#nees-over-time svg polyline").count() == 1  # B's (dslam's) NEES: odometry has none
+    assert page.locator("#nees-over-time svg rect.band").count() == 1
+    assert page.inner_text("#no-nees").startswith("A: ") and "odometry estimates no pose covariance" in \
+        page.inner_text("#no-nees")
     both_sizes(page, "compare-two-runs")
     if SHOTS is not None:
         page.screenshot(path=str(SHOTS / "compare-two-runs-full.png"), full_page=True)
@@ -355,6 +372,17 @@ def test_compare_two_runs_of_different_pipelines(page: Any, server: str, tmp_pat
     page.goto(server + f"/ui/compare?runs={odo[:8]},{dslam[:8]},{third[:8]}")  # the page's short ids do
     assert page.locator("#plots figure:first-of-type svg polyline").count() == 4  # three runs and the truth
     assert page.locator("#error-over-time svg polyline").count() == 3  # each run's position error over time
+    strokes = "els => els.map(e => e.getAttribute('stroke'))"
+    paths = page.locator("#plots figure:first-of-type svg polyline").evaluate_all(strokes)
+    nees = page.locator("#nees-over-time svg polyline").evaluate_all(strokes)
+    assert nees == paths[-2:] and len(set(nees)) == 2  # dslam's and ekfslam's NEES in their paths' colours
+    assert page.locator("#nees-over-time svg rect.band").count() == 1  # both 3-dof against the truth: one band
+    assert page.locator("#no-nees li").count() == 1 and page.inner_text("#no-nees").startswith("1: ")
+    page.set_viewport_size(PHONE)
+    box = page.locator("#nees-over-time svg").bounding_box()
+    assert box is not None and box["width"] / 420 * 11 >= 9  # its 11-unit text at least 9 px on a phone
+    page.set_viewport_size(LAPTOP)
+    readme_image(page, "#nees-over-time", "web-compare-nees-laptop")
     assert page.locator("#metrics-side-table tr").first.locator("th.n").count() == 3
     assert page.locator("#pairs li").count() == 3
     both_sizes(page, "compare-three-runs")
