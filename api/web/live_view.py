@@ -66,8 +66,10 @@ def _xy(curve: dict[str, Any] | None) -> np.ndarray | None:
 
 
 async def follow_rrd(run_dir: Path, running: Callable[[], bool], poll_s: float = POLL_S,
-                     wait_start_s: float = 600.0) -> AsyncIterator[bytes]:
-    """The bytes of the run's ``.rrd`` as they are written, ending once the run has ended and all is sent.
+                     wait_start_s: float = 600.0, prefix: bytes = b"") -> AsyncIterator[bytes]:
+    """The bytes of the run's ``.rrd`` as they are written, ending once the run has ended and all is sent;
+    ``prefix`` first (a running job's: the layout that follows the newest step,
+    ``slamreplay.replay.engine.views.following_layout_rrd``).
 
     The run writes ``RRD_PARTIAL`` and renames it to ``run.rrd`` when complete: the file opened here is the
     same file after the rename, so reading it on to its end, once ``running()`` says no, sends the whole
@@ -75,6 +77,8 @@ async def follow_rrd(run_dir: Path, running: Callable[[], bool], poll_s: float =
     that ends before writing any (it failed early) sends nothing; a client that goes away ends it (the server
     stops iterating).
     """
+    if prefix:
+        yield prefix
     partial, final = run_dir / RRD_PARTIAL, run_dir / "run.rrd"
     fd = None
     waited = 0.0

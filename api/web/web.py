@@ -284,10 +284,14 @@ def shared_live_rrd(request: Request, key: Key, job_id: JobPath, jobs: JobsDep) 
     """The job's .rrd as the run writes it, until it ends (the viewer follows it live; api.live_view)."""
     from slamreplay.api.service.store import ACTIVE
     from slamreplay.api.web.live_view import follow_rrd
+    from slamreplay.replay.engine.views import following_layout_rrd
 
     _check_key(request, key, f"/jobs/{job_id}/live.rrd")
-    jobs.get(job_id)
-    return StreamingResponse(follow_rrd(jobs.run_dir(job_id), lambda: jobs.get(job_id).status in ACTIVE),
+    job = jobs.get(job_id)
+    # a running job's viewer follows the newest step until the run's own layout arrives at its end
+    prefix = following_layout_rrd(job.pipeline, job.id) if job.status in ACTIVE else b""
+    return StreamingResponse(follow_rrd(jobs.run_dir(job_id), lambda: jobs.get(job_id).status in ACTIVE,
+                                        prefix=prefix),
                              media_type="application/octet-stream", headers={"Cache-Control": "no-store"})
 
 

@@ -223,6 +223,19 @@ def tab(name: str, *parts: rrb.View | rrb.Container, columns: Sequence[float] | 
     return rrb.Horizontal(*parts, column_shares=list(columns) if columns else None, name=name)
 
 
+def following_layout_rrd(kind: str, recording_id: str) -> bytes:
+    """A blueprint alone, as ``.rrd`` bytes, for the run ``recording_id`` of ``kind`` watched while it runs: the
+    viewer's own layout of what has arrived, the time cursor following the newest step (the run's own layout is
+    sent when it ends: its bounds come from the whole run). Sent ahead of the growing ``run.rrd``: Rerun's decoder
+    reads concatenated streams, and the run's layout, active when it arrives, replaces this one. The run's
+    recording id, so that the stream's store is the run's (another id would list an empty recording)."""
+    stream = rr.RecordingStream(app_id(kind), recording_id=recording_id, send_properties=False)
+    memory = stream.memory_recording()
+    stream.send_blueprint(rrb.Blueprint(rrb.TimePanel(timeline=STEP, play_state="following"), auto_layout=True,
+                                        auto_views=True), make_active=True, make_default=False)
+    return bytes(memory.drain_as_bytes())
+
+
 def layout(*tabs: rrb.Container) -> rrb.Blueprint:
     """A run's blueprint: its tabs, the first one active; panels collapsed, time paused on ``step``."""
     return rrb.Blueprint(rrb.Tabs(*tabs, active_tab=0), rrb.TimePanel(state="collapsed", timeline=STEP,

@@ -180,3 +180,41 @@ def test_follow_rrd_sends_the_whole_file(tmp_path: Path) -> None:
     got = asyncio.run(read())
     writer.join()
     assert got == b"".join(pieces)
+
+
+def test_a_running_jobs_stream_follows_the_newest_step(tmp_path: Path, tiny_recording: Path) -> None:
+    """A running job's live.rrd starts with a layout whose time cursor follows the newest step (the viewer once
+    stood at step 0 while the run went on), then the run's own file: Rerun's decoder reads both, the run's
+    layout (sent at its end, active) after the following one. An ended job's stream is its file alone."""
+    import subprocess
+
+    from slamreplay.api.web.live_view import follow_rrd
+    from slamreplay.replay.engine.views import following_layout_rrd
+    from slamreplay.replay.runs.rrd_compare import rerun_cli
+    from slamreplay.replay.runs.run import run_recording
+
+    cli = rerun_cli()
+    if cli is None:
+        pytest.skip("the rerun command is not installed with rerun-sdk")
+    run_recording(tiny_recording, "odometry", tmp_path / "run", seed=0, run_id="f" * 32)
+    following = following_layout_rrd("odometry", "f" * 32)
+
+    async def read(prefix: bytes) -> bytes:
+        return b"".join([b async for b in follow_rrd(tmp_path / "run", lambda: False, prefix=prefix)])
+
+    whole = (tmp_path / "run" / "run.rrd").read_bytes()
+    assert asyncio.run(read(b"")) == whole
+    live = asyncio.run(read(following))
+    assert live == following + whole
+    (tmp_path / "live.rrd").write_bytes(live)
+    done = subprocess.run([cli, "rrd", "print", str(tmp_path / "live.rrd")], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    follow = next(i for i, x in enumerate(lines) if "TimePanelBlueprint:play_state" in x)
+    activations = [i for i, x in enumerate(lines) if x.startswith("BlueprintActivationCommand") and
+                   "make_active: true" in x]
+    assert len(activations) == 2 and follow < activations[0]  # ours first, the run's own last
+    assert any("/trajectory/estimate" in x for x in lines[activations[0]:])  # then the run's data
+    recordings = {lines[i + 2].strip().strip('",') for i, x in enumerate(lines) if x.strip() == "Recording,"}
+    assert recordings == {"f" * 32}  # one recording, the run's: no empty one beside it in the viewer
