@@ -26,21 +26,6 @@ def _timed(jobs: JobService, job_id: str, name: str) -> tuple[Any, Any] | None:
 
 
 NEES_WIDTH = 420  # a narrow viewBox: the NEES plot and its legend stay readable at 390 px (runs_charts' width)
-NEES_POINTS = 150  # a longer NEES series is drawn as means of consecutive scans: overlaid runs stay apart
-
-
-def binned(t: Any, values: Any, counts: Any, most: int = NEES_POINTS) -> tuple[Any, Any, int]:
-    """(times of each bin's first point, the bins' means weighted by the steps each point stands for, scans a bin)
-    of at most ``most`` bins of consecutive points; the input and 0 when it has at most ``most`` points."""
-    import numpy as np
-
-    stride = -(-len(values) // most)
-    if stride <= 1:
-        return t, values, 0
-    starts = np.arange(0, len(values), stride)
-    weights = np.where(np.isfinite(values), counts, 0)
-    sums = np.add.reduceat(np.where(np.isfinite(values), values, 0.0) * weights, starts)
-    return t[starts], sums / np.maximum(np.add.reduceat(weights, starts), 1), int(np.sum(counts[:stride]))
 
 
 def coloured(jobs: JobService, runs: list[Run], tags: tuple[str, ...] | None = None) -> list[tuple[str, Run, Any]]:
@@ -104,15 +89,20 @@ def _why_no_nees(jobs: JobService, r: Run) -> str:
 @dataclass(frozen=True, slots=True)
 class RobotNees:
     """A run's robot pose NEES as the plots draw it: ``t`` (s) from its first pose with ground truth (the error
-    plot's origin), ``values`` (bin means past `NEES_POINTS`, ``per_point`` scans each; 0: one a point), its
-    ``steps`` and its band with the band's legend text."""
+    plot's origin), ``values`` the NEES of every ``stride``-th of its ``steps`` scans (nees.json's points: single
+    scans' values, which the band is the band of), and its band with the band's legend text."""
 
     t: Any
     values: Any
-    per_point: int
+    stride: int
     steps: int
     band: tuple[float, float]
     band_text: str
+
+
+def ordinal(n: int) -> str:
+    """``2nd``, ``3rd``, ``11th``, ``21st``."""
+    return f"{n}{'th' if 10 <= n % 100 <= 20 else {1: 'st', 2: 'nd', 3: 'rd'}.get(n % 10, 'th')}"
 
 
 def robot_nees(run_dir: Path) -> RobotNees | None:
@@ -129,11 +119,10 @@ def robot_nees(run_dir: Path) -> RobotNees | None:
     start = 0.0
     with contextlib.suppress(OSError, ValueError, IndexError):
         start = robot.t0_ns * 1e-9 - float(read_tum((run_dir / TRUTH_TUM_ARTIFACT).read_text())[0][0])
-    t, values, per_point = binned(start + robot.t_s, robot.nees, robot.counts)
     (low, high), share = robot.band, f"{100 * robot.level:g} %"
     text = (f"consistent, {share} of chi2({robot.dof}): {low:.3g} to {high:.3g}" if low > 0
             else f"consistent, {share}: 0 to {high:.3g} (the truth is an estimate)")
-    return RobotNees(t, values, per_point, robot.steps, robot.band, text)
+    return RobotNees(start + robot.t_s, robot.nees, robot.stride, robot.steps, robot.band, text)
 
 
 def nees_svg(curves: list[tuple[str, Any, Any]], series: list[RobotNees], title: str) -> str:
@@ -147,11 +136,11 @@ def nees_plot(jobs: JobService, runs: list[Run], tags: tuple[str, ...] | None = 
               drawn: list[tuple[str, Run, Any]] | None = None) -> tuple[str, list[str], str]:
     """An inline SVG of the robot pose NEES over time of each drawn run that has one (its ``nees.json``), in the
     trajectory overlay's colours and legend, over the consistency band shaded grey (each distinct band once); and a
-    line per drawn run without one saying why; and a note when a long series is drawn as bin means (`binned`).
+    line per drawn run without one saying why; and a note naming the long runs drawn at every k-th scan.
     ``("", [], "")`` when no run has a NEES: then there is nothing to say."""
     import numpy as np
 
-    curves, series, without, scans_a_point = [], [], [], []
+    curves, series, without, decimated = [], [], [], []
     for label, r, _ in coloured(jobs, runs, tags) if drawn is None else drawn:
         nees = robot_nees(jobs.run_dir(r.job.id))
         if nees is None:
@@ -160,14 +149,14 @@ def nees_plot(jobs: JobService, runs: list[Run], tags: tuple[str, ...] | None = 
             continue
         curves.append((label, nees.t, nees.values))
         series.append(nees)
-        if nees.per_point:
-            scans_a_point.append(f"{label.split(':')[0]}: {nees.steps:,} scans, {nees.per_point} a point")
+        if nees.stride > 1:
+            decimated.append(f"{label.split(':')[0]}: every {ordinal(nees.stride)} of {nees.steps:,} scans")
     if not series:
         return "", [], ""
     svg = nees_svg(curves, series, f"robot pose NEES over time of {len(series)} runs; shaded: where a consistent "
                    "filter's NEES lies")
-    note = (f"Drawn as means of consecutive scans ({'; '.join(scans_a_point)}); each scan's NEES is in the run's "
-            "run.rrd, and in its nees.json up to 1,000 points." if scans_a_point else "")
+    note = (f"Long runs are drawn at every k-th scan ({'; '.join(decimated)}), as their nees.json keeps them; each "
+            "scan's NEES is in the run's run.rrd, and the metric robot_nees_mean is over all." if decimated else "")
     return svg, without, note
 
 

@@ -120,12 +120,12 @@ def plots(run_dir: Path) -> list[str]:
         paired = paired_with_truth(t, est, t_truth)
         if paired is not None:
             out.append(error_svg(t_truth - t_truth[0], np.hypot(*(paired[:, :2] - truth[:, :2]).T)))
-    from slamreplay.api.web.compare_plots import nees_svg, robot_nees
+    from slamreplay.api.web.compare_plots import nees_svg, ordinal, robot_nees
 
     if (nees := robot_nees(run_dir)) is not None:  # its NEES over time, as the compare page draws it
-        binned = f" (means of {nees.per_point} scans)" if nees.per_point else ""
+        every = f" (every {ordinal(nees.stride)} of {nees.steps:,} scans)" if nees.stride > 1 else ""
         out.append(nees_svg([("estimate", nees.t, nees.values)], [nees],
-                            f"robot pose NEES over time{binned}; shaded: where a consistent filter's NEES lies"))
+                            f"robot pose NEES over time{every}; shaded: where a consistent filter's NEES lies"))
     return out
 
 

@@ -18,9 +18,10 @@ File format (``format`` 1)::
 
 ``t_s`` are seconds after ``t0_ns`` (rounded to the microsecond) and ``nees`` the values (6 significant
 digits). ``mean`` is the mean of all ``steps`` values at full precision: the metric's value. A run of more
-than ``MAX_POINTS`` steps is downsampled to consecutive bins of ``stride`` steps (the last bin may hold
-fewer): each point is the bin's mean at its first step's time, so that the weighted mean of the points is
-still the metric and a long run's file stays near 20 kB.
+than ``MAX_POINTS`` steps keeps every ``stride``-th step, the first included (``stride = ceil(steps /
+MAX_POINTS)``), so that a long run's file stays under about 20 kB. Decimated, not averaged: each point is
+one step's NEES, which the band is the band of (a mean of k steps would lie in a far narrower band, and
+steps of one run are correlated in time, so no band of a mean would be right); ``mean`` stays exact.
 """
 
 from __future__ import annotations
@@ -80,8 +81,8 @@ class NeesSeries:
 
 @dataclass(frozen=True, slots=True)
 class NeesCurve:
-    """One series as read back from ``nees.json``: ``t_s`` (k,) seconds after ``t0_ns``, ``nees`` (k,) the
-    points (bin means when ``stride`` > 1), ``counts`` (k,) the steps each point stands for."""
+    """One series as read back from ``nees.json``: ``t_s`` (k,) seconds after ``t0_ns``, ``nees`` (k,) the NEES
+    of every ``stride``-th of its ``steps`` (NaN where it was not finite); ``mean`` over all of them."""
 
     description: str
     dof: int
@@ -94,7 +95,6 @@ class NeesCurve:
     t0_ns: int
     t_s: NDArray[np.float64]
     nees: NDArray[np.float64]
-    counts: NDArray[np.int64]
 
 
 def _num(v: float, digits: int = 6) -> float | None:
@@ -104,14 +104,10 @@ def _num(v: float, digits: int = 6) -> float | None:
 
 def downsample(t_ns: NDArray[np.int64], values: NDArray[np.float64],
                most: int = MAX_POINTS) -> tuple[NDArray[np.int64], NDArray[np.float64], int]:
-    """(times of each bin's first step, bin means, stride): consecutive bins of ``stride = ceil(n / most)`` steps,
-    the last one possibly shorter; the input itself (stride 1) when it has at most ``most`` steps."""
-    n = len(values)
-    stride = max(1, math.ceil(n / most))
-    if stride == 1:
-        return t_ns, values, 1
-    starts = np.arange(0, n, stride)
-    return t_ns[starts], np.add.reduceat(values, starts) / np.diff(np.append(starts, n)), stride
+    """(times, values, stride) of every ``stride``-th step, the first included, ``stride = ceil(n / most)``: at
+    most ``most`` steps; the input itself (stride 1) when it has no more."""
+    stride = max(1, math.ceil(len(values) / most))
+    return t_ns[::stride], values[::stride], stride
 
 
 def nees_artifact(series: Mapping[str, NeesSeries], most: int = MAX_POINTS) -> bytes:
@@ -151,23 +147,14 @@ def read_nees(text: str | bytes) -> dict[str, NeesCurve]:
         for name, s in doc["series"].items():
             steps, stride = int(s["steps"]), int(s["stride"])
             k = len(s["nees"])
-            counts = np.full(k, stride, np.int64)
-            if k:
-                counts[-1] = steps - stride * (k - 1)
             out[str(name)] = NeesCurve(
                 str(s["description"]), int(s["dof"]), float(s["level"]), (float(s["band"][0]), float(s["band"][1])),
-                s.get("metric"), float(s["mean"]), steps, stride, int(s["t0_ns"]),
+                s.get("metric"), math.nan if s["mean"] is None else float(s["mean"]), steps, stride, int(s["t0_ns"]),
                 np.asarray(s["t_s"], np.float64), np.array([math.nan if v is None else v for v in s["nees"]],
-                                                            np.float64), counts)
-            if len(out[str(name)].t_s) != k or (k and counts[-1] < 1):
+                                                            np.float64))
+            if len(out[str(name)].t_s) != k or k != -(-steps // max(stride, 1)):
                 raise ValueError(f"series {name!r}: {len(s['t_s'])} times, {k} values for {steps} steps")
         return out
     except (KeyError, TypeError, AttributeError, json.JSONDecodeError) as err:
         raise ValueError(f"not a {NEES_ARTIFACT} file: {type(err).__name__}: {err}") from err
-
-
-def series_mean(curve: NeesCurve) -> float:
-    """The mean over every step recovered from the points (each weighted by the steps it stands for)."""
-    ok = np.isfinite(curve.nees)
-    return float(np.sum(curve.nees[ok] * curve.counts[ok]) / max(int(np.sum(curve.counts[ok])), 1))
 

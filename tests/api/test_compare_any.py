@@ -219,18 +219,24 @@ def test_nees_over_time_with_its_band_in_the_paths_colours(client: TestClient, r
     assert nees_plot(jobs, runs_of(jobs, [runs["odo"], runs["odo1"]])) == ("", [], "")
 
 
-def test_a_long_nees_series_is_drawn_as_means_of_its_steps() -> None:
-    """1,000 points become 143 bins of 7 (the last of 6), each the mean of its steps weighted by the steps each
-    point stands for; 150 points or fewer are drawn as they are."""
+def test_a_long_run_is_drawn_at_every_kth_scan_from_its_nees_json(tmp_path: Path) -> None:
+    """A nees.json of 2,500 scans (every 3rd kept): drawn as its 834 points, from 0 s without a truth.tum, its band
+    the file's; the compare note says which scans; ordinals read as English."""
     import numpy as np
 
-    from slamreplay.api.web.compare_plots import NEES_POINTS, binned
+    from slamreplay.api.web.compare_plots import nees_svg, ordinal, robot_nees
+    from slamreplay.replay.evaluation.nees_series import NEES_ARTIFACT, NeesSeries, chi2_band, nees_artifact
 
-    t, v = np.arange(1000) * 0.5, np.arange(1000, dtype=np.float64)
-    tb, vb, per = binned(t, v, np.ones(1000, np.int64))
-    assert (len(tb), per, NEES_POINTS) == (143, 7, 150) and vb[0] == 3.0 and vb[-1] == np.mean(v[994:])
-    assert tb[1] == 3.5
-    counts = np.r_[np.full(999, 2), 1]  # a file's bins: 2 steps a point, the last 1
-    _, vc, per = binned(t, v, counts)
-    assert per == 14 and vc[-1] == np.average(v[994:], weights=counts[994:])
-    assert binned(t[:150], v[:150], np.ones(150))[2] == 0
+    t_ns = 5_000_000_000 + np.arange(2500, dtype=np.int64) * 200_000_000
+    series = NeesSeries("robot", 3, (0.0, chi2_band(3)[1]), t_ns, np.full(2500, 3.0))
+    (tmp_path / NEES_ARTIFACT).write_bytes(nees_artifact({"robot": series}))
+    nees = robot_nees(tmp_path)
+    assert nees is not None and (nees.stride, nees.steps, len(nees.values)) == (3, 2500, 834)
+    assert nees.t[0] == 0.0 and nees.t[1] == pytest.approx(0.6) and nees.band == (0.0, chi2_band(3)[1])
+    assert nees.band_text == "consistent, 95 %: 0 to 9.35 (the truth is an estimate)"
+    svg = nees_svg([("1: run", nees.t, nees.values)], [nees], "t")
+    points = re.findall(r'<polyline points="([^"]*)"', svg)
+    assert len(points) == 1 and len(points[0].split()) == 834 and svg.count('class="band"') == 1
+    assert [ordinal(n) for n in (1, 2, 3, 4, 11, 12, 13, 21, 22, 101)] == [
+        "1st", "2nd", "3rd", "4th", "11th", "12th", "13th", "21st", "22nd", "101st"]
+    assert robot_nees(tmp_path / "absent") is None
