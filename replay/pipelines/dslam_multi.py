@@ -363,8 +363,8 @@ class DSlamMultiPipeline(Pipeline):
             for t, pose, cov in robot.scan_poses:
                 if t < robot.t_gt[0] or t > robot.t_gt[-1]:
                     continue
-                value = pose_nees(cast(np.ndarray, self.T), truth_pose_at(t, robot.t_gt, robot.gt, clamp=True), pose,
-                                  cov)
+                truth = cast(np.ndarray, truth_pose_at(t, robot.t_gt, robot.gt, clamp=True))  # inside its span
+                value = pose_nees(cast(np.ndarray, self.T), truth, pose, cov)
                 if value is not None:
                     robot.nees.append((t, value))
             nees = [v for _, v in robot.nees]
