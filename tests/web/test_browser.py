@@ -23,6 +23,7 @@ from typing import Any
 import pytest
 from conftest import write_tiny_recording
 from patience import deadline as give_up_at
+from web_site import readme_picture
 
 pytestmark = pytest.mark.browser
 CHROMIUM = os.environ.get("SLAMREPLAY_CHROMIUM", "/usr/bin/chromium")
@@ -186,19 +187,6 @@ def both_sizes(page: Any, name: str) -> None:
             SHOTS.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(SHOTS / f"{name}-{tag}.png"), full_page=False)
     page.set_viewport_size(LAPTOP)
-
-
-def readme_image(page: Any, selector: str, name: str) -> None:
-    """With SLAMREPLAY_README_IMAGES (e.g. docs/images): the README's picture ``name`` of an element, in 256 colours
-    (as tests/web/test_pages.py writes its own)."""
-    folder = os.environ.get("SLAMREPLAY_README_IMAGES")
-    if not folder:
-        return
-    from PIL import Image
-
-    out = Path(folder) / f"{name}.png"
-    page.locator(selector).screenshot(path=str(out))
-    Image.open(out).convert("RGB").quantize(256, dither=Image.Dither.NONE).save(out, optimize=True)
 
 
 def option_starting(page: Any, select: str, text: str) -> str:
@@ -382,7 +370,7 @@ def test_compare_two_runs_of_different_pipelines(page: Any, server: str, tmp_pat
     box = page.locator("#nees-over-time svg").bounding_box()
     assert box is not None and box["width"] / 420 * 11 >= 9  # its 11-unit text at least 9 px on a phone
     page.set_viewport_size(LAPTOP)
-    readme_image(page, "#nees-over-time", "web-compare-nees-laptop")
+    readme_picture(page.locator("#nees-over-time"), "web-compare-nees-laptop")
     assert page.locator("#metrics-side-table tr").first.locator("th.n").count() == 3
     assert page.locator("#pairs li").count() == 3
     both_sizes(page, "compare-three-runs")

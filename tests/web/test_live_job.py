@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from web_site import LAPTOP, SHOTS, call, chromium, served, shoot, wait_until
+from web_site import LAPTOP, SHOTS, call, chromium, readme_picture, served, shoot, wait_until
 
 from slamreplay.api.service.executor import Outcome, Report, Task, run_task
 
@@ -110,6 +110,7 @@ def test_watch_a_running_job(site: tuple[str, str]) -> None:
         assert page.locator("#live-plots svg").count() == 2  # the trajectory so far, the error so far
         assert "estimate" in page.inner_text("#live-plots")
         shoot(page, "job-live")
+        readme_picture(page, "web-job-live")  # what fits a laptop's screen of a job watched while it runs
         _no_serious_axe_violation(ctx, f"{base}/ui/jobs/{job}")
 
         viewer.bring_to_front()

@@ -8,17 +8,15 @@ page, and the embedded Rerun viewer at its quiet console level.
 
 from __future__ import annotations
 
-import os
 import re
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-from web_site import LAPTOP, PHONE, call, chromium, seed_runs, served, shoot, wait_until
+from web_site import LAPTOP, PHONE, README_IMAGES, call, chromium, readme_picture, seed_runs, served, shoot, wait_until
 
 pytestmark = pytest.mark.browser
-README_IMAGES = os.environ.get("SLAMREPLAY_README_IMAGES")  # e.g. docs/images: the README's screenshots, rewritten
 PAGES: dict[str, Callable[[dict[str, str]], str]] = {
     "login": lambda ids: "/login",
     "home": lambda ids: "/",
@@ -87,21 +85,17 @@ def test_page_works_at_laptop_and_phone_size(page: Any, site: tuple[str, dict[st
     wide = page.evaluate("document.documentElement.scrollWidth")
     assert wide <= PHONE["width"], f"{name}: {wide} px wide at {PHONE['width']} px: the page scrolls sideways"
     if README_IMAGES and name in README:
-        readme_images(page, Path(README_IMAGES) / README[name])
+        readme_images(page, README[name])
     page.wait_for_timeout(300)  # a late error (a live refresh) is still caught
     assert page.problems == [], page.problems
 
 
-def readme_images(page: Any, stem: Path) -> None:
-    """The README's screenshots of this page: what fits the screen at laptop and phone size, in 256 colours."""
-    from PIL import Image
-
+def readme_images(page: Any, name: str) -> None:
+    """The docs' screenshots of this page: what fits the screen at laptop and phone size (``NAME-laptop``...)."""
     for size, tag in ((LAPTOP, "laptop"), (PHONE, "phone")):
         page.set_viewport_size(size)
         page.wait_for_timeout(50)
-        out = stem.with_name(f"{stem.name}-{tag}.png")
-        page.screenshot(path=str(out))
-        Image.open(out).convert("RGB").quantize(256, dither=Image.Dither.NONE).save(out, optimize=True)
+        readme_picture(page, f"{name}-{tag}")
     page.set_viewport_size(LAPTOP)
 
 

@@ -9,7 +9,6 @@ results/web-shots/runs-view-*.png.
 from __future__ import annotations
 
 import json
-import os
 import re
 import sqlite3
 import time
@@ -18,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from web_site import LAPTOP, PHONE, SHOTS, call, chromium, served, wait_until
+from web_site import LAPTOP, PHONE, SHOTS, call, chromium, readme_picture, served, wait_until
 
 pytestmark = pytest.mark.browser
 SIGMAS = (0.05, 0.1, 0.2, 0.4, 0.8)
@@ -108,19 +107,6 @@ def shot(page: Any, name: str, full: bool = False) -> None:
     page.screenshot(path=str(SHOTS / f"runs-view-{name}.png"), full_page=full)
 
 
-def readme_image(page: Any, name: str) -> None:
-    """With SLAMREPLAY_README_IMAGES (e.g. docs/images): the README's picture ``name`` of what is on screen, in 256
-    colours (as tests/web/test_pages.py writes its own)."""
-    folder = os.environ.get("SLAMREPLAY_README_IMAGES")
-    if not folder:
-        return
-    from PIL import Image
-
-    out = Path(folder) / f"{name}.png"
-    page.screenshot(path=str(out))
-    Image.open(out).convert("RGB").quantize(256, dither=Image.Dither.NONE).save(out, optimize=True)
-
-
 def on_screen(page: Any, selector: str, size: dict[str, int]) -> bool:
     """Whether the element is wholly inside the viewport."""
     box = page.locator(selector).first.bounding_box()
@@ -143,7 +129,7 @@ def test_best_group_is_on_screen_with_its_value(page: Any, site: tuple[str, dict
     assert "min" in (cell.get_attribute("title") or "") and "best" in (cell.get_attribute("class") or "")
     assert page.locator("#groups-table tbody tr").count() == 5  # 4 sweep groups and the real odometry run's
     shot(page, "grouped-laptop")
-    readme_image(page, "web-groups-laptop")
+    readme_picture(page, "web-groups-laptop")
     page.click(f"{first} .group-name")  # its runs, inside the row
     assert page.locator(f"{first} ul.group-runs li").count() == 5  # the newest; all 15 a link away
     page.click(f"{first} a.all-runs")
@@ -208,7 +194,7 @@ def test_phone_shows_a_card_per_run(page: Any, site: tuple[str, dict[str, str]])
         page.evaluate("window.scrollTo(0, document.querySelector('table').getBoundingClientRect().top + scrollY)")
         shot(page, f"{name}-phone-cards")
         if name == "grouped":
-            readme_image(page, "web-grouped-phone-cards")
+            readme_picture(page, "web-grouped-phone-cards")
     assert page.problems == [], page.problems
 
 
@@ -227,7 +213,7 @@ def test_charts_across_runs(page: Any, site: tuple[str, dict[str, str]]) -> None
     assert href is not None and re.fullmatch(r"/ui/jobs/[0-9a-f]{32}", href)
     shot(page, "scatter-laptop")
     page.locator("#runs-chart").scroll_into_view_if_needed()
-    readme_image(page, "web-scatter-laptop")
+    readme_picture(page, "web-scatter-laptop")
     page.set_viewport_size(PHONE)
     for path, name in ((SCATTER, "scatter"), (GROUP_CHART, "group-chart")):
         page.goto(base + path)
@@ -240,7 +226,7 @@ def test_charts_across_runs(page: Any, site: tuple[str, dict[str, str]]) -> None
         page.locator("#runs-chart").scroll_into_view_if_needed()
         shot(page, f"{name}-phone")
         if name == "group-chart":
-            readme_image(page, "web-group-chart-phone")
+            readme_picture(page, "web-group-chart-phone")
     page.click("#runs-chart a.mark")  # a group's row: its runs
     page.wait_for_url(re.compile(r"/runs\?.*where="))
     for size, tag in ((LAPTOP, "laptop"), (PHONE, "phone")):  # parallel coordinates: a line per run, linked
@@ -279,7 +265,7 @@ def test_axe_clean_in_both_schemes(browser: Any, site: tuple[str, dict[str, str]
             if scheme == "dark":
                 shot(pg, f"{name}-dark")
                 if name in ("grouped", "job"):
-                    readme_image(pg, f"web-{name}-dark")
+                    readme_picture(pg, f"web-{name}-dark")
                 if name == "job":  # the estimate stays blue and the truth grey
                     strokes = pg.eval_on_selector_all("#plots polyline",
                                                       "els => els.map(e => getComputedStyle(e).stroke)")

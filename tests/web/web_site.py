@@ -31,6 +31,8 @@ DAMAGED_SEED = 6006  # its recording is cut short on disk before the run: fails 
 LONG_S = 600.0
 LAPTOP, PHONE = {"width": 1366, "height": 768}, {"width": 390, "height": 844}
 SHOTS = Path(os.environ.get("SLAMREPLAY_BROWSER_SHOTS") or Path(__file__).parents[2] / "results" / "web-shots")
+# e.g. docs/images (make test-browser README_IMAGES=docs/images): the README's and docs/web.md's screenshots, rewritten
+README_IMAGES = os.environ.get("SLAMREPLAY_README_IMAGES")
 
 
 def web_job(task: Task, report: Report | None = None) -> Outcome:
@@ -177,3 +179,15 @@ def shoot(page: Any, name: str) -> list[Path]:
         paths.append(path)
     page.set_viewport_size(LAPTOP)
     return paths
+
+
+def readme_picture(target: Any, name: str) -> None:
+    """With SLAMREPLAY_README_IMAGES: the docs' picture ``name`` (``web-job-live``) of what ``target`` shows (a page:
+    what fits its screen; a locator: that element), in 256 colours; nothing without it."""
+    if not README_IMAGES:
+        return
+    from PIL import Image
+
+    out = Path(README_IMAGES) / f"{name}.png"
+    target.screenshot(path=str(out))
+    Image.open(out).convert("RGB").quantize(256, dither=Image.Dither.NONE).save(out, optimize=True)
