@@ -86,10 +86,13 @@ readme-figures: $(STAMP)
 # from a fresh demo of a commit (HEAD, or REV=...; exported, so the work tree never reaches a picture), each with
 # its record in docs/images/pictures.json (commit, sha256, the metrics it shows), which `make test-docs` checks.
 # With the public datasets in DATA, also the pictures of docs/real-data.md (MRCLAM's five robots, Victoria Park).
-# About 4 minutes on 2 cores, 11 with the datasets. The compare report's picture: bash docs/make_compare_report.sh.
+# About 4 minutes on 2 cores, 11 with the datasets. WHAT=all (or web) also takes the web page's pictures with the
+# browser tests (chromium and Playwright, as make test-browser installs them; 2 more minutes). The compare and
+# history reports' pictures: bash docs/make_compare_report.sh, bash docs/make_history_report.sh.
 REV ?= HEAD
+WHAT ?= viewer
 snapshots: $(STAMP) viewer-deps
-	$(BIN)/python docs/make_snapshots.py --out docs/images --rev $(REV) $(if $(wildcard $(DATA)),--data $(DATA)) $(ARGS)
+	$(BIN)/python docs/make_snapshots.py --out docs/images --rev $(REV) --what $(WHAT) $(if $(wildcard $(DATA)),--data $(DATA)) $(ARGS)
 
 # The Ray executor against a local Ray instance: installs the ray extra (about 20 s, 290 MB), then about
 # a minute of tests, most of it Ray's start-up; apart from `make test` so that it needs no Ray. CI runs both.

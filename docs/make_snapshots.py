@@ -16,6 +16,7 @@ import argparse
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -183,6 +184,48 @@ def render_datasets(data: Path, out: Path, size: tuple[int, int], commit: str, r
     return 0
 
 
+# The web page's pictures the docs link, written by the browser tests that take them (SLAMREPLAY_README_IMAGES)
+WEB_TESTS = ("tests/web/test_pages.py", "tests/web/test_runs_view.py")
+WEB_METRICS = {  # what each shows, by name (values: the tests' own runs, not the demo's)
+    "web-runs": ("ape_rmse_m", "rpe_step_trans_rmse_m"),
+    "web-groups-laptop": ("ape_rmse_m", "landmark_rmse_m", "landmark_nees_mean"),
+    "web-grouped": ("ape_rmse_m", "landmark_rmse_m", "landmark_nees_mean"),
+    "web-scatter-laptop": ("landmark_rmse_m",),
+    "web-group-chart-phone": ("ape_rmse_m",),
+    "web-compare": ("ape_rmse_m", "ape_rot_rmse_deg", "ape_se2_rmse_m", "path_length_m", "poses_scored",
+                    "robot_final_error_m", "robot_max_error_m", "rpe_m_rot_rmse_deg", "rpe_m_trans_rmse_m",
+                    "rpe_step_rot_rmse_deg", "rpe_step_trans_rmse_m"),
+}
+
+
+def render_web(out: Path, commit: str, records_path: Path) -> int:
+    """The web page's pictures the docs link, from the browser tests of this export (chromium, Playwright)."""
+    sys.path.insert(0, str(REPO / "docs"))
+    import pictures
+
+    with tempfile.TemporaryDirectory() as tmp:
+        env = {**os.environ, "SLAMREPLAY_README_IMAGES": tmp, "SLAMREPLAY_BROWSER_SHOTS": str(Path(tmp) / "shots"),
+               "PLAYWRIGHT_SKIP_BROWSER_DOWNLOAD": "1"}
+        status = subprocess.run([sys.executable, "-m", "pytest", "-q", "-m", "browser", "-p", "no:cacheprovider",
+                                 *WEB_TESTS], cwd=REPO, env=env).returncode
+        if status != 0:
+            return status
+        records = pictures.load(records_path)
+        linked = pictures.linked([Path(records_path).parents[2] / "README.md",
+                                  *sorted((Path(records_path).parents[1]).glob("*.md"))])
+        for png in sorted(Path(tmp).glob("web-*.png")):
+            if png.name not in linked:
+                continue
+            shutil.copyfile(png, out / png.name)
+            shows = next((names for key, names in WEB_METRICS.items() if png.name.startswith(key)), ())
+            records[png.name] = {"made_by": f"{MADE_BY} --what web ({', '.join(WEB_TESTS)})", "commit": commit,
+                                 "sha256": pictures.sha256(out / png.name), "source": "the browser tests' own runs",
+                                 "metrics": {f"tests-web/{name}": None for name in shows}}
+            print(f"{png.name}: {png.stat().st_size / 1000:.0f} kB")
+        pictures.save(records, records_path)
+    return 0
+
+
 def export(rev: str, dst: Path) -> tuple[str, Path]:
     """(full commit id, package root) of ``rev`` exported to ``dst``: its tracked files and a ``slamreplay``
     package folder of links, which PYTHONPATH puts before the checkout's editable install."""
@@ -206,6 +249,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", default="1600x900", help="viewer size (default: 1600x900)")
     ap.add_argument("--data", type=Path, default=None,
                     help="the public datasets (../shared/data): the pictures of docs/real-data.md too (7 more minutes)")
+    ap.add_argument("--what", choices=("viewer", "web", "all"), default="viewer",
+                    help="the viewer's pictures (default), the web page's (browser tests: chromium, Playwright), both")
     ap.add_argument("--records", type=Path, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--commit", default=None, help=argparse.SUPPRESS)  # set by the outer pass: run from an export
     args = ap.parse_args(argv)
@@ -216,18 +261,23 @@ def main(argv: list[str] | None = None) -> int:
             print(f"make snapshots: from commit {commit[:12]} (exported; the work tree is not used)")
             env = {**os.environ, "PYTHONPATH": str(pkg)}
             data = ["--data", str(args.data.resolve())] if args.data is not None else []
+            data += ["--what", args.what]
             return subprocess.run([sys.executable, str(Path(tmp) / "src" / "docs" / "make_snapshots.py"),
                                    "--out", str(args.out.resolve()), "--size", args.size, "--commit", commit,
                                    "--records", str((REPO / "docs" / "images" / "pictures.json").resolve()), *data],
                                   env=env, cwd=tmp).returncode
-    from slamreplay.api.cli.demo import run_demo
+    status = 0
+    if args.what in ("viewer", "all"):
+        from slamreplay.api.cli.demo import run_demo
 
-    demo = Path.cwd() / "demo"
-    if run_demo(demo, None, quiet=True) != 0:
-        return 1
-    status = render(demo, args.out, (w, h), args.commit, args.records)
-    if status == 0 and args.data is not None:
-        status = render_datasets(args.data, args.out, (w, h), args.commit, args.records)
+        demo = Path.cwd() / "demo"
+        if run_demo(demo, None, quiet=True) != 0:
+            return 1
+        status = render(demo, args.out, (w, h), args.commit, args.records)
+        if status == 0 and args.data is not None:
+            status = render_datasets(args.data, args.out, (w, h), args.commit, args.records)
+    if status == 0 and args.what in ("web", "all"):
+        status = render_web(args.out, args.commit, args.records)
     return status
 
 
