@@ -211,8 +211,7 @@ def render_web(out: Path, commit: str, records_path: Path) -> int:
         if status != 0:
             return status
         records = pictures.load(records_path)
-        linked = pictures.linked([Path(records_path).parents[2] / "README.md",
-                                  *sorted((Path(records_path).parents[1]).glob("*.md"))])
+        linked = pictures.linked()  # this export's README.md and docs/*.md: the commit's own links
         for png in sorted(Path(tmp).glob("web-*.png")):
             if png.name not in linked:
                 continue
