@@ -48,6 +48,9 @@ from slamreplay.replay.runs.suite_run import add_metrics, read_results, unfinish
 ALPHA = 0.05
 VERDICT_ORDER = ("regression", "failed", LOST, "improvement", "noise", "unchanged", "changed", "missing")
 REGRESSION_VERDICTS = ("regression", "failed", LOST)  # what fails the gate (exit 1)
+# the "metric" of a cell's runs that failed in B: after succeeding in A, or failing in A as well (then nothing of
+# the cell was compared, and a gate that passed would say B is fine)
+RUN_STATUS, RUN_STATUS_BOTH = "(run status)", "(run status: failed in A too)"
 
 
 @dataclass(frozen=True, slots=True)
@@ -291,10 +294,12 @@ def compare(a: Side, b: Side, tolerances: Mapping[str, str] | None = None) -> Co
                 if rr["status"] != "succeeded":
                     out.failures.append({"side": side, "cell": "/".join(key), "seeds": list(s),
                                          "error": rr.get("error"), "run_dir": rr.get("run_dir")})
-        broke = [s for s in seeds if ra[s]["status"] == "succeeded" and rb[s]["status"] != "succeeded"]
-        if broke:
-            out.results.append(MetricResult(*key, "(run status)", "none", "", [list(s) for s in broke], [], [],
-                                            None, None, None, None, None, 0.0, None, "status", "failed"))
+        failed_b = [s for s in seeds if rb[s]["status"] != "succeeded"]
+        for name, which in ((RUN_STATUS, [s for s in failed_b if ra[s]["status"] == "succeeded"]),
+                            (RUN_STATUS_BOTH, [s for s in failed_b if ra[s]["status"] != "succeeded"])):
+            if which:  # a B that does not run fails the gate, whether or not A ran: nothing else says it broke
+                out.results.append(MetricResult(*key, name, "none", "", [list(s) for s in which], [], [],
+                                                None, None, None, None, None, 0.0, None, "status", "failed"))
         oa, ob = _origin(ga[key]), _origin(gb[key])
         out.changes += origin_changes(oa, ob, prefix=f"{'/'.join(key)} ")
         if describe_origin(oa) or describe_origin(ob):

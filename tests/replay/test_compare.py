@@ -87,6 +87,17 @@ def test_failed_in_b_is_a_regression() -> None:
     assert {f["side"] for f in c.failures} == {"B"}
 
 
+def test_failed_in_both_fails_the_gate() -> None:
+    """A cell that fails in A and in B compares nothing: the gate still fails (every cell broken on both sides once
+    gave "0 regression(s)", exit 0), its row saying that A failed too; a failure in A alone is not B's fault."""
+    from slamreplay.replay.runs.compare import RUN_STATUS_BOTH
+
+    c = compare(side("A", rows(A, status="failed")), side("B", rows(A, status="failed", code="b")))
+    assert [(r.metric, r.verdict, len(r.seeds)) for r in c.regressions] == [(RUN_STATUS_BOTH, "failed", len(A))]
+    assert {f["side"] for f in c.failures} == {"A", "B"}
+    assert compare(side("A", rows(A, status="failed")), side("B", rows(A, code="b"))).regressions == []
+
+
 def test_no_cell_in_common_and_unknown_tolerance() -> None:
     """Two results with nothing to match, or a tolerance for no metric: ReplayError."""
     with pytest.raises(ReplayError, match=r"no cell in common"):
