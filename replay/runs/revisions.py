@@ -349,7 +349,7 @@ def _prune_over_limit(cache: Path, note: Callable[[str], None]) -> None:
 
 
 # ``python -c`` program running slamreplay's installed CLI (an external program's revision: this slamreplay).
-_INSTALLED_CLI = "import sys; from slamreplay.api.cli.main import main; sys.exit(main(sys.argv[1:]))"
+_INSTALLED_CLI = "import sys; from slamreplay.api.cli import main; sys.exit(main(sys.argv[1:]))"
 
 
 def run_cell(revision: Revision, job: CellJob) -> str | None:

@@ -365,14 +365,14 @@ def test_signalling_nan_range_is_no_reading() -> None:
     import numpy as np
 
     from slamreplay.recorder.importers.poles import PoleConfig
-    from slamreplay.recorder.importers.ros2bag import _poles_scan
+    from slamreplay.recorder.importers.ros2bag import poles_scan
 
     ranges = np.full(90, 5.0, dtype=np.float32)
     ranges[10:20] = np.frombuffer(struct.pack("<I", 0x7FA00000) * 10, dtype=np.float32)  # signalling NaNs
     scan = SimpleNamespace(ranges=ranges, angle_min=-1.0, angle_increment=0.02, range_min=0.1, range_max=30.0)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        got = _poles_scan(1, scan, PoleConfig(), (0.0, 0.0, 0.0))
+        got = poles_scan(1, scan, PoleConfig(), (0.0, 0.0, 0.0))
     assert np.all(np.isfinite(got.ranges_m))
 
 
