@@ -63,8 +63,9 @@ def view_hint(rrd: str | Path) -> list[str]:
     if not has_display():
         lines = [
             f"no display here (DISPLAY/WAYLAND_DISPLAY unset), so the native viewer cannot open {rrd}; instead:",
-            f"  {rerun} --web-viewer {rrd}   # then browse http://127.0.0.1:9090 (over ssh: ssh -L 9090:localhost:9090 "
-            f"-L 9876:localhost:9876 HOST)",
+            f"  {rerun} --web-viewer --bind 127.0.0.1 {rrd}   # then browse http://127.0.0.1:9090 (this machine only: "
+            f"without --bind it listens on every address; over ssh: ssh -L 9090:localhost:9090 -L 9876:localhost:9876 "
+            f"HOST)",
             f"  or copy {rrd} to a machine with a display and rerun-sdk {sdk} (pip install 'rerun-sdk~={sdk}.0'; "
             f"rerun FILE)",
             f"  or render its tabs to PNG files: {tool('slamreplay')} snapshot {rrd} --out PICTURES_DIR",

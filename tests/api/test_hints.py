@@ -60,10 +60,10 @@ def test_view_hint_headless(monkeypatch: pytest.MonkeyPatch) -> None:
     assert not has_display()
     text = "\n".join(view_hint("runs/a/run.rrd"))
     assert "no display here" in text
-    assert f"{tool('rerun')} --web-viewer runs/a/run.rrd" in text and "http://127.0.0.1:9090" in text
+    assert f"{tool('rerun')} --web-viewer --bind 127.0.0.1 runs/a/run.rrd" in text and "http://127.0.0.1:9090" in text
     assert f"rerun-sdk {rerun_sdk_version()} " in text and rerun_sdk_version().startswith("0.")
     helptext = _run_as_printed(f"{tool('rerun')} --help", Path.cwd(), os.environ["PATH"]).stdout
-    assert "--web-viewer" in helptext and "[default: 9090]" in helptext
+    assert "--web-viewer" in helptext and "[default: 9090]" in helptext and "--bind <BIND>" in helptext
 
 
 def test_error_messages_suggest_commands_that_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
