@@ -185,13 +185,15 @@ def render_datasets(data: Path, out: Path, size: tuple[int, int], commit: str, r
 
 
 # The web page's pictures the docs link, written by the browser tests that take them (SLAMREPLAY_README_IMAGES)
-WEB_TESTS = ("tests/web/test_pages.py", "tests/web/test_runs_view.py")
+WEB_TESTS = ("tests/web/test_pages.py", "tests/web/test_runs_view.py", "tests/web/test_live_job.py",
+             "tests/web/test_browser.py")
 WEB_METRICS = {  # what each shows, by name (values: the tests' own runs, not the demo's)
     "web-runs": ("ape_rmse_m", "rpe_step_trans_rmse_m"),
     "web-groups-laptop": ("ape_rmse_m", "landmark_rmse_m", "landmark_nees_mean"),
     "web-grouped": ("ape_rmse_m", "landmark_rmse_m", "landmark_nees_mean"),
     "web-scatter-laptop": ("landmark_rmse_m",),
     "web-group-chart-phone": ("ape_rmse_m",),
+    "web-compare-nees": ("robot_nees_mean",),
     "web-compare": ("ape_rmse_m", "ape_rot_rmse_deg", "ape_se2_rmse_m", "path_length_m", "poses_scored",
                     "robot_final_error_m", "robot_max_error_m", "rpe_m_rot_rmse_deg", "rpe_m_trans_rmse_m",
                     "rpe_step_rot_rmse_deg", "rpe_step_trans_rmse_m"),
