@@ -26,6 +26,9 @@ import foxglove
 from foxglove import Channel, Schema
 from mcap.reader import make_reader
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: its waits stretch as the tests' do
+from patience import deadline as give_up_at
+
 UNKNOWN = "/diagnostics"
 
 
@@ -42,8 +45,9 @@ class _Subscriptions:
         self.topics.discard(channel.topic)
 
     def wait(self, timeout_s: float = 20.0) -> None:
-        """Until a client has subscribed (to what it wants: one subscribe message for all of them)."""
-        deadline = time.monotonic() + timeout_s
+        """Until a client has subscribed (to what it wants: one subscribe message for all of them); ``timeout_s``
+        on an idle machine, stretched by its load as the tests' own waits are (tests/patience.py)."""
+        deadline = give_up_at(timeout_s)
         while not self.topics:
             if time.monotonic() > deadline:
                 sys.exit("live_peer: nobody subscribed")
