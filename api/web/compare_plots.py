@@ -70,8 +70,9 @@ def overlay(jobs: JobService, runs: list[Run], tags: tuple[str, ...] | None = No
 
 
 def _why_no_nees(jobs: JobService, r: Run) -> str:
-    """Why a drawn run has no NEES curve: its pipeline keeps no pose covariance, it had no ground truth over its
-    scans, or it ran before runs kept their NEES per step."""
+    """Why a drawn run has no NEES curve: its pipeline reports no robot pose NEES (dead reckoning keeps no
+    covariance; iFMI's and the topo-metric map's are not scored as one), it had no ground truth over its scans, or
+    it ran before runs kept their NEES per step."""
     from slamreplay.replay.engine.pipeline import get_pipeline
     from slamreplay.replay.errors import ReplayError
 
@@ -83,7 +84,7 @@ def _why_no_nees(jobs: JobService, r: Run) -> str:
         has_nees = False
     if has_nees:
         return "no ground truth over its scans, so no NEES"
-    return f"{r.job.pipeline} estimates no pose covariance, so it has no NEES"
+    return f"{r.job.pipeline} reports no robot pose NEES (robot_nees_mean)"
 
 
 @dataclass(frozen=True, slots=True)

@@ -206,9 +206,9 @@ def test_nees_over_time_with_its_band_in_the_paths_colours(client: TestClient, r
     assert svg.count('class="band"') == 1
     low, high = chi2.ppf(0.025, 3), chi2.ppf(0.975, 3)
     assert f"consistent, 95 % of chi2(3): {low:.3g} to {high:.3g}" in svg and f"2: {runs['dslam'][:8]} (dslam" in svg
-    assert without == [f"1: {runs['odo'][:8]} (odometry, seed 0): odometry estimates no pose covariance, so it has "
-                       "no NEES", f"3: {runs['odo1'][:8]} (odometry, seed 1): odometry estimates no pose covariance, "
-                       "so it has no NEES"]
+    assert without == [f"1: {runs['odo'][:8]} (odometry, seed 0): odometry reports no robot pose NEES "
+                       "(robot_nees_mean)", f"3: {runs['odo1'][:8]} (odometry, seed 1): odometry reports no robot "
+                       "pose NEES (robot_nees_mean)"]
     assert note == ""  # 8 scans: drawn as they are
     page = client.get("/ui/compare", params={"runs": ",".join(ids)}).text
     assert page.count('id="nees-over-time"') == 1 and page.count("<li>1: ") == 1 and 'id="no-nees"' in page

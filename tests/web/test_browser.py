@@ -350,7 +350,7 @@ def test_compare_two_runs_of_different_pipelines(page: Any, server: str, tmp_pat
     assert page.locator("#error-over-time svg polyline").count() == 2  # A's and B's position error over time
     assert page.locator("#nees-over-time svg polyline").count() == 1  # B's (dslam's) NEES: odometry has none
     assert page.locator("#nees-over-time svg rect.band").count() == 1
-    assert page.inner_text("#no-nees").startswith("A: ") and "odometry estimates no pose covariance" in \
+    assert page.inner_text("#no-nees").startswith("A: ") and "odometry reports no robot pose NEES" in \
         page.inner_text("#no-nees")
     both_sizes(page, "compare-two-runs")
     if SHOTS is not None:
