@@ -2,7 +2,7 @@
 and whether their role may: ``slamreplay.api.service.auth``), the documented error responses, and the keyed links the
 Rerun web viewer opens a run's ``.rrd`` through.
 
-Its own module so that the routes (api/app.py, api/service/suites_routes.py, api/web/web.py) import it and not
+Its own module so that the routes (api/service/app.py, suites_routes.py, api/web/web.py) import it and not
 each other.
 """
 
