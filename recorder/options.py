@@ -32,6 +32,17 @@ def did_you_mean(word: str, known: Iterable[str], quote: bool = False) -> str:
     return " (did you mean " + " or ".join(repr(c) if quote else c for c in close) + "?)"
 
 
+def parse_pairs(items: Iterable[str], what: str = "--topic-map") -> dict[str, str]:
+    """``["A=B", ...]`` as a dict; a ``RecorderError`` naming the option (``what``) for an item that is not A=B."""
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key or not value:
+            raise RecorderError(f"{what} expects A=B, got {item!r}")
+        out[key] = value
+    return out
+
+
 def seed_value(text: str) -> int:
     """An argparse type for a seed: a whole number from 0 to 2**63 - 1 (numpy's generators refuse others)."""
     try:

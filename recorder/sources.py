@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 from slamreplay.recorder.errors import RecorderError
-from slamreplay.recorder.options import add_dataclass_options, dataclass_from_options, seed_value
+from slamreplay.recorder.options import add_dataclass_options, dataclass_from_options, parse_pairs, seed_value
 from slamreplay.recorder.plugins import Plugin, discover
 
 IMPORTER_GROUP = "slamreplay.importers"
@@ -303,7 +303,7 @@ class Ros2Bag:
         from slamreplay.recorder.importers.ros2bag import import_ros2_bag
 
         poles = dataclass_from_options(options, PoleConfig, prefix="pole_", what="pole extractor option")
-        s = import_ros2_bag(Path(options["bag"]), Path(options["out"]), topic_map=_pairs(options["topic_map"]),
+        s = import_ros2_bag(Path(options["bag"]), Path(options["out"]), topic_map=parse_pairs(options["topic_map"]),
                             base_frame=options["base_frame"], odom_frame=options["odom_frame"],
                             ground_truth_frame=options["ground_truth_frame"], typestore=options["typestore"],
                             poles=poles, progress=progress)
@@ -311,14 +311,3 @@ class Ros2Bag:
         skipped = [t.topic for t in s.plan.topics if t.maps_to is None]
         return (f"{s.messages:,} messages ({counts}); {s.poles:,} poles extracted"
                 + (f"; skipped {', '.join(skipped)} (see `slamreplay inspect {options['bag']}`)" if skipped else ""))
-
-
-def _pairs(items: list[str]) -> dict[str, str]:
-    """``["A=B", ...]`` as a dict; RecorderError for an item that is not A=B."""
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key or not value:
-            raise RecorderError(f"--topic-map expects A=B, got {item!r}")
-        out[key] = value
-    return out

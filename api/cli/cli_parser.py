@@ -26,17 +26,6 @@ def eprint(*args: Any) -> None:
     print(*args, file=sys.stderr)
 
 
-def parse_pairs(items: Sequence[str], what: str) -> dict[str, str]:
-    """``["A=B", ...]`` as a dict; anything else is a ``CliError`` naming the option (``what``)."""
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key or not value:
-            raise CliError(f"{what} expects A=B, got {item!r}")
-        out[key] = value
-    return out
-
-
 class SuggestingParser(argparse.ArgumentParser):
     """An ``ArgumentParser`` whose errors are one line, with the closest command, choice or option."""
 

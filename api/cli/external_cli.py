@@ -37,10 +37,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     """``export REC --out DIR --what odometry_tum,...``: the files an external program may read."""
+    from slamreplay.recorder.options import parse_pairs
     from slamreplay.replay.tools.export import export_recording, parse_exports
 
     written = export_recording(Path(args.recording), Path(args.out), parse_exports(args.what),
-                               topic_map=dict(item.split("=", 1) for item in args.topic_map))
+                               topic_map=parse_pairs(args.topic_map))
     if not args.quiet:
         for path in written:
             print(f"wrote {path}")

@@ -77,9 +77,8 @@ def live_options(args: argparse.Namespace) -> Any:
     """The LiveOptions of the command line's arguments; RecorderError for a bad one."""
     from slamreplay.recorder.importers.foxglove_live import LiveOptions
     from slamreplay.recorder.importers.pole_config import PoleConfig
-    from slamreplay.recorder.options import dataclass_from_options
+    from slamreplay.recorder.options import dataclass_from_options, parse_pairs
     from slamreplay.recorder.sensor_model import SensorModel
-    from slamreplay.recorder.sources import _pairs
 
     if args.duration_s is not None and not args.duration_s > 0:
         raise RecorderError(f"--duration-s must be > 0, got {args.duration_s:g}")
@@ -94,10 +93,11 @@ def live_options(args: argparse.Namespace) -> Any:
         data.setdefault("source", f"given with --sensor-model {Path(args.sensor_model).name}")
         model = SensorModel.from_mapping(data)
     poles = dataclass_from_options(vars(args), PoleConfig, prefix="pole_", what="pole extractor option")
-    return LiveOptions(url=args.url, out=Path(args.out), topics=tuple(args.topics), topic_map=_pairs(args.topic_map),
-                       duration_s=args.duration_s, sensor_model=model, base_frame=args.base_frame,
-                       odom_frame=args.odom_frame, ground_truth_frame=args.ground_truth_frame, poles=poles,
-                       wait_s=args.wait_s, give_up_s=args.give_up_s)
+    return LiveOptions(url=args.url, out=Path(args.out), topics=tuple(args.topics),
+                       topic_map=parse_pairs(args.topic_map), duration_s=args.duration_s, sensor_model=model,
+                       base_frame=args.base_frame, odom_frame=args.odom_frame,
+                       ground_truth_frame=args.ground_truth_frame, poles=poles, wait_s=args.wait_s,
+                       give_up_s=args.give_up_s)
 
 
 def _count(c: Any) -> str:

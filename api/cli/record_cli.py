@@ -8,10 +8,11 @@ import json
 from pathlib import Path
 from typing import Any
 
-from slamreplay.api.cli.cli_parser import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, EXIT_OK, CliError, eprint, parse_pairs
+from slamreplay.api.cli.cli_parser import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, EXIT_OK, CliError, eprint
 from slamreplay.api.cli.live_cli import add_live_parser
 from slamreplay.api.cli.progress import progress_bar
 from slamreplay.recorder.errors import RecorderError
+from slamreplay.recorder.options import parse_pairs
 
 
 def cmd_record(args: argparse.Namespace) -> int:
@@ -65,7 +66,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     if path.suffix == ".db3" or (path.is_dir() and any(path.glob("*.db3"))):
         return _inspect_bag(args)  # sqlite3 storage: only rosbags reads it
 
-    report = inspect_recording(args.file, parse_pairs(args.topic_map, "--topic-map"))
+    report = inspect_recording(args.file, parse_pairs(args.topic_map))
     bag = is_ros2_bag(path) or any(t["encoding"] == "cdr" for t in report.get("topics", []))
     if not bag and (given := _bag_options_given(args)):
         raise CliError(f"{', '.join(given)} apply to ROS 2 bags, and {path.name} is a slamreplay recording: drop "
@@ -125,7 +126,7 @@ def _bag_options_given(args: argparse.Namespace) -> list[str]:
 def _plan(args: argparse.Namespace) -> Any:
     from slamreplay.recorder.importers.ros2bag import plan_bag
 
-    return plan_bag(Path(args.file), parse_pairs(args.topic_map, "--topic-map"), base_frame=args.base_frame,
+    return plan_bag(Path(args.file), parse_pairs(args.topic_map), base_frame=args.base_frame,
                     odom_frame=args.odom_frame, ground_truth_frame=args.ground_truth_frame, typestore=args.typestore)
 
 

@@ -8,9 +8,10 @@ import json
 from pathlib import Path
 from typing import Any
 
-from slamreplay.api.cli.cli_parser import EXIT_CHECK_FAILED, EXIT_OK, CliError, eprint, parse_pairs
+from slamreplay.api.cli.cli_parser import EXIT_CHECK_FAILED, EXIT_OK, CliError, eprint
 from slamreplay.api.cli.hints import tool, view_hint
 from slamreplay.api.cli.progress import progress_bar
+from slamreplay.recorder.options import parse_pairs
 
 
 def _load_config_file(path: str | None) -> dict[str, Any]:
@@ -41,7 +42,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         config.update(determinism_config(args.pipeline))
     with progress_bar(f"run {args.pipeline} on {Path(args.file).name}", args.quiet, unit="messages") as update:
         result = run_recording(args.file, args.pipeline, args.out, seed=args.seed, config=config,
-                               topic_map=parse_pairs(args.topic_map, "--topic-map"),
+                               topic_map=parse_pairs(args.topic_map),
                                start_ns=args.start_ns, end_ns=args.end_ns, log_timings=args.log_timings,
                                progress=update, preset=args.preset, robot=args.robot)
     if not args.quiet:

@@ -75,6 +75,11 @@ def test_evaluate_and_export_commands(tmp_path: Path, capsys: pytest.CaptureFixt
     assert err.count("\n") == 1 and "bad.tum, line 1: expected 8 fields" in err
     assert main(["export", str(rec), "--out", str(tmp_path / "x"), "--what", "lidar"]) == 2
     assert "unknown export 'lidar'" in capsys.readouterr().err
+    # a --topic-map that is not A=B: one line and exit 2, as for run and record (once an internal error, exit 3)
+    assert main(["export", str(rec), "--out", str(tmp_path / "y"), "--what", "odometry_csv",
+                 "--topic-map", "/wheel/odom"]) == 2
+    assert capsys.readouterr().err == "slamreplay: error: --topic-map expects A=B, got '/wheel/odom'\n"
+    assert not (tmp_path / "y").exists()
 
 
 def test_check_determinism_diff_and_compare(declared: Path, tmp_path: Path,
