@@ -4,20 +4,14 @@
 # after a commit that reads D-SLAM's ranges 3 % long (B), `slamreplay compare a b --report`, drawn by headless
 # chromium. About 2 minutes on 2 cores. Run from the repository: bash docs/make_compare_report.sh
 set -euo pipefail
-REPO=$(cd "$(dirname "$0")/.." && pwd)
-REV=${REV:-HEAD}
-S=$REPO/.venv/bin/slamreplay
+source "$(dirname "$0")/clone_at_rev.sh"
 tmp=$(mktemp -d /tmp/slamreplay-compare-report-XXXXXX)
 trap 'rm -rf "$tmp"' EXIT
-commit=$(git -C "$REPO" rev-parse --verify "$REV^{commit}")
-git clone -q "$REPO" "$tmp/repo" && git -C "$tmp/repo" checkout -q "$commit"
-mkdir -p "$tmp/pkg/slamreplay"
-for p in api replay recorder algorithms; do ln -s "$tmp/repo/$p" "$tmp/pkg/slamreplay/$p"; done
-export PYTHONPATH=$tmp/pkg  # the clone's code, before the checkout's editable install
+clone_at "$tmp"
+use_code_of "$tmp"
 cd "$tmp/repo"
-git="git -c user.name=docs -c user.email=docs@localhost"
 $S suite run examples/suites/landmarks.toml --out "$tmp/a" --jobs 2 --quiet > /dev/null
-sed -i 's/r, b, ids = msg.ranges_m\[keep\]/r, b, ids = 1.03 * msg.ranges_m[keep]/' replay/pipelines/landmark_slam.py
+degrade_ranges
 $git commit -qam "throwaway: D-SLAM ranges scaled by 1.03"
 $S suite run examples/suites/landmarks.toml --out "$tmp/b" --jobs 2 --quiet > /dev/null
 cd "$tmp"  # the report names the results folders as given: a and b, no machine path
@@ -38,9 +32,9 @@ for row in doc["results"]:
         shown[f"B {cell}/{row['metric']}"] = row["b_mean"]
 records = pictures.load()
 png = pictures.IMAGES / "compare_report.png"
-records[png.name] = {"made_by": "bash docs/make_compare_report.sh", "commit": sys.argv[2],
-                     "sha256": pictures.sha256(png), "source": "examples/suites/landmarks.toml, seeds 1-3: "
-                     "the commit (A) against it with D-SLAM's ranges read 3 % long (B)", "metrics": shown}
+records[png.name] = pictures.record(png, "bash docs/make_compare_report.sh", sys.argv[2], "examples/suites/"
+                                    "landmarks.toml, seeds 1-3: the commit (A) against it with D-SLAM's ranges read "
+                                    "3 % long (B)", shown)
 pictures.save(records)
 print(f"compare_report.png: {len(shown) // 2} regressions shown, from {sys.argv[2][:12]}")
 PY

@@ -5,29 +5,23 @@
 # examples/suites/landmarks.toml, drawn by headless chromium. The first run builds the revisions' shared
 # environment (pip, minutes); then about 5 minutes on 2 cores. Run from the repository: bash docs/make_history_report.sh
 set -euo pipefail
-REPO=$(cd "$(dirname "$0")/.." && pwd)
-REV=${REV:-HEAD}
-S=$REPO/.venv/bin/slamreplay
+source "$(dirname "$0")/clone_at_rev.sh"
 tmp=$(mktemp -d /tmp/slamreplay-history-report-XXXXXX)
 trap 'rm -rf "$tmp"' EXIT
-commit=$(git -C "$REPO" rev-parse --verify "$REV^{commit}")
-git clone -q "$REPO" "$tmp/repo" && git -C "$tmp/repo" checkout -q -b history-example "$commit"
+clone_at "$tmp" history-example
 cd "$tmp/repo"
-git="git -c user.name=docs -c user.email=docs@localhost"
-file=replay/pipelines/landmark_slam.py
+file=$RANGES_FILE
 for i in 1 2 3 4 5 6 7 8 9; do
     if [ $i = 3 ]; then
-        sed -i 's/r, b, ids = msg.ranges_m\[keep\]/r, b, ids = 1.03 * msg.ranges_m[keep]/' $file; msg="degrade: ranges read 3% long"
+        degrade_ranges; msg="degrade: ranges read 3% long"
     elif [ $i = 6 ]; then
-        sed -i 's/r, b, ids = 1.03 \* msg.ranges_m\[keep\]/r, b, ids = msg.ranges_m[keep]/' $file; msg="undo the range scale"
+        undo_ranges; msg="undo the range scale"
     else
         echo "# history example: comment $i" >> $file; msg="comment $i"
     fi
     $git commit -qam "$msg"
 done
-mkdir -p "$tmp/pkg/slamreplay"
-for p in api replay recorder algorithms; do ln -s "$tmp/repo/$p" "$tmp/pkg/slamreplay/$p"; done
-export PYTHONPATH=$tmp/pkg  # the clone's code drives the history, before the checkout's editable install
+use_code_of "$tmp"  # the clone's code drives the history
 $S history examples/suites/landmarks.toml --revs "$commit..history-example" --out ../h --jobs 2 \
     --markdown ../summary.md --quiet 2> ../history.err || { cat ../history.err; exit 1; }
 chromium --headless --no-sandbox --disable-gpu --hide-scrollbars --window-size=1100,2200 \
@@ -42,10 +36,10 @@ text = Path(sys.argv[3]).read_text()
 names = sorted({w for w in re.findall(r"[a-z][a-z0-9_]+", text) if w in METRICS})
 records = pictures.load()
 png = pictures.IMAGES / "history_report.png"
-records[png.name] = {"made_by": "bash docs/make_history_report.sh", "commit": sys.argv[2], "sha256": pictures.sha256(png),
-                     "source": "examples/suites/landmarks.toml over 10 throwaway commits on top of the commit "
-                     "(3: D-SLAM's ranges read 3 % long, 6: undone)",
-                     "metrics": {f"landmarks/dslam/default/{n}": None for n in names}}
+records[png.name] = pictures.record(png, "bash docs/make_history_report.sh", sys.argv[2],
+                                    "examples/suites/landmarks.toml over 10 throwaway commits on top of the commit "
+                                    "(3: D-SLAM's ranges read 3 % long, 6: undone)",
+                                    {f"landmarks/dslam/default/{n}": None for n in names})
 pictures.save(records)
 print(f"history_report.png: {len(names)} metrics named in the changes, from {sys.argv[2][:12]}")
 PY

@@ -125,8 +125,7 @@ def render(demo: Path, out: Path, size: tuple[int, int], commit: str, records_pa
     def keep(src: Path, name: str, shows: dict[str, float], note: str = "") -> None:
         dst = out / name
         size_b = save_small(src, dst)
-        records[name] = {"made_by": MADE_BY, "commit": commit, "sha256": pictures.sha256(dst), "source": "demo",
-                         "metrics": shows, **({"note": note} if note else {})}
+        records[name] = pictures.record(dst, MADE_BY, commit, "demo", shows, note)
         print(f"{name}: {size_b / 1000:.0f} kB")
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -176,9 +175,8 @@ def render_datasets(data: Path, out: Path, size: tuple[int, int], commit: str, r
                 size_b = save_small(shot.path, out / name)
             doc = json.loads((run_dir / "metrics.json").read_text())["metrics"]
             how = f"{folder}: slamreplay record {record_args[0]}, run {' '.join(run_args)}"
-            records[name] = {"made_by": f"{MADE_BY} with --data", "commit": commit,
-                             "sha256": pictures.sha256(out / name), "source": how,
-                             "metrics": {f"{run}/{k}": float(v["value"]) for k, v in doc.items()}}
+            records[name] = pictures.record(out / name, f"{MADE_BY} with --data", commit, how,
+                                            {f"{run}/{k}": float(v["value"]) for k, v in doc.items()})
             print(f"{name}: {size_b / 1000:.0f} kB")
     pictures.save(records, records_path)
     return 0
@@ -219,9 +217,9 @@ def render_web(out: Path, commit: str, records_path: Path) -> int:
                 continue
             shutil.copyfile(png, out / png.name)
             shows = next((names for key, names in WEB_METRICS.items() if png.name.startswith(key)), ())
-            records[png.name] = {"made_by": f"{MADE_BY} --what web ({', '.join(WEB_TESTS)})", "commit": commit,
-                                 "sha256": pictures.sha256(out / png.name), "source": "the browser tests' own runs",
-                                 "metrics": {f"tests-web/{name}": None for name in shows}}
+            records[png.name] = pictures.record(out / png.name, f"{MADE_BY} --what web ({', '.join(WEB_TESTS)})",
+                                                commit, "the browser tests' own runs",
+                                                {f"tests-web/{name}": None for name in shows})
             print(f"{png.name}: {png.stat().st_size / 1000:.0f} kB")
         pictures.save(records, records_path)
     return 0

@@ -62,6 +62,15 @@ def save(records: Mapping[str, Mapping[str, Any]], path: Path = RECORDS) -> None
     path.write_text(json.dumps(dict(sorted(records.items())), indent=1, sort_keys=True) + "\n")
 
 
+def record(png: Path, made_by: str, commit: str, source: str, metrics: Mapping[str, float | None],
+           note: str = "") -> dict[str, Any]:
+    """The record of ``png`` as it is now (its sha256): what made it, from which clean commit, what it shows."""
+    if not COMMIT.fullmatch(commit):
+        raise ValueError(f"{png.name}: a picture is recorded from a clean commit (40 hex digits), not {commit!r}")
+    return {"made_by": made_by, "commit": commit, "sha256": sha256(png), "source": source, "metrics": dict(metrics),
+            **({"note": note} if note else {})}
+
+
 def split(key: str) -> tuple[str, str]:
     """``RUN/METRIC`` -> (RUN, METRIC)."""
     run, _, name = key.rpartition("/")

@@ -72,6 +72,18 @@ def test_a_dirty_unrecorded_or_replaced_picture_fails(tmp_path: Path) -> None:
     assert any("not a clean commit" in f for f in found)
 
 
+def test_a_record_is_of_the_png_as_it_is_and_never_of_a_dirty_tree(tmp_path: Path) -> None:
+    """pictures.record (what make snapshots and the report scripts write): the png's sha256, no problem found;
+    a -dirty commit is refused when the picture is recorded, not only when it is checked."""
+    png = tmp_path / "x.png"
+    png.write_bytes(b"\x89PNG picture")
+    rec = pictures.record(png, "make snapshots", "a" * 40, "demo", {"demo-run/ape_rmse_m": 0.2})  # type: ignore[attr-defined]
+    assert rec["sha256"] == pictures.sha256(png) and rec["metrics"] == {"demo-run/ape_rmse_m": 0.2}  # type: ignore[attr-defined]
+    assert pictures.problems({"x.png": rec}, tmp_path, {"x.png": "README.md:1"}, registered) == []  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="clean commit"):
+        pictures.record(png, "make snapshots", "a" * 40 + "-dirty", "demo", {})  # type: ignore[attr-defined]
+
+
 def test_a_value_a_fresh_demo_no_longer_gives_fails(tmp_path: Path) -> None:
     """A demo picture's value is compared with the demo's metrics.json within the metric's tolerance."""
     records, _ = _fake(tmp_path, {"demo-run/ape_rmse_m": 0.2, "demo-run/steps": 3001.0})
