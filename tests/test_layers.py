@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+from collections.abc import Iterable
 from pathlib import Path
 
 import pytest
@@ -88,31 +89,42 @@ COMPAT = {"pipeline": "engine", "reader": "engine", "trajectory": "engine", "vie
           "metrics": "evaluation", "run": "runs"}
 
 
-def replay_targets(path: Path) -> set[str]:
-    """What a file imports of replay/, by room (``engine``...), shared module (``errors``) or compat path."""
+def imported_from(path: Path, package: str, depth: int) -> set[str]:
+    """What a file imports of ``slamreplay.<package>``, as the first ``depth`` names below it: for replay/ (depth 1)
+    a room (``engine``), shared module (``errors``) or compat path; for api/ (depth 2) ``room.module``
+    (``service.store``), a room (``cli``) or ``app``. ``from PKG import name`` counts as an import of ``PKG.name``
+    while ``PKG`` is above that depth."""
     targets = set()
     for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
         if isinstance(node, ast.Import):
             modules = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            modules = ([f"{node.module}.{a.name}" for a in node.names] if node.module == "slamreplay.replay"
+            modules = ([f"{node.module}.{a.name}" for a in node.names] if len(node.module.split(".")) < depth + 2
                        else [node.module])
         else:
             continue
-        targets |= {m.split(".")[2] for m in modules if m.startswith("slamreplay.replay.")}
+        targets |= {".".join(m.split(".")[2:2 + depth]) for m in modules if m.startswith(f"slamreplay.{package}.")}
     return targets
+
+
+def replay_targets(path: Path) -> set[str]:
+    return imported_from(path, "replay", 1)
+
+
+def assert_rooms(package: str, top: set[str], rooms: Iterable[str]) -> None:
+    """``package/`` holds the modules ``top`` and the sub-packages ``rooms``, each of whose __init__ says what it
+    owns."""
+    assert {p.stem for p in (REPO / package).glob("*.py")} - {"__init__"} == top
+    assert {p.name for p in (REPO / package).iterdir() if p.is_dir() and p.name != "__pycache__"} == set(rooms)
+    for room in rooms:
+        doc = ast.get_docstring(ast.parse((REPO / package / room / "__init__.py").read_text()))
+        assert doc and len(doc) > 100, f"{package}/{room}/__init__.py does not say what the room owns"
 
 
 def test_replay_is_four_rooms_and_the_pipelines() -> None:
     """replay/ holds only its rooms, the pipelines, the shared vocabulary and the compat paths; each room's
     __init__ says what it owns."""
-    top = {p.stem for p in (REPO / "replay").glob("*.py")} - {"__init__"}
-    dirs = {p.name for p in (REPO / "replay").iterdir() if p.is_dir() and p.name != "__pycache__"}
-    assert top == SHARED | set(COMPAT)
-    assert dirs == set(ROOMS_ALLOWED)
-    for room in dirs:
-        doc = ast.get_docstring(ast.parse((REPO / "replay" / room / "__init__.py").read_text()))
-        assert doc and len(doc) > 100, f"replay/{room}/__init__.py does not say what the room owns"
+    assert_rooms("replay", SHARED | set(COMPAT), ROOMS_ALLOWED)
 
 
 @pytest.mark.parametrize("room", sorted(ROOMS_ALLOWED))
@@ -245,30 +257,9 @@ CLI_USES_OF_SERVICE = {"settings", "datalock", "siteguard", "timeouts", "store",
 MAX_API_MODULE_LINES = 400
 
 
-def api_targets(path: Path) -> set[str]:
-    """What a file imports of api/: ``room.module`` (``service.store``), a room (``cli``) or ``app``."""
-    targets = set()
-    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
-        if isinstance(node, ast.Import):
-            modules = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            modules = ([f"{node.module}.{a.name}" for a in node.names] if node.module.count(".") == 2
-                       else [node.module])
-        else:
-            continue
-        targets |= {".".join(m.split(".")[2:4]) for m in modules if m.startswith("slamreplay.api.")}
-    return targets
-
-
 def test_api_is_rooms_under_the_app() -> None:
     """api/ holds its four rooms and, above them, only ``app``; each room's __init__ says what it owns."""
-    top = {p.stem for p in (REPO / "api").glob("*.py")} - {"__init__"}
-    dirs = {p.name for p in (REPO / "api").iterdir() if p.is_dir() and p.name != "__pycache__"}
-    assert top == {"app"}
-    assert dirs == set(API_ROOMS_ALLOWED)
-    for room in dirs:
-        doc = ast.get_docstring(ast.parse((REPO / "api" / room / "__init__.py").read_text()))
-        assert doc and len(doc) > 100, f"api/{room}/__init__.py does not say what the room owns"
+    assert_rooms("api", {"app"}, API_ROOMS_ALLOWED)
 
 
 @pytest.mark.parametrize("room", sorted(API_ROOMS_ALLOWED))
@@ -276,12 +267,12 @@ def test_api_rooms_import_by_the_rules(room: str) -> None:
     """The service imports neither the web page nor the command line, the web page never the command line, and the
     command line of the service only what it starts or shares (CLI_USES_OF_SERVICE)."""
     for path in files(f"api/{room}"):
-        got = api_targets(path)
+        got = imported_from(path, "api", 2)
         bad = {t for t in got if t.split(".")[0] not in API_ROOMS_ALLOWED[room]}
         if room == "cli":
             bad |= {t for t in got if t.startswith("service.") and t.split(".")[1] not in CLI_USES_OF_SERVICE}
         assert not bad, f"{path.relative_to(REPO)} imports {sorted(bad)}"
-    assert api_targets(REPO / "api" / "app.py") <= {f"service.{m}" for m in ("app", "datalock", "executor",
+    assert imported_from(REPO / "api" / "app.py", "api", 2) <= {f"service.{m}" for m in ("app", "datalock", "executor",
                                                                             "settings")} | {"web.pages", "web.web"}
 
 
