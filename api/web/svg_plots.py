@@ -100,6 +100,19 @@ def _svg(width: int, height: int, title: str, body: str) -> str:
             f"<title>{html.escape(title)}</title>{body}</svg>")
 
 
+def _equal_axes(paths: Sequence[F64], width: int, height: int) -> _Frame:
+    """A frame holding every (n, 2) path on equal scales (a metre as long across as up): the range that fits the
+    plot area less tightly is widened, about the paths' centre."""
+    both = np.vstack(paths)
+    lo, hi = both.min(axis=0), both.max(axis=0)
+    frame = _Frame((0, 1), (0, 1), width, height)
+    dx, dy = (max(float(v), 1e-3) * 1.1 for v in hi - lo)
+    scale = min((frame.right - frame.left) / dx, (frame.bottom - frame.top) / dy)
+    half_x, half_y = (frame.right - frame.left) / scale / 2, (frame.bottom - frame.top) / scale / 2
+    cx, cy = (lo + hi) / 2
+    return _Frame((cx - half_x, cx + half_x), (cy - half_y, cy + half_y), width, height)
+
+
 def trajectory_svg(estimate: F64, truth: F64 | None, dead_reckoning: F64 | None = None,
                    width: int = 480, height: int = 420) -> str:
     """The estimated path (blue) over ground truth (grey) and dead reckoning (orange), on equal axes.
@@ -112,15 +125,7 @@ def trajectory_svg(estimate: F64, truth: F64 | None, dead_reckoning: F64 | None 
     curves = [(a, label, colour) for a, label, colour in ((truth, "ground truth", TRUTH),
                                                           (dead_reckoning, "dead reckoning", DEAD_RECKONING),
                                                           (estimate, "estimate", ESTIMATE)) if a is not None and len(a)]
-    both = np.vstack([a for a, _, _ in curves])
-    lo, hi = both.min(axis=0), both.max(axis=0)
-    frame = _Frame((0, 1), (0, 1), width, height)
-    # Equal scales (a metre as long across as up): the range that fits the plot area less tightly is widened.
-    dx, dy = (max(float(v), 1e-3) * 1.1 for v in hi - lo)
-    scale = min((frame.right - frame.left) / dx, (frame.bottom - frame.top) / dy)
-    half_x, half_y = (frame.right - frame.left) / scale / 2, (frame.bottom - frame.top) / scale / 2
-    cx, cy = (lo + hi) / 2
-    frame = _Frame((cx - half_x, cx + half_x), (cy - half_y, cy + half_y), width, height)
+    frame = _equal_axes([a for a, _, _ in curves], width, height)
     body = frame.axes("x (m)", "y (m)")
     # Truth wide and under the rest, so an estimate that follows it closely still shows both.
     body += "".join(frame.line(thin(a), colour, 4.5 if colour == TRUTH else 1.6,
@@ -166,16 +171,9 @@ def overlay_svg(runs: Sequence[tuple[str, F64]], truths: Sequence[tuple[str, F64
     curves += [(xy, label, RUN_COLOURS[i % len(RUN_COLOURS)]) for i, (label, xy) in enumerate(runs) if len(xy)]
     if not curves:
         return ""
-    both = np.vstack([a for a, _, _ in curves])
-    lo, hi = both.min(axis=0), both.max(axis=0)
     legend_h = 16 * len(curves) + 8  # the legend sits below the plot, so it never hides a path
     plot_h = height
-    frame = _Frame((0, 1), (0, 1), width, plot_h)
-    dx, dy = (max(float(v), 1e-3) * 1.1 for v in hi - lo)
-    scale = min((frame.right - frame.left) / dx, (frame.bottom - frame.top) / dy)
-    half_x, half_y = (frame.right - frame.left) / scale / 2, (frame.bottom - frame.top) / scale / 2
-    cx, cy = (lo + hi) / 2
-    frame = _Frame((cx - half_x, cx + half_x), (cy - half_y, cy + half_y), width, plot_h)
+    frame = _equal_axes([a for a, _, _ in curves], width, plot_h)
     body = frame.axes("x (m)", "y (m)")
     body += "".join(frame.line(thin(a), colour, 4.5 if colour == TRUTH else 1.6) for a, _, colour in curves)
     body += _legend([(label, colour) for _, label, colour in curves], frame.left, plot_h + 10)
