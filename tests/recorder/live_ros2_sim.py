@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -59,13 +60,19 @@ def _ranges(laser: F64, poles_xy: F64, angles: F64, range_max: float) -> F64:
     return np.where(r <= range_max, r, np.inf)
 
 
+def messages_by_topic(recording: Path) -> dict[str, list[Any]]:
+    """A recording's messages by topic, in replay order."""
+    out: dict[str, list[Any]] = {}
+    for e in RecordingReader(recording).messages():
+        out.setdefault(e.topic, []).append(e.msg)
+    return out
+
+
 def sim_as_ros2_bag(recording: Path, bag: Path, *, seed: int = 0, fov_rad: float = math.pi,
                     range_max_m: float = 5.0) -> dict[str, int]:
     """Write ``recording`` (sim-landmarks) as the ROS 2 bag folder ``bag`` (``bag/bag.mcap``); messages per topic."""
     rng = np.random.default_rng(seed)
-    by_topic: dict[str, list[object]] = {}
-    for e in RecordingReader(recording).messages():
-        by_topic.setdefault(e.topic, []).append(e.msg)
+    by_topic = messages_by_topic(recording)
     odom = {m.stamp_ns: np.array([m.x_m, m.y_m, m.yaw_rad]) for m in by_topic[TOPIC_ODOM]}  # type: ignore[attr-defined]
     truth = {m.stamp_ns: np.array([m.x_m, m.y_m, m.yaw_rad])  # type: ignore[attr-defined]
              for m in by_topic[TOPIC_GROUND_TRUTH_POSE]}

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from live_ros2_sim import sim_as_ros2_bag
+from live_ros2_sim import messages_by_topic, sim_as_ros2_bag
 from mcap.reader import make_reader
 from patience import deadline as give_up_at
 
@@ -191,12 +191,8 @@ def test_live_ros2_stream_of_the_simulation_loses_no_message(
     assert all(c.bad == 0 for c in summary.topics)
     assert any(line.strip().startswith("/tf ") and "-> transform tree (ground truth composed through the tree)"
                in line for line in lines), lines
-    by_topic: dict[str, list[Any]] = {}
-    for e in RecordingReader(direct).messages():
-        by_topic.setdefault(e.topic, []).append(e.msg)
-    live: dict[str, list[Any]] = {}
-    for e in RecordingReader(out).messages():
-        live.setdefault(e.topic, []).append(e.msg)
+    by_topic = messages_by_topic(direct)
+    live = messages_by_topic(out)
     assert {t: len(m) for t, m in live.items()} == {t: len(m) for t, m in by_topic.items()} == {
         "/odom": 301, "/ground_truth/pose": 301, TOPIC_RANGE_BEARING: 151}
     for topic, msgs in by_topic.items():
@@ -235,12 +231,8 @@ def test_live_ros2_cdr_channels_convert_as_record_ros2_does(tmp_path: Path, peer
     peers.append(peer := Peer(tmp_path, bag / "bag.mcap"))
     out = tmp_path / "live.mcap"
     _, _, summary = _record_all(peer, out)
-    by_topic: dict[str, list[object]] = {}
-    for e in RecordingReader(imported).messages():
-        by_topic.setdefault(e.topic, []).append(e.msg)
-    live: dict[str, list[object]] = {}
-    for e in RecordingReader(out).messages():
-        live.setdefault(e.topic, []).append(e.msg)
+    by_topic = messages_by_topic(imported)
+    live = messages_by_topic(out)
     assert sorted(live) == sorted(by_topic) and TOPIC_RANGE_BEARING in live
     for topic, msgs in by_topic.items():
         assert len(live[topic]) == len(msgs), topic
@@ -264,12 +256,8 @@ def test_live_odometry_only_on_tf_is_composed_as_record_ros2_does(tmp_path: Path
     out = tmp_path / "live.mcap"
     _, lines, summary = _record_all(peer, out, ground_truth_frame="map")
     assert any("odometry and ground truth composed through the tree" in line for line in lines), lines
-    want: dict[str, list[Any]] = {}
-    for e in RecordingReader(imported).messages():
-        want.setdefault(e.topic, []).append(e.msg)
-    got: dict[str, list[Any]] = {}
-    for e in RecordingReader(out).messages():
-        got.setdefault(e.topic, []).append(e.msg)
+    want = messages_by_topic(imported)
+    got = messages_by_topic(out)
     assert sorted(got) == sorted(want) == sorted(["/ground_truth/pose", "/imu/yaw_rate", "/odom", TOPIC_RANGE_BEARING])
     assert len(got["/odom"]) == len(want["/odom"]) == 40
     for topic in ("/odom", "/ground_truth/pose"):
