@@ -13,9 +13,8 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+from slamreplay.api.cli.cli_parser import EXIT_OK
 from slamreplay.replay.tools.export_names import exports_help
-
-EXIT_OK = 0
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:

@@ -7,10 +7,9 @@ import json
 import sys
 from typing import Any
 
+from slamreplay.api.cli.cli_parser import EXIT_BAD_INPUT, EXIT_OK
 from slamreplay.recorder.options import did_you_mean
 from slamreplay.replay.errors import ReplayError
-
-EXIT_OK, EXIT_BAD_INPUT = 0, 2
 
 
 def add_pipelines_parser(sub: Any) -> None:

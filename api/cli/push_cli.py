@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-EXIT_OK, EXIT_REFUSED = 0, 2
+from slamreplay.api.cli.cli_parser import EXIT_BAD_INPUT, EXIT_OK
 
 
 def cmd_push(args: argparse.Namespace) -> int:
@@ -68,7 +68,7 @@ def cmd_push(args: argparse.Namespace) -> int:
     if counts["runs"] > 1:
         print(f"{counts['runs'] - counts['refused']} of {counts['runs']} runs on {server.url}"
               + (f"; {counts['refused']} refused" if counts["refused"] else ""))
-    return EXIT_REFUSED if counts["refused"] else EXIT_OK
+    return EXIT_BAD_INPUT if counts["refused"] else EXIT_OK
 
 
 def add_push_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

@@ -16,7 +16,7 @@ import sys
 import time
 from typing import Any
 
-EXIT_OK = 0
+from slamreplay.api.cli.cli_parser import EXIT_OK
 
 
 def _store(args: argparse.Namespace, create: bool = False) -> Any:
